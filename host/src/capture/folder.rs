@@ -1,0 +1,435 @@
+//! The capture folder (DESIGN section 8):
+//!
+//! ```text
+//! CAPTURE/
+//!   capture.json      manifest: booth snapshot, frame plan, per-frame trigger log, units
+//!   frames/NNNN.png   16-bit RGB PNG, sensor codes of `bit_depth` bits MSB-aligned (code << (16 - bits))
+//!   truth/            optional ground truth written by the virtual booth
+//! ```
+//!
+//! Frames are decoded to linear `f32` RGB in [0, 1] (code / (2^bits - 1)). Folders are written
+//! atomically: everything goes to a hidden sibling folder that is renamed into place at the end.
+
+use std::fs;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+use image::{ImageEncoder, Rgb32FImage};
+use serde::{Deserialize, Serialize};
+
+use super::frame_plan::{FramePlan, FrameSpec};
+use crate::booth::Booth;
+
+/// Version of the capture folder format.
+pub const CAPTURE_FORMAT_VERSION: u32 = 1;
+/// Name of the manifest file.
+pub const MANIFEST_FILE: &str = "capture.json";
+
+/// Errors reading or writing a capture folder.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum CaptureError {
+    /// A file or folder could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// `capture.json` is missing fields or malformed.
+    #[error("{path}: invalid capture manifest: {source}")]
+    Manifest {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    /// A frame image could not be decoded or encoded.
+    #[error("frame {path}: {source}")]
+    Image {
+        path: PathBuf,
+        source: image::ImageError,
+    },
+    /// A frame does not have the size or format the manifest promises.
+    #[error("frame {path}: {reason}")]
+    BadFrame { path: PathBuf, reason: String },
+    /// The manifest names a frame index that does not exist.
+    #[error("capture has no frame {index} (it has {count})")]
+    NoSuchFrame { index: u32, count: usize },
+    /// The output folder exists already.
+    #[error("{0} exists already; remove it or choose another --out")]
+    Exists(PathBuf),
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> CaptureError + '_ {
+    move |source| CaptureError::Io {
+        path: path.to_owned(),
+        source,
+    }
+}
+
+/// When and how one frame was triggered (from the controller, or synthetic for the virtual booth).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TriggerRecord {
+    pub frame_index: u32,
+    /// Controller time of the trigger edge, microseconds.
+    pub timestamp_us: u64,
+    /// VSYNC count of the lit projector at the trigger.
+    pub vsync_count: u32,
+    /// Slots lost before this frame was triggered (0 when on time).
+    #[serde(default)]
+    pub retries: u32,
+    #[serde(default)]
+    pub late: bool,
+}
+
+/// What kind of capture a folder holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CaptureKind {
+    /// A subject scan ([`FramePlan::scan`]).
+    Scan,
+    /// One pose of a calibration target ([`FramePlan::calibration`]).
+    Calibration,
+}
+
+/// The contents of `capture.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CaptureManifest {
+    pub format_version: u32,
+    pub kind: CaptureKind,
+    /// Snapshot of the booth the capture was made with.
+    pub booth: Booth,
+    pub plan: FramePlan,
+    /// Bits per sample of the camera codes stored in the frames.
+    pub bit_depth: u32,
+    #[serde(default)]
+    pub trigger_log: Vec<TriggerRecord>,
+    /// Units of the numbers in this file and the frames.
+    pub units: Units,
+    /// Free-form description of where the capture came from (simulator settings, rig port, ...).
+    #[serde(default)]
+    pub source: serde_json::Value,
+}
+
+/// The units of a capture (fixed; written so a reader never has to guess).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Units {
+    pub length: String,
+    pub time: String,
+    pub pixel_values: String,
+}
+
+impl Default for Units {
+    fn default() -> Self {
+        Self {
+            length: "mm".into(),
+            time: "us".into(),
+            pixel_values:
+                "16-bit PNG, camera codes MSB-aligned; linear value = code / (2^bit_depth - 1)"
+                    .into(),
+        }
+    }
+}
+
+impl CaptureManifest {
+    pub fn new(kind: CaptureKind, booth: Booth, plan: FramePlan) -> Self {
+        Self {
+            format_version: CAPTURE_FORMAT_VERSION,
+            kind,
+            bit_depth: booth.camera.bit_depth,
+            booth,
+            plan,
+            trigger_log: Vec::new(),
+            units: Units::default(),
+            source: serde_json::Value::Null,
+        }
+    }
+}
+
+/// Relative path of frame `index` inside a capture folder.
+pub fn frame_file(index: u32) -> String {
+    format!("frames/{index:04}.png")
+}
+
+/// An opened capture folder.
+#[derive(Debug, Clone)]
+pub struct Capture {
+    pub root: PathBuf,
+    pub manifest: CaptureManifest,
+}
+
+impl Capture {
+    /// Opens a capture folder and reads its manifest.
+    pub fn open(root: &Path) -> Result<Self, CaptureError> {
+        let path = root.join(MANIFEST_FILE);
+        let text = fs::read_to_string(&path).map_err(io_err(&path))?;
+        let manifest = serde_json::from_str(&text)
+            .map_err(|source| CaptureError::Manifest { path, source })?;
+        Ok(Self {
+            root: root.to_owned(),
+            manifest,
+        })
+    }
+
+    /// The `truth/` folder, if this capture has ground truth.
+    pub fn truth_dir(&self) -> Option<PathBuf> {
+        let dir = self.root.join("truth");
+        dir.is_dir().then_some(dir)
+    }
+
+    /// Reads frame `index` as linear RGB in [0, 1].
+    pub fn read_frame(&self, index: u32) -> Result<Rgb32FImage, CaptureError> {
+        let count = self.manifest.plan.len();
+        if index as usize >= count {
+            return Err(CaptureError::NoSuchFrame { index, count });
+        }
+        let cam = &self.manifest.booth.camera;
+        read_frame_png(
+            &self.root.join(frame_file(index)),
+            self.manifest.bit_depth,
+            (cam.width, cam.height),
+        )
+    }
+
+    /// Reads the frame described by `spec`.
+    pub fn read(&self, spec: &FrameSpec) -> Result<Rgb32FImage, CaptureError> {
+        self.read_frame(spec.index)
+    }
+}
+
+/// Reads a 16-bit (or 8-bit) RGB PNG written by [`write_frame_png`] as linear RGB in [0, 1].
+pub fn read_frame_png(
+    path: &Path,
+    bit_depth: u32,
+    expected_size: (u32, u32),
+) -> Result<Rgb32FImage, CaptureError> {
+    let img = image::open(path).map_err(|source| CaptureError::Image {
+        path: path.to_owned(),
+        source,
+    })?;
+    if (img.width(), img.height()) != expected_size {
+        return Err(CaptureError::BadFrame {
+            path: path.to_owned(),
+            reason: format!(
+                "is {}x{}, the capture's camera is {}x{}",
+                img.width(),
+                img.height(),
+                expected_size.0,
+                expected_size.1
+            ),
+        });
+    }
+    let rgb16 = img.into_rgb16();
+    let shift = 16 - bit_depth.min(16);
+    let scale = 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32;
+    let data = rgb16
+        .as_raw()
+        .iter()
+        .map(|&c| (c >> shift) as f32 * scale)
+        .collect();
+    Rgb32FImage::from_raw(rgb16.width(), rgb16.height(), data).ok_or_else(|| {
+        CaptureError::BadFrame {
+            path: path.to_owned(),
+            reason: "buffer size mismatch".into(),
+        }
+    })
+}
+
+/// Writes linear RGB in [0, 1] as sensor codes of `bit_depth` bits, MSB-aligned in a 16-bit PNG.
+/// Values are clamped (saturation) and rounded (quantisation).
+pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result<(), CaptureError> {
+    let max_code = ((1u32 << bit_depth) - 1) as f32;
+    let shift = 16 - bit_depth;
+    let bytes: Vec<u8> = img
+        .as_raw()
+        .iter()
+        .flat_map(|&v| {
+            let code = (v.clamp(0.0, 1.0) * max_code).round() as u16;
+            (code << shift).to_ne_bytes() // the encoder takes native-endian samples
+        })
+        .collect();
+    let file = fs::File::create(path).map_err(io_err(path))?;
+    let encoder =
+        PngEncoder::new_with_quality(BufWriter::new(file), CompressionType::Fast, FilterType::Sub);
+    encoder
+        .write_image(
+            &bytes,
+            img.width(),
+            img.height(),
+            image::ExtendedColorType::Rgb16,
+        )
+        .map_err(|source| CaptureError::Image {
+            path: path.to_owned(),
+            source,
+        })
+}
+
+/// Writes a capture folder atomically: frames go to a hidden sibling folder, renamed into place by
+/// [`CaptureWriter::finish`]. Dropping the writer without finishing removes the partial folder.
+pub struct CaptureWriter {
+    target: PathBuf,
+    staging: PathBuf,
+    manifest: CaptureManifest,
+    finished: bool,
+}
+
+impl CaptureWriter {
+    /// Starts a capture folder at `target`, which must not exist.
+    pub fn create(target: &Path, manifest: CaptureManifest) -> Result<Self, CaptureError> {
+        if target.exists() {
+            return Err(CaptureError::Exists(target.to_owned()));
+        }
+        let parent = target
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        fs::create_dir_all(parent).map_err(io_err(parent))?;
+        let name = target
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "capture".into());
+        let staging = parent.join(format!(".{name}.partial-{}", std::process::id()));
+        if staging.exists() {
+            fs::remove_dir_all(&staging).map_err(io_err(&staging))?;
+        }
+        let frames = staging.join("frames");
+        fs::create_dir_all(&frames).map_err(io_err(&frames))?;
+        Ok(Self {
+            target: target.to_owned(),
+            staging,
+            manifest,
+            finished: false,
+        })
+    }
+
+    /// Folder where extra files (e.g. `truth/`) can be written before [`CaptureWriter::finish`].
+    pub fn staging_dir(&self) -> &Path {
+        &self.staging
+    }
+
+    pub fn manifest_mut(&mut self) -> &mut CaptureManifest {
+        &mut self.manifest
+    }
+
+    /// Writes frame `index` (linear RGB in [0, 1]).
+    pub fn write_frame(&self, index: u32, img: &Rgb32FImage) -> Result<(), CaptureError> {
+        let cam = &self.manifest.booth.camera;
+        if (img.width(), img.height()) != (cam.width, cam.height) {
+            return Err(CaptureError::BadFrame {
+                path: PathBuf::from(frame_file(index)),
+                reason: format!(
+                    "is {}x{}, the camera is {}x{}",
+                    img.width(),
+                    img.height(),
+                    cam.width,
+                    cam.height
+                ),
+            });
+        }
+        write_frame_png(
+            &self.staging.join(frame_file(index)),
+            img,
+            self.manifest.bit_depth,
+        )
+    }
+
+    /// Writes the manifest and moves the folder into place.
+    pub fn finish(mut self) -> Result<PathBuf, CaptureError> {
+        let manifest_path = self.staging.join(MANIFEST_FILE);
+        let text = serde_json::to_string_pretty(&self.manifest).map_err(|source| {
+            CaptureError::Manifest {
+                path: manifest_path.clone(),
+                source,
+            }
+        })?;
+        fs::write(&manifest_path, text).map_err(io_err(&manifest_path))?;
+        fs::rename(&self.staging, &self.target).map_err(io_err(&self.target))?;
+        self.finished = true;
+        Ok(self.target.clone())
+    }
+}
+
+impl Drop for CaptureWriter {
+    fn drop(&mut self) {
+        if !self.finished {
+            let _ = fs::remove_dir_all(&self.staging);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::capture::FramePlan;
+
+    fn tiny_booth() -> Booth {
+        let mut booth = Booth::builtin(true);
+        booth.camera.width = 8;
+        booth.camera.height = 5;
+        booth
+    }
+
+    #[test]
+    fn frames_round_trip_through_12_bit_codes() {
+        let dir = tempfile::tempdir().unwrap();
+        let booth = tiny_booth();
+        let plan = FramePlan::scan(&booth.patterns, 1);
+        let manifest = CaptureManifest::new(CaptureKind::Scan, booth, plan);
+        let target = dir.path().join("cap");
+        let writer = CaptureWriter::create(&target, manifest).unwrap();
+        let img = Rgb32FImage::from_fn(8, 5, |x, y| {
+            image::Rgb([
+                x as f32 / 7.0,
+                y as f32 / 4.0,
+                if x == 0 { 2.0 } else { -1.0 },
+            ])
+        });
+        writer.write_frame(0, &img).unwrap();
+        assert!(!target.exists(), "nothing visible before finish");
+        writer.finish().unwrap();
+        let cap = Capture::open(&target).unwrap();
+        let back = cap.read_frame(0).unwrap();
+        for (a, b) in img.pixels().zip(back.pixels()) {
+            for c in 0..3 {
+                let expected = a.0[c].clamp(0.0, 1.0);
+                assert!(
+                    (expected - b.0[c]).abs() <= 0.5 / 4095.0 + 1e-6,
+                    "{a:?} {b:?}"
+                );
+            }
+        }
+        assert!(matches!(
+            cap.read_frame(999),
+            Err(CaptureError::NoSuchFrame { .. })
+        ));
+    }
+
+    #[test]
+    fn unfinished_capture_leaves_nothing_behind() {
+        let dir = tempfile::tempdir().unwrap();
+        let booth = tiny_booth();
+        let plan = FramePlan::scan(&booth.patterns, 1);
+        let target = dir.path().join("cap");
+        {
+            let _w = CaptureWriter::create(
+                &target,
+                CaptureManifest::new(CaptureKind::Scan, booth, plan),
+            )
+            .unwrap();
+        }
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn wrong_frame_size_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let booth = tiny_booth();
+        let plan = FramePlan::scan(&booth.patterns, 1);
+        let w = CaptureWriter::create(
+            &dir.path().join("cap"),
+            CaptureManifest::new(CaptureKind::Scan, booth, plan),
+        )
+        .unwrap();
+        let err = w.write_frame(0, &Rgb32FImage::new(3, 3)).unwrap_err();
+        assert!(err.to_string().contains("3x3"), "{err}");
+    }
+}

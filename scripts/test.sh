@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Runs every test of the project on a fresh machine: installs what is missing (the thumbv7em target,
+# qemu-system-arm), then formatting, lints, host tests, firmware tests and cross-builds.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+step() { printf '\n==> %s\n' "$*" >&2; }
+
+step "toolchain: thumbv7em-none-eabihf target, rustfmt, clippy"
+if ! rustup target list --installed | grep -qx thumbv7em-none-eabihf; then
+    rustup target add thumbv7em-none-eabihf
+fi
+rustup component list --installed | grep -q '^rustfmt' || rustup component add rustfmt
+rustup component list --installed | grep -q '^clippy' || rustup component add clippy
+
+step "qemu-system-arm (hardware-in-the-loop tests)"
+if ! command -v qemu-system-arm >/dev/null 2>&1; then
+    if [ "$(id -u)" = 0 ]; then
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -qq && apt-get install -y -qq qemu-system-arm >/dev/null
+    elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+        sudo apt-get update -qq && sudo apt-get install -y -qq qemu-system-arm >/dev/null
+    else
+        echo "error: qemu-system-arm is missing and this user cannot install it." >&2
+        echo "       install it as root: apt-get install qemu-system-arm" >&2
+        exit 1
+    fi
+fi
+
+step "cargo fmt --check"
+cargo fmt --all -- --check
+
+step "cargo clippy (host workspace)"
+cargo clippy --workspace --all-targets -- -D warnings
+
+step "shared crate builds for the microcontroller"
+cargo build -p mlsss-shared --target thumbv7em-none-eabihf --no-default-features
+
+if [ -f firmware/Cargo.toml ]; then
+    step "firmware: fmt, clippy, host tests of the sequencer core, board images"
+    (cd firmware && ./build.sh)
+fi
+
+step "host tests (unit, integration, hardware-in-the-loop)"
+cargo test --workspace
