@@ -1,10 +1,10 @@
 //! `mlsss`: the command-line program. A thin layer over the `mlsss` library: argument parsing,
-//! progress and error reporting; all work happens in the library.
+//! progress and error reporting; all work happens in the library. One file per subcommand in `cli/`.
 
-use std::path::PathBuf;
+mod cli;
+
 use std::process::ExitCode;
 
-use anyhow::Context;
 use clap::{Parser, Subcommand};
 
 /// Measure and render the multi-layered subsurface scattering of skin (MLSSS) from a booth of
@@ -18,27 +18,14 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Inspect a booth description: parse and validate it, print the frame plan summary.
-    Booth(BoothArgs),
-}
-
-#[derive(Debug, clap::Args)]
-struct BoothArgs {
-    /// Booth file (default: the built-in hardware/booth.toml).
-    #[arg(long)]
-    file: Option<PathBuf>,
-    /// Use the built-in --quick booth.
-    #[arg(long, conflicts_with = "file")]
-    quick: bool,
-    /// Print one JSON object on stdout.
-    #[arg(long)]
-    json: bool,
+    /// Inspect a booth description: parse and validate it, summarise the frame plan.
+    Booth(cli::booth::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Booth(args) => run_booth(args),
+        Command::Booth(args) => cli::booth::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -47,36 +34,4 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-fn run_booth(args: BoothArgs) -> anyhow::Result<()> {
-    let booth = match &args.file {
-        Some(path) => mlsss::booth::Booth::from_file(path)
-            .with_context(|| format!("loading booth {}", path.display()))?,
-        None => mlsss::booth::Booth::builtin(args.quick),
-    };
-    let plan = mlsss::capture::FramePlan::scan(&booth.patterns, booth.projectors.len());
-    let seconds = plan.len() as f64 / booth.timing.fps;
-    if args.json {
-        let value = serde_json::json!({
-            "name": booth.name,
-            "camera": [booth.camera.width, booth.camera.height],
-            "projectors": booth.projectors.len(),
-            "frames": plan.len(),
-            "capture_seconds": seconds,
-        });
-        println!("{value}");
-    } else {
-        println!(
-            "booth '{}': camera {}x{}, {} projectors, {} frames, {:.1} s at {} fps",
-            booth.name,
-            booth.camera.width,
-            booth.camera.height,
-            booth.projectors.len(),
-            plan.len(),
-            seconds,
-            booth.timing.fps
-        );
-    }
-    Ok(())
 }

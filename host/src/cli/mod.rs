@@ -1,0 +1,5 @@
+//! One file per subcommand. Each file defines `Args` (clap) and `run(args) -> anyhow::Result<()>`.
+//! Commands that measure something take `--json` and print exactly one JSON object on stdout;
+//! progress and logs go to stderr.
+
+pub mod booth;
