@@ -8,3 +8,4 @@
 pub mod booth;
 pub mod calib;
 pub mod capture;
+pub mod imageio;

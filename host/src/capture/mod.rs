@@ -5,6 +5,7 @@
 pub mod folder;
 pub mod frame_plan;
 pub mod patterns;
+pub mod truth;
 
 pub use folder::{Capture, CaptureError, CaptureManifest, CaptureWriter, TriggerRecord};
 pub use frame_plan::{FramePlan, FrameSpec};
