@@ -1,1 +1,3 @@
 mod booth_cli;
+mod mc_cli;
+mod mc_validation;
