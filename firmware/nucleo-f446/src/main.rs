@@ -193,7 +193,10 @@ fn main() -> ! {
     critical_section::with(|cs| RX.borrow_ref_mut(cs).replace(rx));
 
     let trigger: TriggerPin = gpioa.pa8.into_push_pull_output();
-    let exposure: ExposurePin = gpioa.pa9.into_pull_down_input();
+    #[cfg(feature = "exposure-input")]
+    let exposure: Option<ExposurePin> = Some(gpioa.pa9.into_pull_down_input());
+    #[cfg(not(feature = "exposure-input"))]
+    let exposure: Option<ExposurePin> = None;
 
     // SAFETY: the handlers only touch their own EXTI line / USART2 and the statics above.
     unsafe {
@@ -215,7 +218,7 @@ fn main() -> ! {
         timer_tick_ns: 1000,
     };
     let Ok(controller) =
-        Controller::<_, _, _, _, 4>::new(Usart2 { tx }, trigger, Some(exposure), Tim2Clock, info)
+        Controller::<_, _, _, _, 4>::new(Usart2 { tx }, trigger, exposure, Tim2Clock, info)
     else {
         panic!("controller");
     };

@@ -35,6 +35,10 @@ pub const TRIGGER_SPIN_US: u64 = 200;
 /// send through a blocking UART; it must not delay the edge).
 pub const IO_GUARD_US: u64 = 2_000;
 
+/// Sampling interval of the exposure-active input while the camera exposes (the resolution of
+/// `ExposureDone` with camera feedback).
+pub const EXPOSURE_SAMPLE_US: u64 = 50;
+
 /// Interval of the controller's `Heartbeat` while a host is identified.
 pub const HEARTBEAT_US: u64 = 1_000_000;
 
@@ -171,7 +175,7 @@ where
         if !self.io_guarded(now) {
             self.flush()?;
         }
-        let next = self.next_deadline();
+        let next = self.next_deadline(now);
         if let Some(at) = next {
             self.clock.set_alarm(at);
         }
@@ -463,12 +467,18 @@ where
         }
     }
 
-    fn next_deadline(&self) -> Option<u64> {
+    fn next_deadline(&self, now: u64) -> Option<u64> {
         let run = self
             .run
             .as_ref()
             .zip(self.schedule.as_ref())
-            .and_then(|(run, schedule)| run.next_deadline(schedule, &self.vsync, TRIGGER_SPIN_US));
+            .and_then(|(run, schedule)| {
+                // The exposure-active input has no interrupt: sample it while the camera exposes.
+                if self.exposure.is_some() && matches!(run.stage(), Stage::Exposing { .. }) {
+                    return Some(now + EXPOSURE_SAMPLE_US);
+                }
+                run.next_deadline(schedule, &self.vsync, TRIGGER_SPIN_US)
+            });
         let heartbeat = self.identified.then_some(self.next_heartbeat_us);
         match (run, heartbeat) {
             (Some(a), Some(b)) => Some(a.min(b)),

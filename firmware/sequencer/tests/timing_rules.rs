@@ -426,3 +426,68 @@ fn no_serial_output_close_to_a_trigger_edge() {
         );
     }
 }
+
+/// A bench whose camera reports exposure-active in the given intervals.
+fn bench_with_camera(high: Vec<(u64, u64)>) -> Bench<RecordingPin, CameraActive> {
+    let time = std::rc::Rc::new(std::cell::RefCell::new(SimTime::default()));
+    let pin = RecordingPin {
+        edges: Default::default(),
+        time: time.clone(),
+    };
+    let camera = CameraActive {
+        time: time.clone(),
+        high: std::rc::Rc::new(std::cell::RefCell::new(high)),
+    };
+    Bench::with_pins(time, pin, Some(camera))
+}
+
+/// Rule 6 with camera feedback: ExposureDone at the falling edge of exposure-active.
+#[test]
+fn exposure_done_follows_the_cameras_exposure_active_output() {
+    // First run without feedback to learn the trigger time, then a camera that exposes from
+    // the trigger for 25 ms (shorter than the planned 33 ms).
+    let (mut plain, _) = Bench::booth();
+    plain.start_run(booth_header(1), &booth_entries(1)[..1]);
+    plain.run_until(END);
+    let t0 = plain.triggers()[0].timestamp_us;
+    let mut bench = bench_with_camera(vec![(t0 + 50, t0 + 25_000)]);
+    bench.start_run(booth_header(1), &booth_entries(1)[..1]);
+    bench.run_until(END);
+    assert_eq!(bench.triggers()[0].timestamp_us, t0);
+    let exposures = bench.find(|m| match m {
+        ControllerMessage::ExposureDone(e) => Some(e.timestamp_us),
+        _ => None,
+    });
+    assert_eq!(exposures.len(), 1);
+    let sample = mlsss_sequencer::controller::EXPOSURE_SAMPLE_US;
+    assert!(
+        (t0 + 25_000..=t0 + 25_000 + sample).contains(&exposures[0]),
+        "{exposures:?}"
+    );
+}
+
+/// A camera that never exposes after the trigger: ExposureMissing, retried, never done.
+#[test]
+fn a_camera_that_never_exposes_makes_the_frame_late() {
+    let mut bench = bench_with_camera(Vec::new());
+    let mut header = booth_header(1);
+    header.policy.max_retries = 1;
+    bench.start_run(header, &booth_entries(1)[..1]);
+    bench.run_until(END);
+    let late = bench.find(|m| match m {
+        ControllerMessage::FrameLate(l) => Some((l.attempt, l.reason)),
+        _ => None,
+    });
+    assert_eq!(
+        late,
+        vec![
+            (0, LateReason::ExposureMissing),
+            (1, LateReason::ExposureMissing)
+        ]
+    );
+    assert!(
+        bench
+            .find(|m| matches!(m, ControllerMessage::ExposureDone(_)).then_some(()))
+            .is_empty()
+    );
+}
