@@ -8,4 +8,5 @@
 pub mod booth;
 pub mod calib;
 pub mod capture;
+pub mod geometry;
 pub mod imageio;
