@@ -10,3 +10,4 @@ pub mod calib;
 pub mod capture;
 pub mod geometry;
 pub mod imageio;
+pub mod mc;
