@@ -6,6 +6,8 @@ pub mod boxed_gaussian;
 pub mod em_free;
 pub mod em_layered;
 pub mod mixture;
+pub mod render;
+pub mod surface;
 
 #[cfg(test)]
 mod em_properties;
