@@ -18,8 +18,9 @@ use mlsss_shared::framing::{
     ControllerEncoder, EncodeError, FrameError, HostDecoder, MAX_WIRE_FRAME_LEN, Received,
 };
 use mlsss_shared::message::{
-    Ack, Board, ControllerHeartbeat, ControllerMessage, ControllerState, DoneSummary, ErrorCode,
-    Hello, HelloReply, HostMessage, LinkStats, Nack, ProjectorTiming, StatusReport,
+    Ack, Board, ControllerHeartbeat, ControllerMessage, ControllerState, DoneSummary, DropReason,
+    ErrorCode, FrameDropped, Hello, HelloReply, HostMessage, LinkStats, Nack, ProjectorTiming,
+    RunOutcome, StatusReport,
 };
 use mlsss_shared::{PROTOCOL_VERSION, SCHEMA_HASH};
 
@@ -39,11 +40,18 @@ pub const IO_GUARD_US: u64 = 2_000;
 /// `ExposureDone` with camera feedback).
 pub const EXPOSURE_SAMPLE_US: u64 = 50;
 
+/// A board does not sleep when a planned exposure end is closer than this (it may only wake at
+/// the next VSYNC edge of any projector).
+pub const SLEEP_GUARD_US: u64 = 2_000;
+
 /// Interval of the controller's `Heartbeat` while a host is identified.
 pub const HEARTBEAT_US: u64 = 1_000_000;
 
 /// Refresh period assumed for VSYNC measurement before a schedule says otherwise (60 Hz).
 const DEFAULT_REFRESH_US: u32 = 16_667;
+
+/// Room kept in the outbox for `Done` and the projector timings.
+const DONE_MESSAGES: usize = 1 + 8;
 
 /// Bytes read from the serial port per poll (keeps each poll short).
 const READ_CHUNK: usize = 64;
@@ -90,6 +98,8 @@ pub struct Controller<S, T, X, C, const N: usize> {
     armed: bool,
     run: Option<Run>,
     done_sent: bool,
+    /// Next frame to report dropped after an aborted run.
+    drop_cursor: Option<u16>,
     trigger_high: bool,
     status_after_silence: bool,
     vsync: [VsyncTracker; N],
@@ -127,6 +137,7 @@ where
             armed: false,
             run: None,
             done_sent: false,
+            drop_cursor: None,
             trigger_high: false,
             status_after_silence: false,
             vsync: [VsyncTracker::new(DEFAULT_REFRESH_US); N],
@@ -196,6 +207,21 @@ where
             None if self.schedule.is_some() => ControllerState::Ready,
             None => ControllerState::Idle,
         }
+    }
+
+    /// True when the board may sleep until its next VSYNC interrupt: a run is in progress and
+    /// only waits for VSYNC edges or a planned exposure end more than [`SLEEP_GUARD_US`] away,
+    /// with no host answer outstanding and nothing left to send. (Under QEMU's
+    /// `-icount sleep=off` such a sleep costs no real time; while the host is expected to
+    /// answer, the board must keep running instructions so virtual time follows real time.)
+    pub fn may_sleep(&mut self) -> bool {
+        let now = self.clock.now_us();
+        let feedback = self.exposure.is_some();
+        self.out.is_empty()
+            && self
+                .run
+                .as_ref()
+                .is_some_and(|run| run.waits_for_edges_only(now, feedback, SLEEP_GUARD_US))
     }
 
     /// The VSYNC tracker of each projector.
@@ -329,6 +355,7 @@ where
             }
             HostMessage::ScheduleCommit(commit) => {
                 self.schedule = Some(self.loader.commit(commit)?);
+                log!(info, "schedule of {} frames committed", commit.frame_count);
                 self.ack(seq);
             }
             HostMessage::Arm => {
@@ -349,7 +376,14 @@ where
                 self.ack(seq);
                 self.armed = false;
                 self.done_sent = false;
+                self.drop_cursor = None;
                 if let Some(schedule) = self.schedule.as_ref() {
+                    log!(
+                        info,
+                        "run of {} frames starts at {} us",
+                        schedule.frame_count(),
+                        now
+                    );
                     self.run = Some(Run::start(schedule, now, &mut self.out));
                 }
             }
@@ -401,14 +435,44 @@ where
         if self.done_sent {
             return;
         }
+        let frame_count = self.schedule.as_ref().map_or(0, Schedule::frame_count);
+        // The frames after the one in flight are never requested: each is reported dropped
+        // before `Done` (a few per poll, the outbox is small), so none is lost silently.
+        let not_reached = if outcome == RunOutcome::Completed {
+            0
+        } else {
+            let first = run.frame().saturating_add(1);
+            let mut next = self.drop_cursor.unwrap_or(first);
+            while next < frame_count && self.out.len() + DONE_MESSAGES < self.out.capacity() {
+                let dropped = FrameDropped {
+                    frame: next,
+                    reason: DropReason::RunAborted,
+                };
+                let _ = self.out.push_back(ControllerMessage::FrameDropped(dropped));
+                next += 1;
+            }
+            self.drop_cursor = Some(next);
+            if next < frame_count {
+                return;
+            }
+            frame_count.saturating_sub(first)
+        };
         self.done_sent = true;
         let stats = run.stats();
+        log!(
+            info,
+            "run done: {}, {} triggered, {} late, {} dropped",
+            defmt::Debug2Format(&outcome),
+            stats.triggered,
+            stats.late,
+            stats.dropped + not_reached
+        );
         let summary = DoneSummary {
             outcome,
             frames_triggered: stats.triggered,
             frames_late: stats.late,
             frames_retried: stats.retried,
-            frames_dropped: stats.dropped,
+            frames_dropped: stats.dropped + not_reached,
             first_trigger_us: stats.first_trigger_us.unwrap_or(0),
             last_trigger_us: stats.last_trigger_us.unwrap_or(0),
             link: self.link_stats(),
@@ -508,6 +572,7 @@ where
     }
 
     fn nack(&mut self, seq: u16, error: ErrorCode) {
+        log!(warn, "nack seq {}: {}", seq, defmt::Debug2Format(&error));
         self.push(ControllerMessage::Nack(Nack { seq, error }));
     }
 }

@@ -479,6 +479,26 @@ impl Run {
         }
     }
 
+    /// True while the run only waits for VSYNC edges or the planned end of an exposure (no
+    /// host answer outstanding, no trigger edge within `guard_us`): a board may then sleep until
+    /// its next VSYNC interrupt. `exposure_feedback`: the camera's exposure-active input is read
+    /// (it has no interrupt, so it must be sampled).
+    pub fn waits_for_edges_only(
+        &self,
+        now_us: u64,
+        exposure_feedback: bool,
+        guard_us: u64,
+    ) -> bool {
+        match self.stage {
+            Stage::Settling { .. } => true,
+            Stage::AwaitSlot => self.shown_at_us.is_some(),
+            Stage::Exposing {
+                exposure_end_us, ..
+            } => !exposure_feedback && exposure_end_us > now_us + guard_us,
+            _ => false,
+        }
+    }
+
     /// `Resume` after a pause: the same frame is requested again with a full slot ahead.
     pub fn resume(&mut self, schedule: &Schedule, now_us: u64, out: &mut Outbox) -> bool {
         if self.stage != Stage::Paused {
@@ -566,6 +586,13 @@ impl Run {
     }
 
     fn report_late(&mut self, reason: LateReason, out: &mut Outbox) {
+        log!(
+            warn,
+            "frame {} attempt {} late: {}",
+            self.frame,
+            self.attempt,
+            defmt::Debug2Format(&reason)
+        );
         self.stats.late += 1;
         push(
             out,
@@ -621,6 +648,12 @@ impl Run {
     }
 
     fn drop_frame(&mut self, reason: DropReason, out: &mut Outbox) {
+        log!(
+            warn,
+            "frame {} dropped: {}",
+            self.frame,
+            defmt::Debug2Format(&reason)
+        );
         self.stats.dropped += 1;
         push(
             out,

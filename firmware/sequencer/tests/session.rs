@@ -273,7 +273,8 @@ fn abort_mid_run_drops_the_frame_in_flight_and_ends_the_run() {
         ControllerMessage::FrameDropped(d) => Some(d.frame),
         _ => None,
     });
-    assert_eq!(dropped, vec![n as u16]);
+    // The frame in flight and every frame after it.
+    assert_eq!(dropped, (3..8).collect::<Vec<u16>>());
     let done = bench.find(|m| match m {
         ControllerMessage::Done(d) => Some(d.outcome),
         _ => None,
@@ -305,4 +306,38 @@ fn commands_are_acked_by_sequence_number_before_their_effects() {
         .iter()
         .position(|(_, m)| matches!(m, ControllerMessage::PatternRequest(_)));
     assert!(start_ack < first_request);
+}
+
+/// An aborted long scan reports every frame: triggered, or dropped before `Done` (streamed over
+/// several polls, more than the outbox holds at once).
+#[test]
+fn an_aborted_scan_reports_every_frame_triggered_or_dropped() {
+    let (mut bench, _) = Bench::booth();
+    bench.start_run(booth_header(268), &booth_entries(67));
+    bench.send_at(1_100_000, HostMessage::Abort);
+    bench.run_until(60_000_000);
+    let mut frames: Vec<u16> = bench.triggers().iter().map(|t| t.frame).collect();
+    let triggered = frames.len();
+    frames.extend(bench.find(|m| match m {
+        ControllerMessage::FrameDropped(d) => Some(d.frame),
+        _ => None,
+    }));
+    assert_eq!(frames, (0..268).collect::<Vec<u16>>());
+    let done_at = bench
+        .received
+        .iter()
+        .position(|(_, m)| matches!(m, ControllerMessage::Done(_)))
+        .expect("Done");
+    let last_drop = bench
+        .received
+        .iter()
+        .rposition(|(_, m)| matches!(m, ControllerMessage::FrameDropped(_)))
+        .expect("drops");
+    assert!(last_drop < done_at, "every drop is reported before Done");
+    let done = bench.find(|m| match m {
+        ControllerMessage::Done(d) => Some(*d),
+        _ => None,
+    });
+    assert_eq!(usize::from(done[0].frames_triggered), triggered);
+    assert_eq!(usize::from(done[0].frames_dropped), 268 - triggered);
 }

@@ -239,7 +239,17 @@ fn without_an_ack_nothing_is_triggered_and_the_run_aborts_per_policy() {
         ControllerMessage::FrameDropped(d) => Some((d.frame, d.reason)),
         _ => None,
     });
-    assert_eq!(dropped, vec![(0, DropReason::RetriesExhausted)]);
+    // Frame 0 used up its retries; 1-3 were never reached: all reported.
+    assert_eq!(
+        dropped,
+        vec![
+            (0, DropReason::RetriesExhausted),
+            (1, DropReason::RunAborted),
+            (2, DropReason::RunAborted),
+            (3, DropReason::RunAborted)
+        ]
+    );
+    assert_eq!(done(&bench).frames_dropped, 4);
     assert_eq!(done(&bench).outcome, RunOutcome::AbortedRetriesExhausted);
 }
 
@@ -490,4 +500,52 @@ fn a_camera_that_never_exposes_makes_the_frame_late() {
             .find(|m| matches!(m, ControllerMessage::ExposureDone(_)).then_some(()))
             .is_empty()
     );
+}
+
+/// The board may sleep (QEMU: skip virtual time) only while the run waits for VSYNC edges or
+/// a far exposure end: never while a host answer is outstanding, never near a trigger edge.
+#[test]
+fn sleep_is_allowed_only_while_waiting_for_edges() {
+    let (mut bench, _) = Bench::booth();
+    bench.ack_delay = Box::new(|_, _| Some(20_000));
+    bench.start_run(booth_header(8), &booth_entries(2));
+    bench.run_until(END);
+    let sleeps: Vec<u64> = bench
+        .sleep_log
+        .iter()
+        .filter(|s| s.1)
+        .map(|s| s.0)
+        .collect();
+    assert!(!sleeps.is_empty(), "the run has idle phases");
+    let requests = bench.find(|m| match m {
+        ControllerMessage::PatternRequest(r) => Some(r.frame),
+        _ => None,
+    });
+    let request_times: Vec<u64> = bench
+        .received
+        .iter()
+        .filter(|(_, m)| matches!(m, ControllerMessage::PatternRequest(_)))
+        .map(|(t, _)| *t)
+        .collect();
+    assert_eq!(requests.len(), 8);
+    for &t_req in &request_times {
+        // The simulated host answers 20 ms after the request.
+        assert!(
+            !sleeps.iter().any(|&t| t_req <= t && t < t_req + 20_000),
+            "slept at request {t_req}"
+        );
+    }
+    for t in bench.triggers() {
+        let (from, to) = (t.vsync_timestamp_us, t.timestamp_us + 100);
+        let near: Vec<u64> = sleeps
+            .iter()
+            .copied()
+            .filter(|&s| from <= s && s < to)
+            .collect();
+        assert!(
+            near.is_empty(),
+            "slept near trigger {} (vsync {from}): {near:?}",
+            t.timestamp_us
+        );
+    }
 }

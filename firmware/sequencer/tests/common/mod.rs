@@ -236,6 +236,8 @@ pub struct Bench<T, X> {
     /// The host sends `Resume` when it sees the run paused.
     pub resume_when_paused: bool,
     pub polls: u64,
+    /// `may_sleep()` after each poll: (time, answer).
+    pub sleep_log: Vec<(u64, bool)>,
 }
 
 pub const INFO: BoardInfo = BoardInfo {
@@ -288,6 +290,7 @@ impl<T: OutputPin, X: InputPin> Bench<T, X> {
             next_heartbeat_us: 0,
             resume_when_paused: false,
             polls: 0,
+            sleep_log: Vec::new(),
         }
     }
 
@@ -376,6 +379,10 @@ impl<T: OutputPin, X: InputPin> Bench<T, X> {
             self.deliver_host_bytes(t);
             self.polls += 1;
             self.ctl().poll().unwrap_or_else(|e| panic!("poll: {e:?}"));
+            // A poll may have waited for a trigger edge: log at the time it ended.
+            let may_sleep = self.ctl().may_sleep();
+            let after = self.now();
+            self.sleep_log.push((after, may_sleep));
             self.collect(t);
             if done_at.is_none()
                 && self
