@@ -20,12 +20,18 @@ struct Cli {
 enum Command {
     /// Inspect a booth description: parse and validate it, summarise the frame plan.
     Booth(cli::booth::Args),
+    /// Photometric stereo on an image set under distant lights (normals, albedo, errors).
+    Normals(cli::normals::Args),
+    /// Render a photometric-stereo test set with known normals, shadows and highlights.
+    PsScene(cli::ps_scene::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
+        Command::Normals(args) => cli::normals::run(args),
+        Command::PsScene(args) => cli::ps_scene::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

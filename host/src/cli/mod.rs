@@ -3,3 +3,5 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod normals;
+pub mod ps_scene;
