@@ -10,3 +10,4 @@ pub mod calib;
 pub mod capture;
 pub mod imageio;
 pub mod photometry;
+pub mod mc;

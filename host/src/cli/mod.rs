@@ -5,3 +5,4 @@
 pub mod booth;
 pub mod normals;
 pub mod ps_scene;
+pub mod mc;
