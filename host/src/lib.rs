@@ -8,6 +8,7 @@
 pub mod booth;
 pub mod calib;
 pub mod capture;
+pub mod geometry;
 pub mod imageio;
 pub mod photometry;
 pub mod mc;
