@@ -10,5 +10,5 @@ pub mod calib;
 pub mod capture;
 pub mod geometry;
 pub mod imageio;
-pub mod photometry;
 pub mod mc;
+pub mod photometry;

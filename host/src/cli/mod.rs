@@ -3,6 +3,6 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod mc;
 pub mod normals;
 pub mod ps_scene;
-pub mod mc;

@@ -5,4 +5,5 @@ pub mod image_set;
 pub mod mat_file;
 pub mod photometric_stereo;
 pub mod ps_scene;
+pub mod response;
 pub mod separation;
