@@ -1,3 +1,4 @@
 mod booth_cli;
 mod mc_cli;
 mod mc_validation;
+mod normals_cli;
