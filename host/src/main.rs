@@ -20,12 +20,15 @@ struct Cli {
 enum Command {
     /// Inspect a booth description: parse and validate it, summarise the frame plan.
     Booth(cli::booth::Args),
+    /// Booth controller: find it, run a capture, measure its timing (real board or QEMU).
+    Rig(cli::rig::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
+        Command::Rig(args) => cli::rig::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -356,6 +356,10 @@ pub enum LateReason {
     VsyncMissing,
     /// The host was silent for longer than `host_silence_timeout_us`.
     HostSilent,
+    /// The controller could not fire within its tolerance of VSYNC + phase (busy).
+    TriggerMissed,
+    /// The camera's exposure-active input never went high after the trigger.
+    ExposureMissing,
 }
 
 /// A frame missed its slot.
