@@ -8,5 +8,7 @@
 pub mod booth;
 pub mod calib;
 pub mod capture;
+pub mod geometry;
 pub mod imageio;
+pub mod mc;
 pub mod rig;

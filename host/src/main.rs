@@ -22,6 +22,8 @@ enum Command {
     Booth(cli::booth::Args),
     /// Booth controller: find it, run a capture, measure its timing (real board or QEMU).
     Rig(cli::rig::Args),
+    /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
+    Mc(cli::mc::Args),
 }
 
 fn main() -> ExitCode {
@@ -29,6 +31,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
         Command::Rig(args) => cli::rig::run(args),
+        Command::Mc(args) => cli::mc::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

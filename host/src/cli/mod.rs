@@ -3,4 +3,5 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod mc;
 pub mod rig;
