@@ -11,9 +11,8 @@ IMAGES=target/thumbv7em-none-eabihf/release
 
 step() { printf '\n==> firmware: %s\n' "$*" >&2; }
 
-step "toolchain (thumbv7em-none-eabihf, llvm-tools for the size report)"
+step "toolchain (thumbv7em-none-eabihf)"
 rustup target list --installed | grep -qx thumbv7em-none-eabihf || rustup target add thumbv7em-none-eabihf
-rustup component list --installed | grep -q '^llvm-tools' || rustup component add llvm-tools
 
 step "cargo fmt --check"
 cargo fmt --all -- --check
@@ -31,8 +30,10 @@ step "host tests of the sequencer core (the QEMU image test boots $IMAGES/mlsss-
 cargo test -p mlsss-sequencer --target "$HOST_TARGET"
 
 step "flash / RAM of the images"
+# Any of these reads the ARM ELF: rustup's llvm-tools, a system LLVM, or GNU binutils (always
+# there with the C toolchain Rust links with).
 SIZE="$(rustc --print sysroot)/lib/rustlib/$HOST_TARGET/bin/llvm-size"
-[ -x "$SIZE" ] || SIZE="$(command -v llvm-size || command -v arm-none-eabi-size)"
+[ -x "$SIZE" ] || SIZE="$(command -v llvm-size || command -v arm-none-eabi-size || command -v size)"
 printf '%-18s %10s %10s\n' image "flash (B)" "RAM (B)"
 for bin in "${BOARDS[@]}"; do
     # Berkeley format: text data bss. Flash holds text + the initial values of data; RAM holds

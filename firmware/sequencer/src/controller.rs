@@ -355,6 +355,7 @@ where
             }
             HostMessage::ScheduleCommit(commit) => {
                 self.schedule = Some(self.loader.commit(commit)?);
+                log!(info, "schedule of {} frames committed", commit.frame_count);
                 self.ack(seq);
             }
             HostMessage::Arm => {
@@ -377,6 +378,12 @@ where
                 self.done_sent = false;
                 self.drop_cursor = None;
                 if let Some(schedule) = self.schedule.as_ref() {
+                    log!(
+                        info,
+                        "run of {} frames starts at {} us",
+                        schedule.frame_count(),
+                        now
+                    );
                     self.run = Some(Run::start(schedule, now, &mut self.out));
                 }
             }
@@ -452,6 +459,14 @@ where
         };
         self.done_sent = true;
         let stats = run.stats();
+        log!(
+            info,
+            "run done: {}, {} triggered, {} late, {} dropped",
+            defmt::Debug2Format(&outcome),
+            stats.triggered,
+            stats.late,
+            stats.dropped + not_reached
+        );
         let summary = DoneSummary {
             outcome,
             frames_triggered: stats.triggered,
@@ -557,6 +572,7 @@ where
     }
 
     fn nack(&mut self, seq: u16, error: ErrorCode) {
+        log!(warn, "nack seq {}: {}", seq, defmt::Debug2Format(&error));
         self.push(ControllerMessage::Nack(Nack { seq, error }));
     }
 }

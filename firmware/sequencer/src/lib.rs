@@ -15,6 +15,15 @@
 //! - [`controller`]: the protocol session and the peripherals around a run.
 #![cfg_attr(not(test), no_std)]
 
+/// Logs through defmt when the `defmt` feature is on (the boards); expands to nothing otherwise
+/// (host tests have no defmt logger), arguments included.
+macro_rules! log {
+    ($level:ident, $($arg:tt)*) => {
+        #[cfg(feature = "defmt")]
+        defmt::$level!($($arg)*);
+    };
+}
+
 pub mod clock;
 pub mod controller;
 pub mod run;

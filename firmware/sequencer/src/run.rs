@@ -586,6 +586,13 @@ impl Run {
     }
 
     fn report_late(&mut self, reason: LateReason, out: &mut Outbox) {
+        log!(
+            warn,
+            "frame {} attempt {} late: {}",
+            self.frame,
+            self.attempt,
+            defmt::Debug2Format(&reason)
+        );
         self.stats.late += 1;
         push(
             out,
@@ -641,6 +648,12 @@ impl Run {
     }
 
     fn drop_frame(&mut self, reason: DropReason, out: &mut Outbox) {
+        log!(
+            warn,
+            "frame {} dropped: {}",
+            self.frame,
+            defmt::Debug2Format(&reason)
+        );
         self.stats.dropped += 1;
         push(
             out,

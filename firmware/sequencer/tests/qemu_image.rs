@@ -39,6 +39,8 @@ fn image() -> PathBuf {
 struct Qemu {
     child: Child,
     socket: PathBuf,
+    /// UART1: the firmware's defmt log frames.
+    log: PathBuf,
 }
 
 impl Drop for Qemu {
@@ -46,6 +48,8 @@ impl Drop for Qemu {
         let _ = self.child.kill();
         let _ = self.child.wait();
         let _ = std::fs::remove_file(&self.socket);
+        let _ = std::fs::remove_file(&self.log);
+        let _ = std::fs::remove_file(self.socket.with_extension("stderr"));
     }
 }
 
@@ -58,6 +62,9 @@ fn start_qemu(tag: &str) -> (Qemu, UnixStream) {
     );
     let socket = std::env::temp_dir().join(format!("mlsss-fw-{}-{tag}.sock", std::process::id()));
     let _ = std::fs::remove_file(&socket);
+    let log = socket.with_extension("defmt");
+    // QEMU's stderr, shown when it does not come up.
+    let stderr = socket.with_extension("stderr");
     let child = Command::new("qemu-system-arm")
         .args(["-machine", "mps2-an386", "-nographic", "-monitor", "none"])
         .args(["-icount", &format!("shift={ICOUNT_SHIFT},sleep=off")])
@@ -68,20 +75,25 @@ fn start_qemu(tag: &str) -> (Qemu, UnixStream) {
                 socket.display()
             ),
         ])
-        .args(["-serial", "chardev:proto", "-serial", "null"])
+        .args(["-serial", "chardev:proto", "-serial"])
+        .arg(format!("file:{}", log.display()))
         .arg("-kernel")
         .arg(&image)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&stderr).expect("QEMU stderr file"))
         .spawn()
         .expect("qemu-system-arm runs (apt-get install qemu-system-arm)");
-    let qemu = Qemu { child, socket };
+    let qemu = Qemu { child, socket, log };
     let deadline = Instant::now() + Duration::from_secs(10);
     let stream = loop {
         match UnixStream::connect(&qemu.socket) {
             Ok(s) => break s,
             Err(_) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(20)),
-            Err(e) => panic!("connect to QEMU's UART0 socket: {e}"),
+            Err(e) => panic!(
+                "connect to QEMU's UART0 socket: {e}; QEMU said: {}",
+                std::fs::read_to_string(&stderr).unwrap_or_default()
+            ),
         }
     };
     stream
@@ -96,12 +108,14 @@ struct Outcome {
     late: usize,
     outcome: RunOutcome,
     wall: Duration,
+    /// Bytes of defmt log frames the image wrote to UART1.
+    log_bytes: u64,
 }
 
 /// Runs `per_projector` frames on each projector against the image, answering every pattern
 /// request at once.
 fn run_image(tag: &str, per_projector: u16) -> Outcome {
-    let (_qemu, mut stream) = start_qemu(tag);
+    let (qemu, mut stream) = start_qemu(tag);
     let entries = booth_entries(per_projector);
     let mut header = booth_header(entries.len() as u16);
     header.policy.max_retries = 0;
@@ -183,7 +197,9 @@ fn run_image(tag: &str, per_projector: u16) -> Outcome {
             send(&mut stream, r);
         }
     }
+    let log_bytes = std::fs::metadata(&qemu.log).map_or(0, |m| m.len());
     Outcome {
+        log_bytes,
         triggers,
         timing,
         late,
@@ -215,6 +231,8 @@ fn image_runs_a_schedule_on_its_timer_vsyncs_deterministically() {
         a.wall.as_secs_f64()
     );
     assert_eq!(a.outcome, RunOutcome::Completed);
+    // The defmt logs went to UART1 (and every UART0 frame decoded: nothing mixed in).
+    assert!(a.log_bytes > 0, "no defmt log frames on UART1");
     assert_eq!(a.late, 0);
     assert_eq!(a.triggers.len(), frames);
     for t in &a.triggers {

@@ -4,4 +4,6 @@
 
 pub mod booth;
 pub mod mc;
+pub mod normals;
+pub mod ps_scene;
 pub mod rig;

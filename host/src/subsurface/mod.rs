@@ -5,9 +5,14 @@
 pub mod boxed_gaussian;
 pub mod em_free;
 pub mod em_layered;
+pub mod fit;
 pub mod mixture;
+pub mod profiles;
+pub mod relight;
 pub mod render;
 pub mod surface;
 
+#[cfg(test)]
+mod chain_tests;
 #[cfg(test)]
 mod em_properties;

@@ -238,6 +238,8 @@ pub struct Bench<T, X> {
     pub polls: u64,
     /// `may_sleep()` after each poll: (time, answer).
     pub sleep_log: Vec<(u64, bool)>,
+    /// Every host message put on the line: (sequence number, time, message).
+    pub sent: Vec<(u16, u64, HostMessage)>,
 }
 
 pub const INFO: BoardInfo = BoardInfo {
@@ -291,6 +293,7 @@ impl<T: OutputPin, X: InputPin> Bench<T, X> {
             resume_when_paused: false,
             polls: 0,
             sleep_log: Vec::new(),
+            sent: Vec::new(),
         }
     }
 
@@ -432,7 +435,8 @@ impl<T: OutputPin, X: InputPin> Bench<T, X> {
                     continue;
                 }
                 let mut buf = [0u8; MAX_WIRE_FRAME_LEN];
-                let (_, bytes) = self.host_enc.encode(&message, &mut buf).expect("encode");
+                let (seq, bytes) = self.host_enc.encode(&message, &mut buf).expect("encode");
+                self.sent.push((seq, t, message.clone()));
                 self.line
                     .borrow_mut()
                     .to_controller
