@@ -1,3 +1,5 @@
 mod booth_cli;
+mod mc_cli;
+mod mc_validation;
 mod normals_cli;
 mod rig_hil;
