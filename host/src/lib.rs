@@ -9,3 +9,4 @@ pub mod booth;
 pub mod calib;
 pub mod capture;
 pub mod imageio;
+pub mod virtual_booth;
