@@ -9,4 +9,5 @@ pub mod booth;
 pub mod calib;
 pub mod capture;
 pub mod imageio;
+pub mod mc;
 pub mod virtual_booth;
