@@ -4,3 +4,4 @@
 
 pub mod booth;
 pub mod mc;
+pub mod simulate;

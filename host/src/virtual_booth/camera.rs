@@ -46,8 +46,9 @@ impl CameraModel {
     pub fn add_noise<R: Rng>(&self, values: &mut [f32], rng: &mut R) {
         for v in values {
             let electrons = (*v as f64).max(0.0) * self.full_well_e;
-            let sigma = (electrons / (self.full_well_e * self.full_well_e) + self.read_noise.powi(2))
-                .sqrt();
+            let sigma = (electrons / (self.full_well_e * self.full_well_e)
+                + self.read_noise.powi(2))
+            .sqrt();
             *v = (*v as f64 + sigma * standard_normal(rng)) as f32;
         }
     }
@@ -86,6 +87,11 @@ mod tests {
             / n;
         let expected = cam.noise_sigma(level);
         assert!((mean - level).abs() < 3.0 * expected / n.sqrt() + 1e-6);
-        assert!((var.sqrt() / expected - 1.0).abs() < 0.01, "{} {}", var.sqrt(), expected);
+        assert!(
+            (var.sqrt() / expected - 1.0).abs() < 0.01,
+            "{} {}",
+            var.sqrt(),
+            expected
+        );
     }
 }

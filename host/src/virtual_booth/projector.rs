@@ -240,7 +240,9 @@ mod tests {
         let p = projector();
         let black = p.emission(&Pattern::Black).at(100.0, 80.0) as f64;
         assert!((black - p.black_level).abs() < 1e-6);
-        let grey = p.emission(&Pattern::Grey { level_milli: 500 }).at(100.0, 80.0) as f64;
+        let grey = p
+            .emission(&Pattern::Grey { level_milli: 500 })
+            .at(100.0, 80.0) as f64;
         let expected = p.black_level + (1.0 - p.black_level) * 0.5f64.powf(p.gamma);
         assert!((grey - expected).abs() < 1e-6);
         assert_eq!(p.emission(&Pattern::White).at(-3.0, 80.0), 0.0);

@@ -78,8 +78,8 @@ impl GeometryBuffer {
                             let sample = hit.map(|hit| {
                                 // Solid angle of a sub-pixel: cos^3(off-axis) / (fx fy ss^2).
                                 let d_cam = camera.calib.extrinsics.r() * d;
-                                let solid_angle = d_cam.z.powi(3) / (intr.fx * intr.fy)
-                                    / (ss * ss) as f64;
+                                let solid_angle =
+                                    d_cam.z.powi(3) / (intr.fx * intr.fy) / (ss * ss) as f64;
                                 let to_camera = (eye - hit.point).normalize();
                                 let cos_view = hit.normal.dot(&to_camera).max(MIN_VIEW_COSINE);
                                 SurfaceSample {
@@ -179,7 +179,12 @@ impl GeometryBuffer {
 
     /// Extent `[x_min, x_max, y_min, y_max]` (world mm) of the surface points seen.
     pub fn extent(&self) -> Option<[f64; 4]> {
-        let mut e = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
+        let mut e = [
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ];
         for hit in self.centre.iter().flatten() {
             e[0] = e[0].min(hit.point.x);
             e[1] = e[1].max(hit.point.x);

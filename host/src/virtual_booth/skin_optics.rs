@@ -250,7 +250,11 @@ mod tests {
     #[test]
     fn literature_formulas_give_the_published_magnitudes() {
         // Jacques 1998: melanosome mu_a ~ 300/cm at 630 nm; dermis mu_s' ~ 25/cm at 630 nm.
-        assert!((melanin_mu_a(630.0) - 31.5).abs() < 0.5, "{}", melanin_mu_a(630.0));
+        assert!(
+            (melanin_mu_a(630.0) - 31.5).abs() < 0.5,
+            "{}",
+            melanin_mu_a(630.0)
+        );
         assert!((reduced_scattering(630.0) - 2.5).abs() < 0.1);
         // Blood absorbs green far more than red (the haemoglobin Q bands).
         assert!(blood_mu_a(1) > 20.0 * blood_mu_a(0));

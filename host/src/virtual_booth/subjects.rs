@@ -167,7 +167,9 @@ pub enum Subject {
     /// Skin plane z = 0.
     Plane,
     /// Skin sphere centred at (0, 0, radius).
-    Sphere { radius_mm: f64 },
+    Sphere {
+        radius_mm: f64,
+    },
     Head(Head),
     Chessboard(Chessboard),
 }
@@ -271,9 +273,8 @@ mod tests {
         // The four squares around a corner alternate in colour.
         let n = b.normal();
         let r = b.r();
-        let at = |dx: f64, dy: f64| {
-            b.albedo(&(corners[10] + r * Vector3::new(dx, dy, 0.0) + n * 0.0))
-        };
+        let at =
+            |dx: f64, dy: f64| b.albedo(&(corners[10] + r * Vector3::new(dx, dy, 0.0) + n * 0.0));
         assert_ne!(at(1.0, 1.0), at(-1.0, 1.0));
         assert_eq!(at(1.0, 1.0), at(-1.0, -1.0));
     }

@@ -152,7 +152,11 @@ mod tests {
         let total: f64 = (0..steps)
             .map(|i| {
                 let theta = (i as f64 + 0.5) / steps as f64 * PI / 2.0;
-                exit.factor(theta.cos()) * theta.cos() * theta.sin() * 2.0 * PI
+                exit.factor(theta.cos())
+                    * theta.cos()
+                    * theta.sin()
+                    * 2.0
+                    * PI
                     * (PI / 2.0 / steps as f64)
             })
             .sum();
