@@ -8,6 +8,9 @@
 pub mod booth;
 pub mod calib;
 pub mod capture;
+pub mod geometry;
 pub mod imageio;
 pub mod mc;
 pub mod virtual_booth;
+pub mod photometry;
+pub mod subsurface;

@@ -5,3 +5,5 @@
 pub mod booth;
 pub mod mc;
 pub mod simulate;
+pub mod normals;
+pub mod ps_scene;

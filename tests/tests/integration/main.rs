@@ -1,2 +1,3 @@
 mod booth_cli;
 mod simulate;
+mod normals_cli;
