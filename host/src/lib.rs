@@ -11,6 +11,7 @@ pub mod capture;
 pub mod geometry;
 pub mod imageio;
 pub mod mc;
+pub mod virtual_booth;
 pub mod photometry;
 pub mod rig;
 pub mod subsurface;

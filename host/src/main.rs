@@ -22,6 +22,8 @@ enum Command {
     Booth(cli::booth::Args),
     /// Booth controller: find it, run a capture, measure its timing (real board or QEMU).
     Rig(cli::rig::Args),
+    /// Render a capture in the virtual booth (Monte Carlo skin, noise) with ground truth.
+    Simulate(cli::simulate::Args),
     /// Photometric stereo on an image set under distant lights (normals, albedo, errors).
     Normals(cli::normals::Args),
     /// Render a photometric-stereo test set with known normals, shadows and highlights.
@@ -35,6 +37,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
         Command::Rig(args) => cli::rig::run(args),
+        Command::Simulate(args) => cli::simulate::run(args),
         Command::Normals(args) => cli::normals::run(args),
         Command::PsScene(args) => cli::ps_scene::run(args),
         Command::Mc(args) => cli::mc::run(args),

@@ -4,6 +4,7 @@
 
 pub mod booth;
 pub mod mc;
+pub mod simulate;
 pub mod normals;
 pub mod ps_scene;
 pub mod rig;

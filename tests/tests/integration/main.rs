@@ -1,5 +1,6 @@
 mod booth_cli;
 mod mc_cli;
 mod mc_validation;
+mod simulate;
 mod normals_cli;
 mod rig_hil;
