@@ -11,3 +11,4 @@ pub mod capture;
 pub mod geometry;
 pub mod imageio;
 pub mod mc;
+pub mod pipeline;

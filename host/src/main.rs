@@ -22,6 +22,10 @@ enum Command {
     Booth(cli::booth::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
+    /// Decode Gray-code frames to projector coordinates per camera pixel (capture or OpenCV order).
+    Decode(cli::decode::Args),
+    /// Run the processing pipeline on a capture up to a stage (decode, geometry) and report.
+    Process(cli::process::Args),
 }
 
 fn main() -> ExitCode {
@@ -29,6 +33,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
         Command::Mc(args) => cli::mc::run(args),
+        Command::Decode(args) => cli::decode::run(args),
+        Command::Process(args) => cli::process::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

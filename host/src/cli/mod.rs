@@ -3,4 +3,6 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod decode;
 pub mod mc;
+pub mod process;
