@@ -12,3 +12,4 @@ pub mod geometry;
 pub mod imageio;
 pub mod mc;
 pub mod pipeline;
+pub mod subsurface;
