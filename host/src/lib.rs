@@ -11,5 +11,6 @@ pub mod capture;
 pub mod geometry;
 pub mod imageio;
 pub mod mc;
+pub mod photometry;
 pub mod pipeline;
 pub mod subsurface;

@@ -6,3 +6,5 @@ pub mod booth;
 pub mod decode;
 pub mod mc;
 pub mod process;
+pub mod normals;
+pub mod ps_scene;

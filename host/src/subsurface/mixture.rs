@@ -452,12 +452,9 @@ fn update_sigmas<M: MeanModel>(data: &Data, state: &mut State<M>, stats: &Stats,
     }
 }
 
-/// One ECM iteration (weights, then means, then sigmas); returns the log-likelihood of the
-/// parameters it started from.
-fn em_iteration<M: MeanModel>(data: &Data, state: &mut State<M>, cfg: &EmConfig) -> f64 {
+/// The M-step (ECM order: weights, then means, then sigmas) from one E-step's statistics.
+fn m_step<M: MeanModel>(data: &Data, state: &mut State<M>, stats: &Stats, cfg: &EmConfig) {
     let k = state.weights.len();
-    let mut stats = Stats::new(data.profiles.len(), k);
-    let ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
     let n_per_component: Vec<f64> = (0..k)
         .map(|l| {
             (0..data.profiles.len())
@@ -467,9 +464,8 @@ fn em_iteration<M: MeanModel>(data: &Data, state: &mut State<M>, cfg: &EmConfig)
         .collect();
     state.weights = water_fill(&n_per_component, cfg.weight_floor);
     let sigmas = state.sigmas.clone();
-    state.means.update(data.profiles, &stats, &sigmas);
-    update_sigmas(data, state, &stats, cfg);
-    ll
+    state.means.update(data.profiles, stats, &sigmas);
+    update_sigmas(data, state, stats, cfg);
 }
 
 fn remove_component<M: MeanModel>(state: &mut State<M>, l: usize) {
@@ -483,17 +479,22 @@ fn remove_component<M: MeanModel>(state: &mut State<M>, l: usize) {
 }
 
 /// EM to convergence from `state`, appending to `trace`. Returns the final log-likelihood.
+/// One E-step per iteration: it scores the parameters of the previous M-step and gives the
+/// statistics of the next.
 fn converge<M: MeanModel>(
     data: &Data,
     state: &mut State<M>,
     cfg: &EmConfig,
     trace: &mut Trace,
 ) -> f64 {
-    let mut ll = e_step(data, state, cfg.wrap_images, None);
+    let fresh = |k: usize| Stats::new(data.profiles.len(), k);
+    let mut stats = fresh(state.weights.len());
+    let mut ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
     for _ in 0..cfg.max_iterations {
         let before = state.clone();
-        em_iteration(data, state, cfg);
-        let next = e_step(data, state, cfg.wrap_images, None);
+        m_step(data, state, &stats, cfg);
+        let mut next_stats = fresh(state.weights.len());
+        let next = e_step(data, state, cfg.wrap_images, Some(&mut next_stats));
         if !next.is_finite() || next < ll - 1e-12 * ll.abs().max(1.0) {
             // Rounding made a step worse: keep the better parameters and stop.
             trace.steps.push((StepKind::Rejected, next));
@@ -503,6 +504,7 @@ fn converge<M: MeanModel>(
         trace.steps.push((StepKind::Em, next));
         let gain = next - ll;
         ll = next;
+        stats = next_stats;
         if gain < cfg.tolerance {
             break;
         }

@@ -1,2 +1,3 @@
 mod booth_cli;
 mod decode_cli;
+mod normals_cli;
