@@ -5,6 +5,6 @@
 pub mod booth;
 pub mod decode;
 pub mod mc;
-pub mod process;
 pub mod normals;
+pub mod process;
 pub mod ps_scene;
