@@ -14,4 +14,5 @@ pub mod mc;
 pub mod virtual_booth;
 pub mod photometry;
 pub mod rig;
+pub mod pipeline;
 pub mod subsurface;

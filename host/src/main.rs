@@ -30,6 +30,10 @@ enum Command {
     PsScene(cli::ps_scene::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
+    /// Decode Gray-code frames to projector coordinates per camera pixel (capture or OpenCV order).
+    Decode(cli::decode::Args),
+    /// Run the processing pipeline on a capture up to a stage (decode, geometry) and report.
+    Process(cli::process::Args),
 }
 
 fn main() -> ExitCode {
@@ -41,6 +45,8 @@ fn main() -> ExitCode {
         Command::Normals(args) => cli::normals::run(args),
         Command::PsScene(args) => cli::ps_scene::run(args),
         Command::Mc(args) => cli::mc::run(args),
+        Command::Decode(args) => cli::decode::run(args),
+        Command::Process(args) => cli::process::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
