@@ -7,5 +7,6 @@
 
 pub mod booth;
 pub mod calib;
+pub mod calibrate;
 pub mod capture;
 pub mod imageio;

@@ -1,0 +1,9 @@
+//! Camera and projector calibration from chessboard poses (DESIGN sections 3 and 4, stage 2).
+
+pub mod bundle_adjustment;
+pub mod chessboard;
+pub mod homography;
+pub mod levenberg_marquardt;
+pub mod local_homography;
+pub mod procam;
+pub mod zhang;
