@@ -9,4 +9,6 @@ pub mod booth;
 pub mod calib;
 pub mod calibrate;
 pub mod capture;
+pub mod geometry;
 pub mod imageio;
+pub mod mc;

@@ -20,12 +20,15 @@ struct Cli {
 enum Command {
     /// Inspect a booth description: parse and validate it, summarise the frame plan.
     Booth(cli::booth::Args),
+    /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
+    Mc(cli::mc::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
+        Command::Mc(args) => cli::mc::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -3,3 +3,4 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod mc;
