@@ -20,6 +20,8 @@ struct Cli {
 enum Command {
     /// Inspect a booth description: parse and validate it, summarise the frame plan.
     Booth(cli::booth::Args),
+    /// Calibrate the camera and projectors from chessboard poses (or convert an OpenCV calibration).
+    Calibrate(cli::calibrate::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
 }
@@ -28,6 +30,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
+        Command::Calibrate(args) => cli::calibrate::run(args),
         Command::Mc(args) => cli::mc::run(args),
     };
     match result {

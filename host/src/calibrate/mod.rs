@@ -8,5 +8,6 @@ pub mod homography;
 pub mod levenberg_marquardt;
 pub mod local_homography;
 pub mod opencv_storage;
+pub mod pose_measurement;
 pub mod procam;
 pub mod zhang;

@@ -595,13 +595,13 @@ mod tests {
         ));
         let c = read_opencv(&copy, Some((1024, 768))).unwrap();
         assert_eq!((c.camera.width, c.camera.height), (1280, 1024));
-        assert!((c.camera.intrinsics.fx - 3452.3929068729908).abs() < 1e-9);
-        assert!((c.camera.intrinsics.cy - 521.44602565518824).abs() < 1e-9);
+        assert!((c.camera.intrinsics.fx - 3452.392906872991).abs() < 1e-9);
+        assert!((c.camera.intrinsics.cy - 521.4460256551882).abs() < 1e-9);
         assert!((c.camera.intrinsics.distortion[4] - 3.1254596570907323).abs() < 1e-12);
         let p = &c.projectors[0].device;
         assert!((p.intrinsics.fy - 3893.2555903450616).abs() < 1e-9);
-        assert!((p.extrinsics.translation[1] + 630.45718819563251).abs() < 1e-9);
-        assert!((p.extrinsics.rotation[1][2] - 0.078740920161649047).abs() < 1e-12);
+        assert!((p.extrinsics.translation[1] + 630.4571881956325).abs() < 1e-9);
+        assert!((p.extrinsics.rotation[1][2] - 0.07874092016164905).abs() < 1e-12);
     }
 
     #[test]

@@ -561,3 +561,177 @@ fn initial_device_pose(
             / n,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A camera and one projector observing a 9x7 board of 30 mm squares in `views` poses, with
+    /// exact corners (independent truth for the tests below).
+    fn synthetic_rig(views: usize) -> (RigModel, BoardSpec) {
+        let board = BoardSpec {
+            cols: 9,
+            rows: 7,
+            square_mm: 30.0,
+        };
+        let rig = RigModel {
+            intrinsics: vec![
+                Intrinsics {
+                    fx: 1500.0,
+                    fy: 1495.0,
+                    cx: 655.0,
+                    cy: 505.0,
+                    distortion: [-0.1, 0.05, 0.0005, -0.0003, 0.0],
+                },
+                Intrinsics {
+                    fx: 1900.0,
+                    fy: 1890.0,
+                    cx: 500.0,
+                    cy: 850.0,
+                    distortion: [0.03, -0.02, 0.0, 0.0, 0.0],
+                },
+            ],
+            device_poses: vec![
+                Pose::identity(),
+                Pose {
+                    rotation: Vector3::new(0.02, -0.12, 0.01),
+                    translation: Vector3::new(120.0, -40.0, 20.0),
+                },
+            ],
+            view_poses: (0..views)
+                .map(|j| {
+                    let a = j as f64;
+                    Pose {
+                        rotation: Vector3::new(
+                            0.25 * (a * 1.3).sin(),
+                            0.3 * (a * 0.7).cos(),
+                            0.1 * a.sin(),
+                        ),
+                        translation: Vector3::new(-120.0 + 5.0 * a, -90.0, 700.0 + 25.0 * a),
+                    }
+                })
+                .collect(),
+        };
+        (rig, board)
+    }
+
+    fn measure(rig: &RigModel, board: &BoardSpec, view: usize, device: usize) -> Vec<Vector2<f64>> {
+        board
+            .points()
+            .iter()
+            .map(|p| {
+                rig.project(device, view, p)
+                    .expect("board in front of the device")
+            })
+            .collect()
+    }
+
+    fn sizes() -> (ImageSize, Vec<ImageSize>) {
+        (
+            ImageSize {
+                width: 1280,
+                height: 1024,
+            },
+            vec![ImageSize {
+                width: 1024,
+                height: 768,
+            }],
+        )
+    }
+
+    #[test]
+    fn exact_corners_give_the_true_rig() {
+        let (rig, board) = synthetic_rig(5);
+        let poses: Vec<PoseCorners> = (0..5)
+            .map(|v| PoseCorners {
+                name: format!("pose{v}"),
+                camera: Ok(measure(&rig, &board, v, 0)),
+                projectors: vec![measure(&rig, &board, v, 1).into_iter().map(Some).collect()],
+            })
+            .collect();
+        let (cam, proj) = sizes();
+        let options = ProcamOptions {
+            distortion: [true, true, true, true, false],
+            ..ProcamOptions::default()
+        };
+        let result = calibrate_procam(&poses, &board, cam, &proj, &options).unwrap();
+        assert!(result.stereo_rms_px < 1e-6, "{}", result.stereo_rms_px);
+        let k = &result.calibration.camera.intrinsics;
+        assert!(
+            (k.fx - 1500.0).abs() < 1e-3 && (k.cy - 505.0).abs() < 1e-3,
+            "{k:?}"
+        );
+        let p = &result.calibration.projectors[0].device;
+        assert!((p.intrinsics.fy - 1890.0).abs() < 1e-3, "{p:?}");
+        assert!((p.extrinsics.t() - Vector3::new(120.0, -40.0, 20.0)).norm() < 1e-3);
+        assert!(result.poses.iter().all(|p| p.used && p.reason.is_none()));
+    }
+
+    #[test]
+    fn a_bad_pose_is_reported_and_dropped_and_a_missing_board_skipped() {
+        let (rig, board) = synthetic_rig(7);
+        let mut poses: Vec<PoseCorners> = (0..7)
+            .map(|v| PoseCorners {
+                name: format!("pose{v}"),
+                camera: Ok(measure(&rig, &board, v, 0)),
+                projectors: vec![measure(&rig, &board, v, 1).into_iter().map(Some).collect()],
+            })
+            .collect();
+        // Pose 3: the board moved while the frames were taken -- its camera corners belong to a
+        // different, non-planar-consistent arrangement (every other row shifted by 6 px).
+        if let Ok(corners) = &mut poses[3].camera {
+            for (i, c) in corners.iter_mut().enumerate() {
+                if (i / 9) % 2 == 1 {
+                    c.x += 6.0;
+                }
+            }
+        }
+        // Pose 5: the board was not found.
+        poses[5].camera = Err("no complete 9x7 grid".into());
+        // Pose 1: the projector view is corrupted (decoding failed on half the board).
+        for c in poses[1].projectors[0].iter_mut().take(40) {
+            *c = None;
+        }
+        let (cam, proj) = sizes();
+        let options = ProcamOptions {
+            distortion: [true, true, true, true, false],
+            ..ProcamOptions::default()
+        };
+        let result = calibrate_procam(&poses, &board, cam, &proj, &options).unwrap();
+        let used: Vec<bool> = result.poses.iter().map(|p| p.used).collect();
+        assert_eq!(used, [true, true, true, false, true, false, true]);
+        let reason3 = result.poses[3].reason.as_deref().unwrap_or("");
+        assert!(reason3.contains("bad pose"), "{reason3}");
+        let reason5 = result.poses[5].reason.as_deref().unwrap_or("");
+        assert!(reason5.contains("chessboard not found"), "{reason5}");
+        assert!(
+            result.poses[1].projector_reasons[0].contains("23 of 63"),
+            "{:?}",
+            result.poses[1]
+        );
+        assert_eq!(result.poses[1].projector_rms_px[0], None);
+        // What remains is exact, so the calibration is too: the bad pose was not used.
+        assert!(result.stereo_rms_px < 1e-6, "{}", result.stereo_rms_px);
+        let k = &result.calibration.camera.intrinsics;
+        assert!((k.fx - 1500.0).abs() < 1e-3, "{k:?}");
+    }
+
+    #[test]
+    fn too_few_poses_is_a_clear_error() {
+        let (rig, board) = synthetic_rig(2);
+        let poses: Vec<PoseCorners> = (0..2)
+            .map(|v| PoseCorners {
+                name: format!("pose{v}"),
+                camera: Ok(measure(&rig, &board, v, 0)),
+                projectors: vec![],
+            })
+            .collect();
+        let (cam, _) = sizes();
+        let err =
+            calibrate_procam(&poses, &board, cam, &[], &ProcamOptions::default()).unwrap_err();
+        assert!(
+            matches!(err, ProcamError::TooFewPoses { usable: 2, .. }),
+            "{err}"
+        );
+    }
+}

@@ -3,4 +3,5 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod calibrate;
 pub mod mc;
