@@ -22,6 +22,10 @@ enum Command {
     Booth(cli::booth::Args),
     /// Calibrate the camera and projectors from chessboard poses (or convert an OpenCV calibration).
     Calibrate(cli::calibrate::Args),
+    /// Photometric stereo on an image set under distant lights (normals, albedo, errors).
+    Normals(cli::normals::Args),
+    /// Render a photometric-stereo test set with known normals, shadows and highlights.
+    PsScene(cli::ps_scene::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
 }
@@ -31,6 +35,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
         Command::Calibrate(args) => cli::calibrate::run(args),
+        Command::Normals(args) => cli::normals::run(args),
+        Command::PsScene(args) => cli::ps_scene::run(args),
         Command::Mc(args) => cli::mc::run(args),
     };
     match result {

@@ -356,6 +356,11 @@ pub enum LateReason {
     VsyncMissing,
     /// The host was silent for longer than `host_silence_timeout_us`.
     HostSilent,
+    /// The controller could not fire within its tolerance of VSYNC + phase (it was busy), so
+    /// the frame was not exposed off its VSYNC.
+    TriggerMissed,
+    /// The camera's exposure-active input never went high after the trigger.
+    ExposureMissing,
 }
 
 /// A frame missed its slot.

@@ -5,3 +5,5 @@
 pub mod booth;
 pub mod calibrate;
 pub mod mc;
+pub mod normals;
+pub mod ps_scene;

@@ -1,2 +1,3 @@
 mod booth_cli;
 mod calibrate_cli;
+mod normals_cli;

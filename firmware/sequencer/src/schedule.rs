@@ -1,0 +1,156 @@
+//! Schedule upload (begin, chunks, commit) and validation.
+//!
+//! The host uploads the run's timing in a [`ScheduleHeader`], then the frames (which projector,
+//! which pattern) in chunks, then a commit with the frame count and a checksum. Every refusal is
+//! a typed [`ErrorCode`] the controller sends back in a `Nack`; nothing is accepted half-way.
+
+use heapless::Vec;
+use mlsss_shared::ScheduleChecksum;
+use mlsss_shared::message::{
+    ErrorCode, MAX_SCHEDULE_FRAMES, ScheduleChunk, ScheduleCommit, ScheduleEntry, ScheduleHeader,
+};
+
+/// A validated schedule, ready to run.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Schedule {
+    /// Timing and policy.
+    pub header: ScheduleHeader,
+    /// One entry per frame, in capture order.
+    pub entries: Vec<ScheduleEntry, MAX_SCHEDULE_FRAMES>,
+}
+
+impl Schedule {
+    /// Frames in the schedule.
+    pub fn frame_count(&self) -> u16 {
+        // Bounded by MAX_SCHEDULE_FRAMES (1024), so it fits.
+        self.entries.len() as u16
+    }
+
+    /// Refresh periods of the lit projector per slot (12 for 200 ms at 60 Hz).
+    pub fn slot_vsyncs(&self) -> u32 {
+        slot_vsyncs(&self.header)
+    }
+}
+
+/// Refresh periods per slot, rounded (a header that passed [`validate_header`] gives >= 1).
+pub fn slot_vsyncs(h: &ScheduleHeader) -> u32 {
+    let refresh = h.refresh_period_us.max(1);
+    (h.period_us + refresh / 2) / refresh
+}
+
+/// Shortest slot that holds the settle VSYNCs, the trigger phase and the exposure.
+pub fn min_period_us(h: &ScheduleHeader) -> u64 {
+    (u64::from(h.settle_vsyncs.max(1)) + u64::from(h.exposure_periods))
+        * u64::from(h.refresh_period_us)
+        + u64::from(h.trigger_phase_us)
+}
+
+/// Checks the timing of a header on its own (frame entries are checked as they arrive).
+pub fn validate_header(h: &ScheduleHeader) -> Result<(), ErrorCode> {
+    if h.frame_count == 0 {
+        return Err(ErrorCode::ScheduleEmpty);
+    }
+    if usize::from(h.frame_count) > MAX_SCHEDULE_FRAMES {
+        return Err(ErrorCode::ScheduleTooLong);
+    }
+    let exposure_us = u64::from(h.exposure_periods) * u64::from(h.refresh_period_us);
+    if h.exposure_periods == 0
+        || h.refresh_period_us == 0
+        || h.trigger_width_us == 0
+        || u64::from(h.trigger_width_us) > exposure_us
+    {
+        return Err(ErrorCode::InvalidExposure);
+    }
+    // The phase must stay inside the refresh period it is aligned to, and the slot must hold
+    // settle + phase + exposure.
+    if h.trigger_phase_us >= h.refresh_period_us || u64::from(h.period_us) < min_period_us(h) {
+        return Err(ErrorCode::PeriodTooShort);
+    }
+    Ok(())
+}
+
+/// Receives a schedule piece by piece.
+#[derive(Default)]
+pub struct ScheduleLoader {
+    header: Option<ScheduleHeader>,
+    entries: Vec<ScheduleEntry, MAX_SCHEDULE_FRAMES>,
+    checksum: Option<ScheduleChecksum>,
+}
+
+// Manual: the checksum digest has no `Debug`.
+impl core::fmt::Debug for ScheduleLoader {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("ScheduleLoader")
+            .field("header", &self.header)
+            .field("received", &self.entries.len())
+            .finish()
+    }
+}
+
+impl ScheduleLoader {
+    /// A loader with nothing received.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// True between an accepted begin and the commit.
+    pub fn is_loading(&self) -> bool {
+        self.header.is_some()
+    }
+
+    /// Starts an upload (discarding any upload in progress).
+    pub fn begin(&mut self, header: ScheduleHeader) -> Result<(), ErrorCode> {
+        self.abandon();
+        validate_header(&header)?;
+        self.header = Some(header);
+        self.checksum = Some(ScheduleChecksum::new());
+        Ok(())
+    }
+
+    /// Adds a chunk; chunks must be consecutive and name only the board's projectors.
+    pub fn chunk(&mut self, chunk: &ScheduleChunk, projectors: u8) -> Result<(), ErrorCode> {
+        let header = self.header.ok_or(ErrorCode::InvalidState)?;
+        let entries = chunk.entries.as_slice();
+        if usize::from(chunk.first_frame) != self.entries.len()
+            || self.entries.len() + entries.len() > usize::from(header.frame_count)
+        {
+            return Err(ErrorCode::ChunkOutOfOrder);
+        }
+        if entries.iter().any(|e| e.projector >= projectors) {
+            // A schedule naming a projector the board cannot see is refused as a whole.
+            self.abandon();
+            return Err(ErrorCode::UnknownProjector);
+        }
+        // Cannot fail: the length was checked against frame_count <= MAX_SCHEDULE_FRAMES.
+        self.entries
+            .extend_from_slice(entries)
+            .map_err(|_| ErrorCode::ScheduleTooLong)?;
+        if let Some(c) = self.checksum.as_mut() {
+            c.update(entries);
+        }
+        Ok(())
+    }
+
+    /// Ends the upload: the schedule, when count and checksum match what was received.
+    pub fn commit(&mut self, commit: &ScheduleCommit) -> Result<Schedule, ErrorCode> {
+        let header = self.header.ok_or(ErrorCode::InvalidState)?;
+        let checksum = self.checksum.take().map(ScheduleChecksum::finalize);
+        let received = self.entries.len();
+        let matches = usize::from(commit.frame_count) == received
+            && received == usize::from(header.frame_count)
+            && checksum == Some(commit.checksum);
+        let entries = core::mem::take(&mut self.entries);
+        self.abandon();
+        if !matches {
+            return Err(ErrorCode::ScheduleMismatch);
+        }
+        Ok(Schedule { header, entries })
+    }
+
+    /// Drops an upload in progress.
+    pub fn abandon(&mut self) {
+        self.header = None;
+        self.entries.clear();
+        self.checksum = None;
+    }
+}

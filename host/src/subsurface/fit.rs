@@ -1,0 +1,389 @@
+//! The fit stage (DESIGN stage 7): per pixel and channel, the layer model from the slit profiles of
+//! the training projectors, as a [`LayerModel`] the renderer consumes.
+//!
+//! - `Layered` (default): one joint fit of the 6 profiles (3 projectors x 2 axes) with the layer
+//!   spacing `D` fixed to a subject-wide estimate (from a subsample of pixels, all channels).
+//! - `Free` (the paper): each profile fitted on its own; components ranked by mean, weights and
+//!   sigmas averaged over the profiles per rank, and the depth of rank `r` implied by its means,
+//!   `z_r = sum_p mu_pr c_p / sum_p c_p^2` (least squares, clamped to >= 0).
+//!
+//! Absolute weights: a slit of width `W` (mm) under irradiance `E` gives a profile of flux
+//! `F = E W sum_l w_l`, so `w_l = pi_l sum_p F_p / sum_p E_p W_p`.
+//!
+//! Skipped: pixels off the subject, not lit by any training projector, or with no light in their
+//! profiles. `block > 1` fits one pixel per `block x block` tile (its centre) and gives every pixel
+//! of the tile that shape with its own amplitude (the profile-sampling knob of `bench`).
+
+use rayon::prelude::*;
+
+use super::em_free::{self, Component};
+use super::em_layered::{self, DepthSpacing, LayeredParams};
+use super::mixture::{EmConfig, EmError, Profile};
+use super::profiles::{PixelGeometry, SlitSweep};
+use super::render::{LayerModel, SplatLayer};
+use super::surface::Surface;
+
+/// Errors of the fit stage.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[non_exhaustive]
+pub enum FitError {
+    /// An EM fit failed on something other than an unlit pixel.
+    #[error("pixel {pixel}: {source}")]
+    Em { pixel: usize, source: EmError },
+    /// No pixel has light in its profiles (wrong frames, or all shadowed).
+    #[error("no pixel has light in its slit profiles: nothing to fit")]
+    NothingToFit,
+    /// The per-projector inputs disagree in number.
+    #[error("{geometries} projector geometries but {sweeps} slit sweeps")]
+    ProjectorCount { geometries: usize, sweeps: usize },
+}
+
+/// EM variant of DESIGN section 5.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EmVariant {
+    /// Means tied to layer depth, joint over projectors and axes (ours).
+    #[default]
+    Layered,
+    /// Free means per profile, averaged (the paper).
+    Free,
+}
+
+/// Knobs of the fit stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitOptions {
+    pub em: EmConfig,
+    pub variant: EmVariant,
+    /// Fixed layer spacing (mm); `None` estimates it.
+    pub depth_spacing: Option<f64>,
+    /// Start and upper bound of the spacing estimate (mm).
+    pub spacing_start: f64,
+    pub spacing_max: f64,
+    /// Pixels used for the spacing estimate.
+    pub spacing_pixels: usize,
+    /// Fit one pixel per `block x block` tile.
+    pub block: usize,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            em: EmConfig::default(),
+            variant: EmVariant::Layered,
+            depth_spacing: None,
+            spacing_start: 0.1,
+            spacing_max: 1.0,
+            spacing_pixels: 64,
+            block: 1,
+        }
+    }
+}
+
+/// What the fit did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FitStats {
+    pub depth_spacing_mm: f64,
+    /// Pixel-channel fits run, and skipped for lack of light.
+    pub fits: usize,
+    pub skipped: usize,
+    pub mean_layers: f64,
+    pub mean_iterations: f64,
+}
+
+/// The fitted model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitResult {
+    pub model: LayerModel,
+    pub stats: FitStats,
+}
+
+/// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
+/// `E W` product of each (for absolute weights).
+fn pixel_profiles(
+    i: usize,
+    c: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> (Vec<Profile>, Vec<f64>) {
+    let mut profiles = Vec::new();
+    let mut ew = Vec::new();
+    for (geo, sweep) in geometries.iter().zip(sweeps) {
+        let Some(g) = geo[i] else { continue };
+        for a in 0..2 {
+            if let Some(p) = sweep.profile(i, c, a, &g) {
+                ew.push(g.irradiance * p.slit_width);
+                profiles.push(p);
+            }
+        }
+    }
+    (profiles, ew)
+}
+
+/// `sum_p F_p / sum_p E_p W_p` for pixel `i`, channel `c`.
+fn weight_scale(profiles: &[Profile], ew: &[f64]) -> f64 {
+    let flux: f64 = profiles.iter().map(Profile::flux).sum();
+    let den: f64 = ew.iter().sum();
+    if den > 0.0 { flux / den } else { 0.0 }
+}
+
+/// Relative layer shape of one pixel-channel fit (weights sum to 1).
+#[derive(Debug, Clone)]
+struct Shape {
+    layers: Vec<SplatLayer>,
+    iterations: usize,
+}
+
+fn fit_layered_shape(
+    profiles: &[Profile],
+    spacing: f64,
+    opts: &FitOptions,
+    warm: Option<&LayeredParams>,
+) -> Result<(Shape, LayeredParams), EmError> {
+    let fit = em_layered::fit_layered(profiles, DepthSpacing::Fixed(spacing), &opts.em, warm)?;
+    let layers = fit
+        .layers
+        .iter()
+        .map(|l| SplatLayer {
+            index: l.depth_index as u16,
+            weight: l.weight as f32,
+            sigma_mm: l.sigma as f32,
+            depth_mm: (l.depth_index as f64 * spacing) as f32,
+        })
+        .collect();
+    let params = LayeredParams {
+        layers: fit.layers,
+        depth_spacing: spacing,
+    };
+    Ok((
+        Shape {
+            layers,
+            iterations: fit.trace.iterations(),
+        },
+        params,
+    ))
+}
+
+fn fit_free_shape(profiles: &[Profile], opts: &FitOptions) -> Result<Shape, EmError> {
+    let mut per_rank: Vec<(f64, f64, f64, f64, usize)> = Vec::new(); // w, sigma, sum mu c, sum c^2, n
+    let mut iterations = 0;
+    let mut fitted = 0usize;
+    for p in profiles {
+        let fit = match em_free::fit_free(p, &opts.em, None) {
+            Ok(f) => f,
+            Err(EmError::NoSignal) => continue,
+            Err(e) => return Err(e),
+        };
+        fitted += 1;
+        iterations += fit.trace.iterations();
+        for (
+            r,
+            Component {
+                weight,
+                mean,
+                sigma,
+            },
+        ) in fit.components.iter().enumerate()
+        {
+            if per_rank.len() <= r {
+                per_rank.push((0.0, 0.0, 0.0, 0.0, 0));
+            }
+            let e = &mut per_rank[r];
+            e.0 += weight;
+            e.1 += sigma;
+            e.2 += mean * p.shift_per_depth;
+            e.3 += p.shift_per_depth * p.shift_per_depth;
+            e.4 += 1;
+        }
+    }
+    if fitted == 0 {
+        return Err(EmError::NoSignal);
+    }
+    let total: f64 = per_rank.iter().map(|e| e.0).sum();
+    let layers = per_rank
+        .iter()
+        .enumerate()
+        .map(|(r, e)| SplatLayer {
+            index: r as u16,
+            weight: (e.0 / total) as f32,
+            sigma_mm: (e.1 / e.4 as f64) as f32,
+            depth_mm: if e.3 > 1e-9 {
+                (e.2 / e.3).max(0.0) as f32
+            } else {
+                0.0
+            },
+        })
+        .collect();
+    Ok(Shape { layers, iterations })
+}
+
+/// Subject-wide layer spacing from up to `opts.spacing_pixels` pixels spread over the lit area.
+pub fn estimate_spacing(
+    lit: &[usize],
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    opts: &FitOptions,
+) -> Result<f64, FitError> {
+    if let Some(d) = opts.depth_spacing {
+        return Ok(d);
+    }
+    let step = (lit.len() / opts.spacing_pixels.max(1)).max(1);
+    let chosen: Vec<usize> = lit.iter().copied().step_by(step).collect();
+    let sets: Vec<Vec<Profile>> = chosen
+        .iter()
+        .flat_map(|&i| (0..3).map(move |c| (i, c)))
+        .map(|(i, c)| pixel_profiles(i, c, geometries, sweeps).0)
+        .collect();
+    // Per-pixel ECM estimates are independent: split them across threads.
+    let em = EmConfig {
+        max_iterations: opts.em.max_iterations.min(80),
+        bic: false,
+        ..opts.em.clone()
+    };
+    let estimates: Vec<f64> = sets
+        .par_iter()
+        .filter_map(|set| {
+            em_layered::estimate_depth_spacing(
+                std::slice::from_ref(set),
+                opts.spacing_start,
+                opts.spacing_max,
+                &em,
+            )
+            .ok()
+        })
+        .collect();
+    if estimates.is_empty() {
+        return Err(FitError::NothingToFit);
+    }
+    let mut sorted = estimates;
+    sorted.sort_by(f64::total_cmp);
+    Ok(sorted[sorted.len() / 2])
+}
+
+/// Runs the fit stage over the surface.
+pub fn fit_model(
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    opts: &FitOptions,
+) -> Result<FitResult, FitError> {
+    if geometries.len() != sweeps.len() {
+        return Err(FitError::ProjectorCount {
+            geometries: geometries.len(),
+            sweeps: sweeps.len(),
+        });
+    }
+    let (w, h) = (surface.width, surface.height);
+    let lit_by_any = |i: usize| surface.mask[i] && geometries.iter().any(|g| g[i].is_some());
+    let lit: Vec<usize> = (0..w * h).filter(|&i| lit_by_any(i)).collect();
+    if lit.is_empty() {
+        return Err(FitError::NothingToFit);
+    }
+    let spacing = match opts.variant {
+        EmVariant::Layered => estimate_spacing(&lit, geometries, sweeps, opts)?,
+        EmVariant::Free => opts.depth_spacing.unwrap_or(0.0),
+    };
+    let block = opts.block.max(1);
+    let (bw, bh) = (w.div_ceil(block), h.div_ceil(block));
+    // Fit tile centres (or the first lit pixel of the tile), rows of tiles in parallel with a
+    // warm start from the left neighbour.
+    let tile_rows: Vec<Result<Vec<[Option<Shape>; 3]>, FitError>> = (0..bh)
+        .into_par_iter()
+        .map(|by| {
+            let mut warm: [Option<LayeredParams>; 3] = Default::default();
+            let mut row = Vec::with_capacity(bw);
+            for bx in 0..bw {
+                let centre = tile_pixel(bx, by, block, w, h, &lit_by_any);
+                let mut shapes: [Option<Shape>; 3] = Default::default();
+                if let Some(i) = centre {
+                    for c in 0..3 {
+                        let (profiles, _) = pixel_profiles(i, c, geometries, sweeps);
+                        let result = match opts.variant {
+                            EmVariant::Layered => {
+                                fit_layered_shape(&profiles, spacing, opts, warm[c].as_ref()).map(
+                                    |(s, p)| {
+                                        warm[c] = Some(p);
+                                        s
+                                    },
+                                )
+                            }
+                            EmVariant::Free => fit_free_shape(&profiles, opts),
+                        };
+                        match result {
+                            Ok(s) => shapes[c] = Some(s),
+                            Err(EmError::NoSignal) => {}
+                            Err(source) => return Err(FitError::Em { pixel: i, source }),
+                        }
+                    }
+                }
+                row.push(shapes);
+            }
+            Ok(row)
+        })
+        .collect();
+    let mut tiles = Vec::with_capacity(bw * bh);
+    for row in tile_rows {
+        tiles.extend(row?);
+    }
+    let mut stats = FitStats {
+        depth_spacing_mm: spacing,
+        ..FitStats::default()
+    };
+    let (mut layer_sum, mut iter_sum) = (0usize, 0usize);
+    for shapes in &tiles {
+        for s in shapes {
+            match s {
+                Some(s) => {
+                    stats.fits += 1;
+                    layer_sum += s.layers.len();
+                    iter_sum += s.iterations;
+                }
+                None => stats.skipped += 1,
+            }
+        }
+    }
+    if stats.fits == 0 {
+        return Err(FitError::NothingToFit);
+    }
+    stats.mean_layers = layer_sum as f64 / stats.fits as f64;
+    stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
+    let model = LayerModel::from_fn(w, h, |i, c| {
+        if !lit_by_any(i) {
+            return Vec::new();
+        }
+        let (x, y) = (i % w, i / w);
+        let Some(shape) = &tiles[(y / block) * bw + x / block][c] else {
+            return Vec::new();
+        };
+        let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
+        let scale = weight_scale(&profiles, &ew) as f32;
+        shape
+            .layers
+            .iter()
+            .map(|l| SplatLayer {
+                weight: l.weight * scale,
+                ..*l
+            })
+            .collect()
+    });
+    Ok(FitResult { model, stats })
+}
+
+/// The pixel fitted for tile `(bx, by)`: its centre if lit, else the first lit pixel of the tile.
+fn tile_pixel(
+    bx: usize,
+    by: usize,
+    block: usize,
+    w: usize,
+    h: usize,
+    lit: &impl Fn(usize) -> bool,
+) -> Option<usize> {
+    let (x0, y0) = (bx * block, by * block);
+    let (x1, y1) = ((x0 + block).min(w), (y0 + block).min(h));
+    let centre = ((y0 + y1) / 2) * w + (x0 + x1) / 2;
+    if lit(centre) {
+        return Some(centre);
+    }
+    (y0..y1)
+        .flat_map(|y| (x0..x1).map(move |x| y * w + x))
+        .find(|&i| lit(i))
+}

@@ -1,0 +1,636 @@
+//! The EM engine shared by the free-means (paper) and layered-means (ours) fits: a mixture of
+//! box-convolved Gaussians (see [`boxed_gaussian`](super::boxed_gaussian)) on weighted 1-D samples.
+//!
+//! Conventions
+//! - A profile is a list of samples `(s, y)`: `s` is the signed distance in mm on the surface from
+//!   the centre of the nearest lit slit, `y >= 0` the global radiance measured there (negative
+//!   readings from noise are clamped to 0). The slit width `W` (mm) is a known box.
+//! - Samples are treated as weighted observations: the log-likelihood of a profile is
+//!   `sum_j y_j ln f(s_j) / sum_j y_j` (normalised per profile, so every profile of a joint fit
+//!   counts equally whatever its irradiance). Absolute layer weights come back through the flux.
+//! - With a slit period `T` (mm) the sweep lights a comb of slits, so a pixel also sees the tails
+//!   of the neighbouring slits: each component is wrapped with its images at `+-T`.
+//!
+//! Guard rails (all keep the EM monotone, because each is the exact maximiser of the EM
+//! auxiliary function under a constraint, or a move accepted only if the likelihood does not drop):
+//! sigma floor and ceiling (the auxiliary function is unimodal in sigma^2, so clamping is the
+//! constrained maximum), weight floor by water-filling (the exact constrained maximum of
+//! `sum n_l ln pi_l`), pruning of floor-weight components only when removal does not lower the
+//! likelihood. Model selection by BIC is a separate, explicit step that may lower it.
+
+use super::boxed_gaussian::BoxedGaussian;
+
+/// Errors of the EM fits.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[non_exhaustive]
+pub enum EmError {
+    /// No profile carries any positive radiance: nothing to fit (unlit or shadowed pixel).
+    #[error("the profile carries no light (all samples <= 0)")]
+    NoSignal,
+    /// A sample position or value is NaN or infinite.
+    #[error("sample {index} of profile {profile} is not finite (s = {s}, y = {y})")]
+    NonFiniteSample {
+        profile: usize,
+        index: usize,
+        s: f64,
+        y: f64,
+    },
+    /// The slit width must be positive and finite.
+    #[error("slit width of profile {profile} is {width} mm; it must be > 0")]
+    BadSlitWidth { profile: usize, width: f64 },
+    /// The configuration is inconsistent (e.g. weight floor times components >= 1).
+    #[error("invalid EM configuration: {0}")]
+    BadConfig(&'static str),
+}
+
+/// One weighted observation of a profile.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sample {
+    /// Signed distance from the slit centre along the profile axis (mm on the surface).
+    pub s: f64,
+    /// Global radiance (linear, frame units).
+    pub y: f64,
+}
+
+/// One 1-D radiance profile with what the model needs to know about how it was lit and seen.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Profile {
+    pub samples: Vec<Sample>,
+    /// Slit width on the surface (mm).
+    pub slit_width: f64,
+    /// Slit period on the surface (mm), if the sweep is a comb (it is in the booth).
+    pub period: Option<f64>,
+    /// Lateral shift of layer means per mm of depth along this profile's axis,
+    /// `(t_i + t_o) . s_hat` (see `em_layered`); unused by the free fit.
+    pub shift_per_depth: f64,
+}
+
+impl Profile {
+    /// Sum of the clamped sample values.
+    pub fn total(&self) -> f64 {
+        self.samples.iter().map(|s| s.y.max(0.0)).sum()
+    }
+
+    /// Integrated flux (radiance x mm) over one period, from the mean sample value; with no period
+    /// the trapezoid over the sorted samples.
+    pub fn flux(&self) -> f64 {
+        let n = self.samples.len();
+        if n == 0 {
+            return 0.0;
+        }
+        match self.period {
+            Some(t) => self.total() / n as f64 * t,
+            None => {
+                let mut sorted: Vec<Sample> = self.samples.clone();
+                sorted.sort_by(|a, b| a.s.total_cmp(&b.s));
+                sorted
+                    .windows(2)
+                    .map(|w| 0.5 * (w[0].y.max(0.0) + w[1].y.max(0.0)) * (w[1].s - w[0].s))
+                    .sum()
+            }
+        }
+    }
+}
+
+/// Knobs of the EM.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EmConfig {
+    /// Number of components at the start (the paper: 20).
+    pub components: usize,
+    /// Hard cap on EM iterations.
+    pub max_iterations: usize,
+    /// Stop when the log-likelihood gains less than this (absolute, per unit weight) in one step.
+    pub tolerance: f64,
+    /// Smallest sigma (mm).
+    pub sigma_floor: f64,
+    /// Largest sigma (mm); profiles are only seen over about one period.
+    pub sigma_ceiling: f64,
+    /// Smallest mixing weight (water-filling floor).
+    pub weight_floor: f64,
+    /// Try to remove floor-weight components (accepted only if the likelihood does not drop).
+    pub prune: bool,
+    /// Reduce the number of components while the BIC improves.
+    pub bic: bool,
+    /// Observations one sample reading stands for in the BIC (about the photo-electrons behind
+    /// a mid-scale reading of a 12-bit camera); profiles are weighted readings, not counts.
+    pub bic_counts_per_sample: f64,
+    /// EM iterations allowed when refitting a reduced model during model selection.
+    pub bic_iterations: usize,
+    /// Number of slit images on each side of a component (0 = ignore the comb).
+    pub wrap_images: usize,
+}
+
+impl Default for EmConfig {
+    fn default() -> Self {
+        Self {
+            components: 20,
+            max_iterations: 200,
+            tolerance: 1e-7,
+            sigma_floor: 0.02,
+            sigma_ceiling: 20.0,
+            weight_floor: 1e-4,
+            prune: true,
+            bic: true,
+            bic_counts_per_sample: 1000.0,
+            bic_iterations: 30,
+            wrap_images: 1,
+        }
+    }
+}
+
+impl EmConfig {
+    pub(crate) fn validate(&self) -> Result<(), EmError> {
+        if self.components == 0 {
+            return Err(EmError::BadConfig("components must be >= 1"));
+        }
+        if !(self.weight_floor >= 0.0 && self.weight_floor * (self.components as f64) < 1.0) {
+            return Err(EmError::BadConfig(
+                "weight_floor * components must be in [0, 1)",
+            ));
+        }
+        if !(self.sigma_floor > 0.0 && self.sigma_ceiling > self.sigma_floor) {
+            return Err(EmError::BadConfig("need 0 < sigma_floor < sigma_ceiling"));
+        }
+        Ok(())
+    }
+}
+
+/// What one entry of the trace was.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StepKind {
+    /// The log-likelihood of the initial parameters.
+    Start,
+    /// One EM (ECM) iteration: must never lower the log-likelihood.
+    Em,
+    /// Removal of a floor-weight component: accepted only if it does not lower it.
+    Prune,
+    /// A model-selection reduction (BIC): a smaller model, may lower it.
+    ModelSelection,
+    /// An EM step that lowered the log-likelihood beyond rounding (value recorded) and was undone.
+    /// Exact EM never does this; the tests assert it never happens.
+    Rejected,
+}
+
+/// The log-likelihood after every step of a fit.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Trace {
+    pub steps: Vec<(StepKind, f64)>,
+}
+
+impl Trace {
+    /// Largest drop of the log-likelihood over an EM or prune step (0 if none dropped).
+    pub fn worst_drop(&self) -> f64 {
+        let kept: Vec<(StepKind, f64)> = self
+            .steps
+            .iter()
+            .copied()
+            .filter(|s| s.0 != StepKind::Rejected)
+            .collect();
+        kept.windows(2)
+            .filter(|w| matches!(w[1].0, StepKind::Em | StepKind::Prune))
+            .map(|w| (w[0].1 - w[1].1).max(0.0))
+            .fold(0.0, f64::max)
+    }
+
+    /// Number of EM steps that were undone because they lowered the log-likelihood.
+    pub fn rejected(&self) -> usize {
+        self.steps
+            .iter()
+            .filter(|s| s.0 == StepKind::Rejected)
+            .count()
+    }
+
+    /// Number of EM iterations run.
+    pub fn iterations(&self) -> usize {
+        self.steps.iter().filter(|s| s.0 == StepKind::Em).count()
+    }
+}
+
+/// How the component means depend on the profile: free (one mean per component) or tied to a
+/// layer depth. Implemented by `em_free` and `em_layered`.
+pub(crate) trait MeanModel: Clone {
+    /// Mean (mm) of component `l` in profile `p`.
+    fn mean(&self, profiles: &[Profile], p: usize, l: usize) -> f64;
+    /// Conditional M-step of the means given the sufficient statistics and the current sigmas.
+    fn update(&mut self, profiles: &[Profile], stats: &Stats, sigmas: &[f64]);
+    /// Forget component `l`.
+    fn remove(&mut self, l: usize);
+    /// Free mean parameters per component (for BIC) and shared ones.
+    fn parameter_count(&self, components: usize) -> usize;
+}
+
+/// Sufficient statistics of one E-step, per profile `p` and component `l` (flattened `p * K + l`):
+/// `n = sum y r`, `sx = sum y r E[x]`, `sxx = sum y r E[x^2]` with `x` the latent position relative
+/// to the component's own slit image.
+#[derive(Debug, Clone)]
+pub(crate) struct Stats {
+    pub components: usize,
+    pub n: Vec<f64>,
+    pub sx: Vec<f64>,
+    pub sxx: Vec<f64>,
+}
+
+impl Stats {
+    fn new(profiles: usize, components: usize) -> Self {
+        let len = profiles * components;
+        Self {
+            components,
+            n: vec![0.0; len],
+            sx: vec![0.0; len],
+            sxx: vec![0.0; len],
+        }
+    }
+
+    pub fn at(&self, p: usize, l: usize) -> usize {
+        p * self.components + l
+    }
+}
+
+/// Mixture state: weights and sigmas per component; means come from the mean model.
+#[derive(Debug, Clone)]
+pub(crate) struct State<M: MeanModel> {
+    pub weights: Vec<f64>,
+    pub sigmas: Vec<f64>,
+    pub means: M,
+}
+
+/// Prepared data: validated, clamped, normalised per profile.
+pub(crate) struct Data<'a> {
+    pub profiles: &'a [Profile],
+    /// Normalised weights per profile (sum 1 over a profile with signal; empty otherwise).
+    pub weights: Vec<Vec<f64>>,
+    pub samples: usize,
+}
+
+impl<'a> Data<'a> {
+    pub fn new(profiles: &'a [Profile]) -> Result<Self, EmError> {
+        let mut weights = Vec::with_capacity(profiles.len());
+        let mut samples = 0;
+        for (p, prof) in profiles.iter().enumerate() {
+            if !(prof.slit_width > 0.0 && prof.slit_width.is_finite()) {
+                return Err(EmError::BadSlitWidth {
+                    profile: p,
+                    width: prof.slit_width,
+                });
+            }
+            for (index, s) in prof.samples.iter().enumerate() {
+                if !(s.s.is_finite() && s.y.is_finite()) {
+                    return Err(EmError::NonFiniteSample {
+                        profile: p,
+                        index,
+                        s: s.s,
+                        y: s.y,
+                    });
+                }
+            }
+            let total = prof.total();
+            if total > 0.0 {
+                weights.push(prof.samples.iter().map(|s| s.y.max(0.0) / total).collect());
+                samples += prof.samples.len();
+            } else {
+                weights.push(Vec::new());
+            }
+        }
+        if samples == 0 {
+            return Err(EmError::NoSignal);
+        }
+        Ok(Self {
+            profiles,
+            weights,
+            samples,
+        })
+    }
+
+    fn profiles_with_signal(&self) -> usize {
+        self.weights.iter().filter(|w| !w.is_empty()).count()
+    }
+}
+
+/// Offsets of the slit images considered for a profile.
+fn images(profile: &Profile, wrap: usize) -> impl Iterator<Item = f64> + '_ {
+    let w = wrap as i64;
+    (-w..=w).filter_map(move |m| match (m, profile.period) {
+        (0, _) => Some(0.0),
+        (_, Some(t)) => Some(m as f64 * t),
+        (_, None) => None,
+    })
+}
+
+/// Beyond this many sigmas (plus half the slit) an image contributes nothing worth computing.
+const NEGLIGIBLE_SIGMAS: f64 = 12.0;
+
+/// Log-likelihood (per unit weight, averaged over profiles with signal) and, if `stats` is given,
+/// the E-step sufficient statistics.
+pub(crate) fn e_step<M: MeanModel>(
+    data: &Data,
+    state: &State<M>,
+    wrap: usize,
+    mut stats: Option<&mut Stats>,
+) -> f64 {
+    let k = state.weights.len();
+    let ln_w: Vec<f64> = state
+        .weights
+        .iter()
+        .map(|&w| if w > 0.0 { w.ln() } else { f64::NEG_INFINITY })
+        .collect();
+    let mut total = 0.0;
+    // Scratch: (component, image offset, ln joint, posterior mean, variance).
+    let mut terms: Vec<(usize, f64, f64, f64, f64)> = Vec::with_capacity(k * (2 * wrap + 1));
+    for (p, prof) in data.profiles.iter().enumerate() {
+        let weights = &data.weights[p];
+        if weights.is_empty() {
+            continue;
+        }
+        let mut ll = 0.0;
+        for (sample, &y) in prof.samples.iter().zip(weights) {
+            if y <= 0.0 {
+                continue;
+            }
+            terms.clear();
+            for (l, &ln_weight) in ln_w.iter().enumerate() {
+                if ln_weight == f64::NEG_INFINITY {
+                    continue;
+                }
+                let g = BoxedGaussian {
+                    mean: state.means.mean(data.profiles, p, l),
+                    sigma: state.sigmas[l],
+                    width: prof.slit_width,
+                };
+                for offset in images(prof, wrap) {
+                    let dist = (sample.s - offset - g.mean).abs() - 0.5 * g.width;
+                    if offset != 0.0 && dist > NEGLIGIBLE_SIGMAS * g.sigma {
+                        continue;
+                    }
+                    let post = g.posterior(sample.s - offset);
+                    terms.push((
+                        l,
+                        offset,
+                        ln_w[l] + post.ln_density,
+                        post.mean,
+                        post.variance,
+                    ));
+                }
+            }
+            let max = terms.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
+            let sum: f64 = terms.iter().map(|t| (t.2 - max).exp()).sum();
+            let ln_f = max + sum.ln();
+            ll += y * ln_f;
+            if let Some(st) = stats.as_deref_mut() {
+                for &(l, _offset, ln_joint, mean, var) in &terms {
+                    let r = y * (ln_joint - ln_f).exp();
+                    if r > 0.0 {
+                        let i = st.at(p, l);
+                        st.n[i] += r;
+                        st.sx[i] += r * mean;
+                        st.sxx[i] += r * (var + mean * mean);
+                    }
+                }
+            }
+        }
+        total += ll;
+    }
+    total / data.profiles_with_signal() as f64
+}
+
+/// Exact maximiser of `sum n_l ln pi_l` over the simplex with `pi_l >= floor`.
+pub(crate) fn water_fill(n: &[f64], floor: f64) -> Vec<f64> {
+    let k = n.len();
+    let mut clamped = vec![false; k];
+    loop {
+        let free_mass: f64 = (0..k).filter(|&l| !clamped[l]).map(|l| n[l]).sum();
+        let clamped_count = clamped.iter().filter(|&&c| c).count();
+        let budget = 1.0 - clamped_count as f64 * floor;
+        if free_mass <= 0.0 {
+            // No responsibility anywhere free: spread the budget evenly.
+            let free = k - clamped_count;
+            return (0..k)
+                .map(|l| {
+                    if clamped[l] {
+                        floor
+                    } else {
+                        budget / free.max(1) as f64
+                    }
+                })
+                .collect();
+        }
+        let mut changed = false;
+        for l in 0..k {
+            if !clamped[l] && n[l] / free_mass * budget < floor {
+                clamped[l] = true;
+                changed = true;
+            }
+        }
+        if !changed {
+            return (0..k)
+                .map(|l| {
+                    if clamped[l] {
+                        floor
+                    } else {
+                        n[l] / free_mass * budget
+                    }
+                })
+                .collect();
+        }
+    }
+}
+
+/// The sigma M-step given the (already updated) means: pooled second moment about each profile's
+/// mean, clamped to the floor and ceiling. Components without responsibility keep their sigma.
+fn update_sigmas<M: MeanModel>(data: &Data, state: &mut State<M>, stats: &Stats, cfg: &EmConfig) {
+    for l in 0..state.sigmas.len() {
+        let (mut n, mut ss) = (0.0, 0.0);
+        for p in 0..data.profiles.len() {
+            let i = stats.at(p, l);
+            let mu = state.means.mean(data.profiles, p, l);
+            n += stats.n[i];
+            ss += stats.sxx[i] - 2.0 * mu * stats.sx[i] + mu * mu * stats.n[i];
+        }
+        if n > 1e-300 {
+            let var = (ss / n).max(0.0);
+            state.sigmas[l] = var.sqrt().clamp(cfg.sigma_floor, cfg.sigma_ceiling);
+        }
+    }
+}
+
+/// The M-step (ECM order: weights, then means, then sigmas) from one E-step's statistics.
+fn m_step<M: MeanModel>(data: &Data, state: &mut State<M>, stats: &Stats, cfg: &EmConfig) {
+    let k = state.weights.len();
+    let n_per_component: Vec<f64> = (0..k)
+        .map(|l| {
+            (0..data.profiles.len())
+                .map(|p| stats.n[stats.at(p, l)])
+                .sum()
+        })
+        .collect();
+    state.weights = water_fill(&n_per_component, cfg.weight_floor);
+    let sigmas = state.sigmas.clone();
+    state.means.update(data.profiles, stats, &sigmas);
+    update_sigmas(data, state, stats, cfg);
+}
+
+fn remove_component<M: MeanModel>(state: &mut State<M>, l: usize) {
+    state.weights.remove(l);
+    state.sigmas.remove(l);
+    state.means.remove(l);
+    let sum: f64 = state.weights.iter().sum();
+    if sum > 0.0 {
+        state.weights.iter_mut().for_each(|w| *w /= sum);
+    }
+}
+
+/// EM to convergence from `state`, appending to `trace`. Returns the final log-likelihood.
+/// One E-step per iteration: it scores the parameters of the previous M-step and gives the
+/// statistics of the next.
+fn converge<M: MeanModel>(
+    data: &Data,
+    state: &mut State<M>,
+    cfg: &EmConfig,
+    trace: &mut Trace,
+) -> f64 {
+    let fresh = |k: usize| Stats::new(data.profiles.len(), k);
+    let mut stats = fresh(state.weights.len());
+    let mut ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
+    for _ in 0..cfg.max_iterations {
+        let before = state.clone();
+        m_step(data, state, &stats, cfg);
+        let mut next_stats = fresh(state.weights.len());
+        let next = e_step(data, state, cfg.wrap_images, Some(&mut next_stats));
+        if !next.is_finite() || next < ll - 1e-12 * ll.abs().max(1.0) {
+            // Rounding made a step worse: keep the better parameters and stop.
+            trace.steps.push((StepKind::Rejected, next));
+            *state = before;
+            break;
+        }
+        trace.steps.push((StepKind::Em, next));
+        let gain = next - ll;
+        ll = next;
+        stats = next_stats;
+        if gain < cfg.tolerance {
+            break;
+        }
+    }
+    ll
+}
+
+/// Removes floor-weight components while that does not lower the likelihood.
+fn prune<M: MeanModel>(
+    data: &Data,
+    state: &mut State<M>,
+    cfg: &EmConfig,
+    ll: f64,
+    trace: &mut Trace,
+) -> (f64, bool) {
+    let mut ll = ll;
+    let mut any = false;
+    let mut l = 0;
+    while l < state.weights.len() && state.weights.len() > 1 {
+        if state.weights[l] <= cfg.weight_floor * 1.000_001 {
+            let mut trial = state.clone();
+            remove_component(&mut trial, l);
+            let trial_ll = e_step(data, &trial, cfg.wrap_images, None);
+            if trial_ll.is_finite() && trial_ll >= ll {
+                *state = trial;
+                ll = trial_ll;
+                any = true;
+                trace.steps.push((StepKind::Prune, ll));
+                continue;
+            }
+        }
+        l += 1;
+    }
+    (ll, any)
+}
+
+/// Bayesian information criterion with `samples x bic_counts_per_sample` observations and the
+/// normalised log-likelihood scaled back by it (samples are radiance readings, not photon counts).
+pub(crate) fn bic<M: MeanModel>(data: &Data, state: &State<M>, ll: f64, cfg: &EmConfig) -> f64 {
+    let k = state.weights.len();
+    let params = (k - 1) + k + state.means.parameter_count(k);
+    let n = data.samples as f64 * cfg.bic_counts_per_sample.max(1.0);
+    let total_ll = ll * n / data.profiles_with_signal() as f64;
+    -2.0 * total_ll + params as f64 * n.ln()
+}
+
+/// The full fit: EM to convergence, pruning, then BIC reductions (dropping the lightest
+/// component) while the criterion improves.
+pub(crate) fn fit<M: MeanModel>(
+    data: &Data,
+    mut state: State<M>,
+    cfg: &EmConfig,
+) -> (State<M>, f64, Trace) {
+    let mut trace = Trace::default();
+    let start = e_step(data, &state, cfg.wrap_images, None);
+    trace.steps.push((StepKind::Start, start));
+    let mut ll = converge(data, &mut state, cfg, &mut trace);
+    if cfg.prune {
+        let (after, pruned) = prune(data, &mut state, cfg, ll, &mut trace);
+        ll = after;
+        if pruned {
+            ll = converge(data, &mut state, cfg, &mut trace);
+        }
+    }
+    if cfg.bic {
+        let mut best = bic(data, &state, ll, cfg);
+        while state.weights.len() > 1 {
+            let lightest = (0..state.weights.len())
+                .min_by(|&a, &b| state.weights[a].total_cmp(&state.weights[b]))
+                .unwrap_or(0);
+            let mut trial = state.clone();
+            remove_component(&mut trial, lightest);
+            let mut trial_trace = Trace::default();
+            let start = e_step(data, &trial, cfg.wrap_images, None);
+            trial_trace.steps.push((StepKind::ModelSelection, start));
+            let short = EmConfig {
+                max_iterations: cfg.bic_iterations,
+                ..cfg.clone()
+            };
+            let trial_ll = converge(data, &mut trial, &short, &mut trial_trace);
+            let score = bic(data, &trial, trial_ll, cfg);
+            if score < best {
+                best = score;
+                state = trial;
+                ll = trial_ll;
+                trace.steps.extend(trial_trace.steps);
+            } else {
+                break;
+            }
+        }
+    }
+    (state, ll, trace)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn water_fill_respects_floor_and_sums_to_one() {
+        let w = water_fill(&[0.5, 0.0, 0.3, 1e-9, 0.2], 0.01);
+        assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        assert!(w.iter().all(|&x| x >= 0.01 - 1e-15));
+        assert_eq!(w[1], 0.01);
+        assert_eq!(w[3], 0.01);
+        // Free weights keep their ratios.
+        assert!((w[0] / w[2] - 0.5 / 0.3).abs() < 1e-12);
+    }
+
+    #[test]
+    fn water_fill_is_the_constrained_maximum() {
+        // Compare with random feasible points: none beats it.
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let n = [0.6, 0.001, 0.25, 0.149, 0.0];
+        let floor = 0.02;
+        let objective = |w: &[f64]| n.iter().zip(w).map(|(a, b)| a * b.ln()).sum::<f64>();
+        let best = objective(&water_fill(&n, floor));
+        for _ in 0..2000 {
+            let raw: Vec<f64> = (0..5).map(|_| rng.r#gen::<f64>()).collect();
+            let s: f64 = raw.iter().sum();
+            let w: Vec<f64> = raw
+                .iter()
+                .map(|r| floor + r / s * (1.0 - 5.0 * floor))
+                .collect();
+            assert!(objective(&w) <= best + 1e-12);
+        }
+    }
+}

@@ -1,0 +1,18 @@
+//! The multi-layered subsurface scattering model (DESIGN section 5): slit radiance profiles, EM
+//! fits of the layer model (free means as in the paper, layered means tied to depth as ours), and
+//! the renderer of paper eqs. 3-5 with its baselines.
+
+pub mod boxed_gaussian;
+pub mod em_free;
+pub mod em_layered;
+pub mod fit;
+pub mod mixture;
+pub mod profiles;
+pub mod relight;
+pub mod render;
+pub mod surface;
+
+#[cfg(test)]
+mod chain_tests;
+#[cfg(test)]
+mod em_properties;
