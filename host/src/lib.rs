@@ -7,6 +7,7 @@
 
 pub mod booth;
 pub mod calib;
+pub mod calibrate;
 pub mod capture;
 pub mod geometry;
 pub mod imageio;

@@ -24,6 +24,8 @@ enum Command {
     Rig(cli::rig::Args),
     /// Render a capture in the virtual booth (Monte Carlo skin, noise) with ground truth.
     Simulate(cli::simulate::Args),
+    /// Calibrate the camera and projectors from chessboard poses (or convert an OpenCV calibration).
+    Calibrate(cli::calibrate::Args),
     /// Photometric stereo on an image set under distant lights (normals, albedo, errors).
     Normals(cli::normals::Args),
     /// Render a photometric-stereo test set with known normals, shadows and highlights.
@@ -42,6 +44,7 @@ fn main() -> ExitCode {
         Command::Booth(args) => cli::booth::run(args),
         Command::Rig(args) => cli::rig::run(args),
         Command::Simulate(args) => cli::simulate::run(args),
+        Command::Calibrate(args) => cli::calibrate::run(args),
         Command::Normals(args) => cli::normals::run(args),
         Command::PsScene(args) => cli::ps_scene::run(args),
         Command::Mc(args) => cli::mc::run(args),

@@ -4,6 +4,7 @@
 
 pub mod booth;
 pub mod decode;
+pub mod calibrate;
 pub mod mc;
 pub mod simulate;
 pub mod normals;
