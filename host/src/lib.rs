@@ -11,4 +11,5 @@ pub mod capture;
 pub mod geometry;
 pub mod imageio;
 pub mod mc;
+pub mod photometry;
 pub mod subsurface;

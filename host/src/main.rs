@@ -20,6 +20,10 @@ struct Cli {
 enum Command {
     /// Inspect a booth description: parse and validate it, summarise the frame plan.
     Booth(cli::booth::Args),
+    /// Photometric stereo on an image set under distant lights (normals, albedo, errors).
+    Normals(cli::normals::Args),
+    /// Render a photometric-stereo test set with known normals, shadows and highlights.
+    PsScene(cli::ps_scene::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
 }
@@ -28,6 +32,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
+        Command::Normals(args) => cli::normals::run(args),
+        Command::PsScene(args) => cli::ps_scene::run(args),
         Command::Mc(args) => cli::mc::run(args),
     };
     match result {

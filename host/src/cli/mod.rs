@@ -4,3 +4,5 @@
 
 pub mod booth;
 pub mod mc;
+pub mod normals;
+pub mod ps_scene;

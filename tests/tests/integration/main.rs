@@ -1,1 +1,2 @@
 mod booth_cli;
+mod normals_cli;

@@ -1,0 +1,125 @@
+//! Benchmarks of direct/global separation and 4-light photometric stereo on full-size camera
+//! frames (1379x1029 RGB), and, in the same run, the numpy implementation of the same formulas in
+//! `photometry_numpy.py` (skipped with a note when python3/numpy are missing).
+//!
+//! Run: `cargo bench -p mlsss --bench photometry`
+
+use std::process::Command;
+
+use criterion::{Criterion, criterion_group};
+use image::Rgb32FImage;
+use mlsss::photometry::photometric_stereo::{
+    DirectionalLights, LightSample, Method, PsParams, solve_images,
+};
+use mlsss::photometry::separation::{SeparationParams, separate};
+use nalgebra::Vector3;
+
+const WIDTH: u32 = 1379;
+const HEIGHT: u32 = 1029;
+
+/// Six stripe frames of a smoothly varying scene (deterministic, no RNG needed).
+fn stripe_frames() -> Vec<Rgb32FImage> {
+    (0..6u32)
+        .map(|s| {
+            Rgb32FImage::from_fn(WIDTH, HEIGHT, |x, y| {
+                let lit = (x + 6 - s) % 6 < 3;
+                let direct = 0.3 + 0.1 * ((x as f32) * 0.01).sin();
+                let global = 0.2 + 0.05 * ((y as f32) * 0.013).cos();
+                let b = 0.02;
+                let e = if lit { 1.0 } else { b };
+                let v = direct * e + global * (1.0 + b) / 2.0;
+                image::Rgb([v, 0.8 * v, 0.6 * v])
+            })
+        })
+        .collect()
+}
+
+fn booth_lights() -> Vec<LightSample> {
+    [(-1.0, 1.0), (1.0, 1.0), (-1.0, -1.0), (1.0, -1.0)]
+        .iter()
+        .map(|&(x, y)| LightSample {
+            direction: Vector3::new(0.45 * x, 0.45 * y, 0.77).normalize(),
+            irradiance: [1.0; 3],
+        })
+        .collect()
+}
+
+/// Four images of a hemisphere-like normal field under the booth lights.
+fn ps_frames(lights: &[LightSample]) -> Vec<Rgb32FImage> {
+    lights
+        .iter()
+        .map(|l| {
+            Rgb32FImage::from_fn(WIDTH, HEIGHT, |x, y| {
+                let nx = (x as f64 / WIDTH as f64 - 0.5) * 1.2;
+                let ny = (y as f64 / HEIGHT as f64 - 0.5) * 1.2;
+                let n = Vector3::new(nx, ny, 1.0).normalize();
+                let v = (0.6 * n.dot(&l.direction).max(0.0)) as f32;
+                image::Rgb([v, 0.7 * v, 0.5 * v])
+            })
+        })
+        .collect()
+}
+
+fn bench(c: &mut Criterion) {
+    let frames = stripe_frames();
+    let refs: Vec<&Rgb32FImage> = frames.iter().collect();
+    let mut group = c.benchmark_group("photometry_full_frame");
+    group.sample_size(10);
+    let nayar = SeparationParams {
+        black_level: 0.02,
+        ..Default::default()
+    };
+    group.bench_function("separation_nayar", |b| {
+        b.iter(|| separate(&refs, &nayar).map(|s| s.stats))
+    });
+    let blur = SeparationParams {
+        blur_px: 0.6,
+        ..nayar
+    };
+    group.bench_function("separation_blur_corrected", |b| {
+        b.iter(|| separate(&refs, &blur).map(|s| s.stats))
+    });
+    let lights = booth_lights();
+    let images = ps_frames(&lights);
+    let refs: Vec<&Rgb32FImage> = images.iter().collect();
+    let model = DirectionalLights {
+        lights,
+        view: Vector3::z(),
+    };
+    for (name, method) in [
+        ("ps4_least_squares", Method::LeastSquares),
+        ("ps4_robust", Method::Robust),
+    ] {
+        let params = PsParams {
+            method,
+            ..PsParams::default()
+        };
+        group.bench_function(name, |b| {
+            b.iter(|| solve_images(&refs, &model, None, &params).map(|m| m.pixels.len()))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+
+fn numpy_peer() {
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/photometry_numpy.py");
+    match Command::new("python3").arg(script).output() {
+        Ok(out) if out.status.success() => {
+            println!("numpy peer (same formulas, same frame size):");
+            print!("{}", String::from_utf8_lossy(&out.stdout));
+        }
+        Ok(out) => println!(
+            "numpy peer skipped: {}",
+            String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
+        ),
+        Err(e) => println!("numpy peer skipped: python3 not runnable ({e})"),
+    }
+}
+
+fn main() {
+    benches();
+    numpy_peer();
+    Criterion::default().configure_from_args().final_summary();
+}

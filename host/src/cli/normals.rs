@@ -1,0 +1,181 @@
+//! `mlsss normals`: directional-light photometric stereo on any image set (e.g. DiLiGenT).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use mlsss::photometry::image_set;
+use mlsss::photometry::photometric_stereo::{
+    self as ps, DirectionalLights, LightSample, Method, PsParams,
+};
+use nalgebra::Vector3;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Folder of 8/16-bit linear PNG images, in the order of `filenames.txt` if present, else
+    /// sorted by name (mask*.png and normal*.png are left out).
+    #[arg(long)]
+    images: PathBuf,
+    /// Light directions, one `x y z` per image (surface to light, in the normals' frame).
+    #[arg(long)]
+    lights: PathBuf,
+    /// Per-image RGB light intensities, one `r g b` per image (default: all 1).
+    #[arg(long)]
+    intensities: Option<PathBuf>,
+    /// Mask PNG: only non-zero pixels are solved (default: every pixel).
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// Use only these images: 1-based indices and ranges, e.g. `1,5,9-12`.
+    #[arg(long)]
+    select: Option<String>,
+    /// Output normal map (RGB float EXR; zero where a pixel is masked or flagged).
+    #[arg(long)]
+    out: PathBuf,
+    /// Also write the RGB albedo as an EXR.
+    #[arg(long)]
+    albedo: Option<PathBuf>,
+    /// Ground-truth normals (EXR, PNG as 0.5 n + 0.5, or .mat with `Normal_gt`) for the errors.
+    #[arg(long)]
+    truth: Option<PathBuf>,
+    /// Solver: robust (shadow and highlight rejection) or the least-squares baseline.
+    #[arg(long, value_enum, default_value = "robust")]
+    method: Method,
+    /// Direction to the camera, `x,y,z` (used to judge highlights and back-facing normals).
+    #[arg(long, default_value = "0,0,1", value_parser = parse_vector)]
+    view: Vector3<f64>,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_vector(text: &str) -> Result<Vector3<f64>, String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|s| s.trim().parse::<f64>().map_err(|e| format!("'{s}': {e}")))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] => Vector3::new(x, y, z)
+            .try_normalize(1e-12)
+            .ok_or_else(|| "the view direction must not be zero".into()),
+        _ => Err("expected three comma-separated numbers x,y,z".into()),
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let files = image_set::image_files(&args.images)?;
+    let directions = image_set::read_directions(&args.lights)?;
+    if directions.len() != files.len() {
+        bail!(
+            "{} has {} light directions but {} lists {} images; give one direction per image",
+            args.lights.display(),
+            directions.len(),
+            args.images.display(),
+            files.len()
+        );
+    }
+    let intensities = match &args.intensities {
+        Some(path) => {
+            let rows = image_set::read_intensities(path)?;
+            if rows.len() != files.len() {
+                bail!(
+                    "{} has {} rows but there are {} images",
+                    path.display(),
+                    rows.len(),
+                    files.len()
+                );
+            }
+            rows
+        }
+        None => vec![[1.0; 3]; files.len()],
+    };
+    let selected = match &args.select {
+        Some(text) => image_set::parse_selection(text, files.len())?,
+        None => (0..files.len()).collect(),
+    };
+    let progress =
+        indicatif::ProgressBar::new(selected.len() as u64).with_message("reading images");
+    let images = selected
+        .iter()
+        .map(|&i| {
+            progress.inc(1);
+            image_set::read_linear_png(&files[i])
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    progress.finish_and_clear();
+    let (width, height) = images
+        .first()
+        .map(|im| im.dimensions())
+        .context("no images selected")?;
+    let mask = match &args.mask {
+        Some(path) => {
+            let (w, h, m) = image_set::read_mask(path)?;
+            if (w, h) != (width, height) {
+                bail!(
+                    "mask {} is {w}x{h} but the images are {width}x{height}",
+                    path.display()
+                );
+            }
+            Some(m)
+        }
+        None => None,
+    };
+    let lights = DirectionalLights {
+        lights: selected
+            .iter()
+            .map(|&i| LightSample {
+                direction: directions[i],
+                irradiance: intensities[i],
+            })
+            .collect(),
+        view: args.view,
+    };
+    let params = PsParams {
+        method: args.method,
+        ..PsParams::default()
+    };
+    let refs: Vec<_> = images.iter().collect();
+    let map = ps::solve_images(&refs, &lights, mask.as_deref(), &params)?;
+    let normals = map.normal_image();
+    mlsss::imageio::write_exr_rgb(&args.out, &normals)?;
+    if let Some(path) = &args.albedo {
+        mlsss::imageio::write_exr_rgb(path, &map.albedo_image())?;
+    }
+    let stats = map.stats();
+    let mut report = serde_json::json!({
+        "method": args.method,
+        "images": selected.len(),
+        "pixels": stats.pixels,
+        "solved": stats.solved,
+        "lights_used_mean": stats.lights_used_mean,
+        "flagged": {
+            "too_few_lights": stats.too_few_lights,
+            "ill_conditioned": stats.ill_conditioned,
+            "no_signal": stats.no_signal,
+            "back_facing": stats.back_facing,
+        },
+        "out": args.out,
+    });
+    if let Some(path) = &args.truth {
+        let truth = image_set::read_truth_normals(path)?;
+        if truth.dimensions() != (width, height) {
+            bail!(
+                "truth {} is {:?} but the images are {width}x{height}",
+                path.display(),
+                truth.dimensions()
+            );
+        }
+        // Errors over the pixels that have a truth normal and are in the mask; flagged pixels
+        // count separately (as `solved` < `pixels`), not as zero error.
+        let errors = ps::angular_errors(&normals, &truth, mask.as_deref())
+            .context("no pixel has both an estimated and a true normal")?;
+        report["mean_angular_error_deg"] = errors.mean_deg.into();
+        report["median_angular_error_deg"] = errors.median_deg.into();
+        report["p95_angular_error_deg"] = errors.p95_deg.into();
+        report["compared_pixels"] = errors.pixels.into();
+    }
+    if args.json {
+        println!("{report}");
+    } else {
+        eprintln!("{}", serde_json::to_string_pretty(&report)?);
+    }
+    Ok(())
+}

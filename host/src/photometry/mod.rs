@@ -1,0 +1,9 @@
+//! Photometry: projector response calibration, direct/global separation and photometric stereo
+//! (DESIGN section 4, stages 4 and 5).
+
+pub mod image_set;
+pub mod mat_file;
+pub mod photometric_stereo;
+pub mod ps_scene;
+pub mod response;
+pub mod separation;

@@ -1,0 +1,949 @@
+//! Robust N-light photometric stereo for Lambertian surfaces (Woodham 1980), with the shadow and
+//! highlight handling of Barsky & Petrou 2003 generalised from 4 to N lights.
+//!
+//! Conventions
+//! - All vectors of one pixel are in one frame (the lights file's frame for `mlsss normals`, the
+//!   world frame of the calibration for the booth). Light directions and the view direction point
+//!   from the surface towards the light and the camera; normals point out of the surface.
+//! - A light reading is linear RGB. The model is `I_c = albedo_c * irradiance_c * max(0, n . d)`,
+//!   where `irradiance_c` is the light's colour times its intensity at the pixel (for a near point
+//!   light: intensity over the squared distance).
+//!
+//! Per pixel, the solver:
+//! 1. drops unusable readings (non-finite, saturated) and shadowed ones (below an absolute noise
+//!    floor, or an irradiance-normalised reading below `shadow_fraction` of the brightest);
+//! 2. for RGB readings of a coloured surface, drops highlights by chromaticity: a specular
+//!    reflection has the light's colour, so it pulls the reading's chromaticity towards white;
+//! 3. solves least squares on the rest and checks the conditioning (flagged above
+//!    `max_condition`) and the residuals;
+//! 4. when a residual is too large, removes one reading at a time. With few lights (up to 8) every
+//!    leave-one-out solution is tried: with 4 lights a single outlier cannot be found from the
+//!    residuals (they all lie along one null vector), so the choice is made on physical
+//!    plausibility as in Barsky & Petrou: a dark outlier must be much darker than predicted
+//!    (cast shadow), a bright one must lie near the mirror direction of its light. With many
+//!    lights the reading with the largest normalised residual is removed.
+//! 5. flags a pixel with fewer than 3 good lights, an ill-conditioned light set, no signal, or a
+//!    normal facing away from the camera; flagged pixels get a zero normal and albedo.
+
+use nalgebra::{Matrix3, Vector3};
+
+/// The most lights a pixel can use (the `used` set is a 128-bit mask).
+pub const MAX_LIGHTS: usize = 128;
+
+/// Errors of photometric stereo.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum PhotometricStereoError {
+    /// More lights than [`MAX_LIGHTS`].
+    #[error("{0} lights given; at most {MAX_LIGHTS} are supported")]
+    TooManyLights(usize),
+    /// Fewer than 3 lights: no normal can be solved.
+    #[error("photometric stereo needs at least 3 lights, got {0}")]
+    TooFewLights(usize),
+    /// Images and lights disagree in number or size.
+    #[error("{0}")]
+    Mismatch(String),
+}
+
+/// Solver variant.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Least squares on every usable reading (the textbook baseline).
+    LeastSquares,
+    /// Shadow and highlight rejection, then least squares on the good readings.
+    Robust,
+}
+
+/// Tuning of the solver. Defaults suit linear images in [0, 1].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PsParams {
+    pub method: Method,
+    /// Readings at or below this linear value are shadow/noise.
+    pub noise_floor: f64,
+    /// A reading whose irradiance-normalised value is below this fraction of the pixel's brightest
+    /// one is treated as shadowed (robust method only).
+    pub shadow_fraction: f64,
+    /// Residual allowed per reading, as a fraction of the pixel's brightest reading (plus the
+    /// noise floor).
+    pub residual_tolerance: f64,
+    /// Largest accepted condition number of the light matrix (ratio of its singular values).
+    pub max_condition: f64,
+    /// Readings at or above this value in any channel are saturated.
+    pub saturation: f64,
+    /// A reading whose chromaticity is this far (degrees) from the pixel's median, towards white,
+    /// is a highlight (only used when the median chromaticity is clearly coloured).
+    pub highlight_chroma_deg: f64,
+}
+
+impl Default for PsParams {
+    fn default() -> Self {
+        Self {
+            method: Method::Robust,
+            noise_floor: 2e-3,
+            shadow_fraction: 0.05,
+            residual_tolerance: 0.05,
+            max_condition: 30.0,
+            saturation: 0.999,
+            highlight_chroma_deg: 4.0,
+        }
+    }
+}
+
+/// One light as seen from one pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LightSample {
+    /// Unit direction from the surface point to the light.
+    pub direction: Vector3<f64>,
+    /// Irradiance per channel at the pixel for a surface facing the light (colour x intensity x
+    /// falloff).
+    pub irradiance: [f64; 3],
+}
+
+/// Outcome of one pixel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[repr(u8)]
+pub enum PixelStatus {
+    /// Solved.
+    Ok = 0,
+    /// Not in the mask (not attempted).
+    Masked = 1,
+    /// Fewer than 3 good readings.
+    TooFewLights = 2,
+    /// The good lights are (nearly) coplanar: condition number above the limit.
+    IllConditioned = 3,
+    /// No light reached the pixel (every reading at the noise floor).
+    NoSignal = 4,
+    /// The solved normal faces away from the camera.
+    BackFacing = 5,
+}
+
+/// Solution of one pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelSolution {
+    /// Unit normal, or zero when flagged.
+    pub normal: [f32; 3],
+    /// RGB albedo, or zero when flagged.
+    pub albedo: [f32; 3],
+    /// RMS residual of the used readings relative to the brightest reading.
+    pub residual: f32,
+    /// Bit i set when light i was used.
+    pub used: u128,
+    pub status: PixelStatus,
+}
+
+impl PixelSolution {
+    fn flagged(status: PixelStatus, used: u128) -> Self {
+        Self {
+            normal: [0.0; 3],
+            albedo: [0.0; 3],
+            residual: 0.0,
+            used,
+            status,
+        }
+    }
+
+    /// Number of lights used.
+    pub fn lights_used(&self) -> u32 {
+        self.used.count_ones()
+    }
+}
+
+/// Grey reading and light vector of one light at one pixel: `grey = albedo_grey * (vector . n)`.
+#[derive(Debug, Clone, Copy)]
+struct GreyReading {
+    grey: f64,
+    vector: Vector3<f64>,
+    /// Irradiance-normalised reading (albedo x cosine).
+    shading: f64,
+    /// Chromaticity (unit RGB) after dividing out the light's colour.
+    chroma: Vector3<f64>,
+    /// The reading with the light's colour divided out (RGB).
+    colour_free: Vector3<f64>,
+}
+
+fn grey_readings(readings: &[[f32; 3]], lights: &[LightSample]) -> Vec<Option<GreyReading>> {
+    readings
+        .iter()
+        .zip(lights)
+        .map(|(rgb, light)| {
+            let scale = light.irradiance.iter().sum::<f64>() / 3.0;
+            if !(scale > 0.0 && scale.is_finite()) || light.direction.iter().any(|v| !v.is_finite())
+            {
+                return None;
+            }
+            let mut colour_free = Vector3::zeros();
+            for c in 0..3 {
+                let relative = light.irradiance[c] / scale;
+                colour_free[c] = if relative > 0.0 {
+                    rgb[c] as f64 / relative
+                } else {
+                    0.0
+                };
+            }
+            let grey = colour_free.sum() / 3.0;
+            if !grey.is_finite() {
+                return None;
+            }
+            let norm = colour_free.norm();
+            Some(GreyReading {
+                grey,
+                vector: light.direction * scale,
+                shading: grey / scale,
+                chroma: if norm > 0.0 {
+                    colour_free / norm
+                } else {
+                    Vector3::zeros()
+                },
+                colour_free,
+            })
+        })
+        .collect()
+}
+
+/// Least-squares `g = albedo * n` from the readings in `set`, with the condition number of the
+/// light matrix; `None` when the normal matrix cannot be inverted.
+fn least_squares(readings: &[Option<GreyReading>], set: u128) -> Option<(Vector3<f64>, f64)> {
+    let mut ata = Matrix3::zeros();
+    let mut aty = Vector3::zeros();
+    for (i, r) in readings.iter().enumerate() {
+        if set & (1 << i) == 0 {
+            continue;
+        }
+        let r = r.as_ref()?;
+        ata += r.vector * r.vector.transpose();
+        aty += r.vector * r.grey;
+    }
+    let eig = ata.symmetric_eigenvalues();
+    let (lo, hi) = (eig.min(), eig.max());
+    if lo.is_nan() || lo <= 0.0 || !hi.is_finite() {
+        return None;
+    }
+    let condition = (hi / lo).sqrt();
+    let g = ata.cholesky()?.solve(&aty);
+    g.iter().all(|v| v.is_finite()).then_some((g, condition))
+}
+
+fn indices(set: u128) -> impl Iterator<Item = usize> {
+    (0..MAX_LIGHTS).filter(move |i| set & (1 << i) != 0)
+}
+
+/// Solves one pixel from its readings (one RGB per light), the lights as seen from the pixel, and
+/// the unit direction to the camera.
+pub fn solve_pixel(
+    readings: &[[f32; 3]],
+    lights: &[LightSample],
+    view: &Vector3<f64>,
+    params: &PsParams,
+) -> PixelSolution {
+    let n = readings.len().min(lights.len()).min(MAX_LIGHTS);
+    let grey = grey_readings(&readings[..n], &lights[..n]);
+    let robust = params.method == Method::Robust;
+    let mut set: u128 = 0;
+    for (i, (r, rgb)) in grey.iter().zip(readings).enumerate() {
+        // The baseline keeps saturated readings, as textbook least squares does.
+        let saturated = robust && rgb.iter().any(|&v| v as f64 >= params.saturation);
+        if r.is_some() && !saturated {
+            set |= 1 << i;
+        }
+    }
+    let brightest = indices(set)
+        .filter_map(|i| grey[i].map(|r| r.grey))
+        .fold(0.0, f64::max);
+    if brightest <= params.noise_floor {
+        return PixelSolution::flagged(PixelStatus::NoSignal, 0);
+    }
+    if robust {
+        set = drop_shadows(&grey, set, params);
+        set = drop_chroma_highlights(&grey, set, params);
+    }
+    if set.count_ones() < 3 {
+        return PixelSolution::flagged(PixelStatus::TooFewLights, set);
+    }
+    let tolerance = params.noise_floor + params.residual_tolerance * brightest;
+    let (g, set) = match params.method {
+        Method::LeastSquares => match least_squares(&grey, set) {
+            Some((g, _)) => (g, set),
+            None => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
+        },
+        Method::Robust => match robust_fit(&grey, set, view, tolerance) {
+            Some(found) => found,
+            None => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
+        },
+    };
+    finish(readings, lights, &grey, g, set, view, brightest, params)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn finish(
+    readings: &[[f32; 3]],
+    lights: &[LightSample],
+    grey: &[Option<GreyReading>],
+    g: Vector3<f64>,
+    set: u128,
+    view: &Vector3<f64>,
+    brightest: f64,
+    params: &PsParams,
+) -> PixelSolution {
+    match least_squares(grey, set) {
+        Some((_, condition)) if condition <= params.max_condition => {}
+        _ => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
+    }
+    let length = g.norm();
+    if length.is_nan() || length <= 0.0 {
+        return PixelSolution::flagged(PixelStatus::NoSignal, set);
+    }
+    let normal = g / length;
+    if normal.dot(view) <= 0.0 {
+        return PixelSolution::flagged(PixelStatus::BackFacing, set);
+    }
+    let mut albedo = [0.0f32; 3];
+    for (c, out) in albedo.iter_mut().enumerate() {
+        let (mut num, mut den) = (0.0, 0.0);
+        for i in indices(set) {
+            let a = lights[i].irradiance[c] * lights[i].direction.dot(&normal).max(0.0);
+            num += readings[i][c] as f64 * a;
+            den += a * a;
+        }
+        *out = if den > 0.0 { (num / den) as f32 } else { 0.0 };
+    }
+    let mut sq = 0.0;
+    for i in indices(set) {
+        if let Some(r) = &grey[i] {
+            sq += (r.grey - r.vector.dot(&g)).powi(2);
+        }
+    }
+    let residual = (sq / set.count_ones() as f64).sqrt() / brightest;
+    PixelSolution {
+        normal: [normal.x as f32, normal.y as f32, normal.z as f32],
+        albedo,
+        residual: residual as f32,
+        used: set,
+        status: PixelStatus::Ok,
+    }
+}
+
+fn drop_shadows(grey: &[Option<GreyReading>], set: u128, params: &PsParams) -> u128 {
+    let max_shading = indices(set)
+        .filter_map(|i| grey[i].map(|r| r.shading))
+        .fold(0.0, f64::max);
+    indices(set)
+        .filter(|&i| {
+            grey[i].is_some_and(|r| {
+                r.grey > params.noise_floor && r.shading >= params.shadow_fraction * max_shading
+            })
+        })
+        .fold(0, |acc, i| acc | (1 << i))
+}
+
+/// Drops readings whose chromaticity moved towards white (a specular reflection of a white-ish
+/// light on a coloured surface). Keeps at least 3 readings; does nothing on grey surfaces.
+fn drop_chroma_highlights(grey: &[Option<GreyReading>], set: u128, params: &PsParams) -> u128 {
+    let chromas: Vec<(usize, Vector3<f64>)> = indices(set)
+        .filter_map(|i| grey[i].map(|r| (i, r.chroma)))
+        .collect();
+    if chromas.len() < 4 {
+        return set;
+    }
+    let median = |c: usize| {
+        let mut v: Vec<f64> = chromas.iter().map(|(_, x)| x[c]).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let reference = Vector3::new(median(0), median(1), median(2));
+    let Some(reference) = reference.try_normalize(1e-12) else {
+        return set;
+    };
+    let white = Vector3::repeat(1.0 / 3f64.sqrt());
+    let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.dot(b).clamp(-1.0, 1.0).acos().to_degrees();
+    let tol = params.highlight_chroma_deg;
+    let reference_to_white = angle(&reference, &white);
+    if reference_to_white < 2.0 * tol {
+        return set;
+    }
+    let mut out = set;
+    // Most suspicious first, so at least 3 readings always remain.
+    let mut suspects: Vec<(f64, usize)> = chromas
+        .iter()
+        .filter(|(_, ch)| {
+            angle(ch, &reference) > tol && angle(ch, &white) < reference_to_white - 0.5 * tol
+        })
+        .map(|(i, ch)| (angle(ch, &reference), *i))
+        .collect();
+    suspects.sort_by(|a, b| b.0.total_cmp(&a.0));
+    for (_, i) in suspects {
+        if out.count_ones() > 3 {
+            out &= !(1 << i);
+        }
+    }
+    out
+}
+
+fn within_tolerance(
+    grey: &[Option<GreyReading>],
+    set: u128,
+    g: &Vector3<f64>,
+    tolerance: f64,
+) -> bool {
+    indices(set).all(|i| {
+        grey[i].is_some_and(|r| {
+            let predicted = r.vector.dot(g);
+            predicted > 0.0 && (r.grey - predicted).abs() <= tolerance
+        })
+    })
+}
+
+/// Least squares, then removal of outliers one at a time until the residuals are within tolerance
+/// or only 3 readings remain.
+fn robust_fit(
+    grey: &[Option<GreyReading>],
+    mut set: u128,
+    view: &Vector3<f64>,
+    tolerance: f64,
+) -> Option<(Vector3<f64>, u128)> {
+    let (mut g, _) = least_squares(grey, set)?;
+    while set.count_ones() > 3 && !within_tolerance(grey, set, &g, tolerance) {
+        let next = if set.count_ones() <= 8 {
+            most_plausible_removal(grey, set, view, tolerance)
+        } else {
+            None
+        };
+        let next = match next {
+            Some(found) => found,
+            None => {
+                let worst = worst_residual(grey, set, &g)?;
+                let smaller = set & !(1 << worst);
+                (least_squares(grey, smaller)?.0, smaller)
+            }
+        };
+        g = next.0;
+        set = next.1;
+    }
+    Some((g, set))
+}
+
+fn worst_residual(grey: &[Option<GreyReading>], set: u128, g: &Vector3<f64>) -> Option<usize> {
+    indices(set)
+        .filter_map(|i| grey[i].map(|r| (i, (r.grey - r.vector.dot(g)).abs())))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
+}
+
+/// Tries every leave-one-out subset and returns the most physically plausible one: its own
+/// readings fit, and the left-out reading is either much darker than predicted (a cast shadow) or
+/// brighter and near the mirror direction of its light (a highlight).
+fn most_plausible_removal(
+    grey: &[Option<GreyReading>],
+    set: u128,
+    view: &Vector3<f64>,
+    tolerance: f64,
+) -> Option<(Vector3<f64>, u128)> {
+    let mut best: Option<(f64, Vector3<f64>, u128)> = None;
+    for out in indices(set) {
+        let subset = set & !(1 << out);
+        let Some((g, _)) = least_squares(grey, subset) else {
+            continue;
+        };
+        let Some(left_out) = grey[out] else {
+            continue;
+        };
+        if !within_tolerance(grey, subset, &g, tolerance) {
+            continue;
+        }
+        let predicted = left_out.vector.dot(&g);
+        let Some(normal) = g.try_normalize(1e-12) else {
+            continue;
+        };
+        let plausibility = if left_out.grey < predicted {
+            // Cast shadow: 1 when the reading is black, 0 when it matches the prediction.
+            1.0 - left_out.grey / predicted
+        } else if excess_is_surface_coloured(grey, subset, &left_out, predicted) {
+            // A diffuse-coloured excess is not a highlight (a specular reflection has the light's
+            // colour): this subset explains the data only by blaming the wrong reading.
+            0.0
+        } else {
+            // Highlight: cosine between the normal and the half vector of the left-out light.
+            let light = left_out.vector.normalize();
+            match (light + view).try_normalize(1e-12) {
+                Some(half) => normal.dot(&half),
+                None => 0.0,
+            }
+        };
+        if best.as_ref().is_none_or(|(p, _, _)| plausibility > *p) {
+            best = Some((plausibility, g, subset));
+        }
+    }
+    best.map(|(_, g, subset)| (g, subset))
+}
+
+/// Whether the excess of a bright left-out reading over its prediction has the surface's colour
+/// rather than white; `false` on grey surfaces, where colour cannot tell.
+fn excess_is_surface_coloured(
+    grey: &[Option<GreyReading>],
+    subset: u128,
+    left_out: &GreyReading,
+    predicted: f64,
+) -> bool {
+    let total: Vector3<f64> = indices(subset)
+        .filter_map(|i| grey[i].map(|r| r.colour_free))
+        .sum();
+    let Some(surface) = total.try_normalize(1e-12) else {
+        return false;
+    };
+    let white = Vector3::repeat(1.0 / 3f64.sqrt());
+    let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.dot(b).clamp(-1.0, 1.0).acos();
+    if angle(&surface, &white) < 5f64.to_radians() {
+        return false;
+    }
+    // Diffuse prediction of the left-out reading, with the surface's colour (grey = mean of RGB).
+    let diffuse = surface * (3.0 * predicted / surface.sum());
+    match (left_out.colour_free - diffuse).try_normalize(1e-12) {
+        Some(excess) => angle(&excess, &surface) < angle(&excess, &white),
+        None => false,
+    }
+}
+
+/// The lights as seen from one pixel, and the direction to the camera.
+pub trait LightModel: Sync {
+    /// Number of lights.
+    fn count(&self) -> usize;
+    /// Fills `out` (length [`LightModel::count`]) with the lights at pixel `(x, y)`; returns the
+    /// unit direction to the camera, or `None` when the pixel has no geometry.
+    fn at(&self, x: u32, y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>>;
+}
+
+/// Distant lights: the same direction and irradiance at every pixel, camera along `view`.
+#[derive(Debug, Clone)]
+pub struct DirectionalLights {
+    pub lights: Vec<LightSample>,
+    pub view: Vector3<f64>,
+}
+
+impl LightModel for DirectionalLights {
+    fn count(&self) -> usize {
+        self.lights.len()
+    }
+
+    fn at(&self, _x: u32, _y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>> {
+        out.copy_from_slice(&self.lights);
+        Some(self.view)
+    }
+}
+
+/// Per-pixel results of photometric stereo over an image.
+#[derive(Debug, Clone)]
+pub struct NormalMap {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: Vec<PixelSolution>,
+}
+
+/// Counts of a normal map's outcomes.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct NormalMapStats {
+    /// Pixels attempted (in the mask).
+    pub pixels: u64,
+    /// Pixels solved.
+    pub solved: u64,
+    pub too_few_lights: u64,
+    pub ill_conditioned: u64,
+    pub no_signal: u64,
+    pub back_facing: u64,
+    /// Mean number of lights used over the solved pixels.
+    pub lights_used_mean: f64,
+}
+
+impl NormalMap {
+    /// Outcome counts.
+    pub fn stats(&self) -> NormalMapStats {
+        let mut s = NormalMapStats::default();
+        let mut used = 0u64;
+        for p in &self.pixels {
+            match p.status {
+                PixelStatus::Masked => continue,
+                PixelStatus::Ok => {
+                    s.solved += 1;
+                    used += p.lights_used() as u64;
+                }
+                PixelStatus::TooFewLights => s.too_few_lights += 1,
+                PixelStatus::IllConditioned => s.ill_conditioned += 1,
+                PixelStatus::NoSignal => s.no_signal += 1,
+                PixelStatus::BackFacing => s.back_facing += 1,
+            }
+            s.pixels += 1;
+        }
+        s.lights_used_mean = if s.solved > 0 {
+            used as f64 / s.solved as f64
+        } else {
+            0.0
+        };
+        s
+    }
+
+    /// Normals as an RGB float image (zero where flagged).
+    pub fn normal_image(&self) -> image::Rgb32FImage {
+        self.image_of(|p| p.normal)
+    }
+
+    /// Albedo as an RGB float image (zero where flagged).
+    pub fn albedo_image(&self) -> image::Rgb32FImage {
+        self.image_of(|p| p.albedo)
+    }
+
+    fn image_of(&self, f: impl Fn(&PixelSolution) -> [f32; 3]) -> image::Rgb32FImage {
+        let data = self.pixels.iter().flat_map(f).collect();
+        image::Rgb32FImage::from_raw(self.width, self.height, data)
+            .unwrap_or_else(|| image::Rgb32FImage::new(self.width, self.height))
+    }
+}
+
+/// Solves every masked pixel of an image set (`images[i]` lit by light `i`).
+pub fn solve_images(
+    images: &[&image::Rgb32FImage],
+    lights: &dyn LightModel,
+    mask: Option<&[bool]>,
+    params: &PsParams,
+) -> Result<NormalMap, PhotometricStereoError> {
+    use rayon::prelude::*;
+    let count = images.len();
+    if count > MAX_LIGHTS {
+        return Err(PhotometricStereoError::TooManyLights(count));
+    }
+    if count < 3 {
+        return Err(PhotometricStereoError::TooFewLights(count));
+    }
+    if lights.count() != count {
+        return Err(PhotometricStereoError::Mismatch(format!(
+            "{count} images but {} lights",
+            lights.count()
+        )));
+    }
+    let (width, height) = images[0].dimensions();
+    if let Some(i) = images
+        .iter()
+        .position(|im| im.dimensions() != (width, height))
+    {
+        return Err(PhotometricStereoError::Mismatch(format!(
+            "image {i} is {:?}, image 0 is {:?}",
+            images[i].dimensions(),
+            (width, height)
+        )));
+    }
+    let n = width as usize * height as usize;
+    if mask.is_some_and(|m| m.len() != n) {
+        return Err(PhotometricStereoError::Mismatch(format!(
+            "mask has {} pixels, images have {n}",
+            mask.map_or(0, |m| m.len())
+        )));
+    }
+    let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
+    let pixels: Vec<PixelSolution> = (0..n)
+        .into_par_iter()
+        .map_init(
+            || {
+                let placeholder = LightSample {
+                    direction: Vector3::z(),
+                    irradiance: [0.0; 3],
+                };
+                (vec![placeholder; count], vec![[0f32; 3]; count])
+            },
+            |(samples, readings), p| {
+                if mask.is_some_and(|m| !m[p]) {
+                    return PixelSolution::flagged(PixelStatus::Masked, 0);
+                }
+                let (x, y) = ((p % width as usize) as u32, (p / width as usize) as u32);
+                let Some(view) = lights.at(x, y, samples) else {
+                    return PixelSolution::flagged(PixelStatus::Masked, 0);
+                };
+                for (reading, raw) in readings.iter_mut().zip(&raws) {
+                    reading.copy_from_slice(&raw[p * 3..p * 3 + 3]);
+                }
+                solve_pixel(readings, samples, &view, params)
+            },
+        )
+        .collect();
+    Ok(NormalMap {
+        width,
+        height,
+        pixels,
+    })
+}
+
+/// Angle in degrees between two normals (0 when either is zero: callers skip those).
+pub fn angular_error_deg(a: &[f32; 3], b: &[f32; 3]) -> f64 {
+    let va = Vector3::new(a[0] as f64, a[1] as f64, a[2] as f64);
+    let vb = Vector3::new(b[0] as f64, b[1] as f64, b[2] as f64);
+    match (va.try_normalize(1e-12), vb.try_normalize(1e-12)) {
+        (Some(x), Some(y)) => x.dot(&y).clamp(-1.0, 1.0).acos().to_degrees(),
+        _ => 0.0,
+    }
+}
+
+/// Mean, median and 95th percentile of angular errors (degrees) between `estimate` and `truth`
+/// over pixels where both are non-zero (and `mask` is set).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct AngularErrors {
+    pub pixels: u64,
+    pub mean_deg: f64,
+    pub median_deg: f64,
+    pub p95_deg: f64,
+}
+
+/// Angular error statistics; `None` when no pixel can be compared.
+pub fn angular_errors(
+    estimate: &image::Rgb32FImage,
+    truth: &image::Rgb32FImage,
+    mask: Option<&[bool]>,
+) -> Option<AngularErrors> {
+    let is_set = |v: &[f32; 3]| v.iter().any(|c| *c != 0.0) && v.iter().all(|c| c.is_finite());
+    let mut errors: Vec<f64> = estimate
+        .pixels()
+        .zip(truth.pixels())
+        .enumerate()
+        .filter(|(i, (e, t))| mask.is_none_or(|m| m[*i]) && is_set(&e.0) && is_set(&t.0))
+        .map(|(_, (e, t))| angular_error_deg(&e.0, &t.0))
+        .collect();
+    if errors.is_empty() {
+        return None;
+    }
+    errors.sort_by(f64::total_cmp);
+    let pick = |q: f64| errors[((errors.len() - 1) as f64 * q).round() as usize];
+    Some(AngularErrors {
+        pixels: errors.len() as u64,
+        mean_deg: errors.iter().sum::<f64>() / errors.len() as f64,
+        median_deg: pick(0.5),
+        p95_deg: pick(0.95),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Four lights like the booth's projectors: up-left, up-right, down-left, down-right, about
+    /// 35 degrees off the view axis.
+    fn booth_lights() -> Vec<LightSample> {
+        [(-1.0, 1.0), (1.0, 1.0), (-1.0, -1.0), (1.0, -1.0)]
+            .iter()
+            .map(|&(x, y)| LightSample {
+                direction: Vector3::new(0.45 * x, 0.45 * y, 0.77).normalize(),
+                irradiance: [1.0, 0.9, 1.1],
+            })
+            .collect()
+    }
+
+    fn render(normal: &Vector3<f64>, albedo: [f64; 3], lights: &[LightSample]) -> Vec<[f32; 3]> {
+        lights
+            .iter()
+            .map(|l| {
+                let c = normal.dot(&l.direction).max(0.0);
+                [0, 1, 2].map(|k| (albedo[k] * l.irradiance[k] * c) as f32)
+            })
+            .collect()
+    }
+
+    fn angle(sol: &PixelSolution, truth: &Vector3<f64>) -> f64 {
+        let t = [truth.x as f32, truth.y as f32, truth.z as f32];
+        angular_error_deg(&sol.normal, &t)
+    }
+
+    const VIEW: Vector3<f64> = Vector3::new(0.0, 0.0, 1.0);
+
+    fn robust() -> PsParams {
+        PsParams::default()
+    }
+
+    fn least_squares() -> PsParams {
+        PsParams {
+            method: Method::LeastSquares,
+            ..PsParams::default()
+        }
+    }
+
+    #[test]
+    fn four_clean_lights_recover_normal_and_rgb_albedo() {
+        let lights = booth_lights();
+        let normal = Vector3::new(0.2, -0.1, 0.97).normalize();
+        let readings = render(&normal, [0.6, 0.4, 0.3], &lights);
+        for params in [robust(), least_squares()] {
+            let sol = solve_pixel(&readings, &lights, &VIEW, &params);
+            assert_eq!(sol.status, PixelStatus::Ok);
+            assert!(angle(&sol, &normal) < 1e-3);
+            for (a, t) in sol.albedo.iter().zip([0.6, 0.4, 0.3]) {
+                assert!((*a as f64 - t).abs() < 1e-5, "{:?}", sol.albedo);
+            }
+            assert_eq!(sol.lights_used(), 4);
+        }
+    }
+
+    #[test]
+    fn cast_shadow_is_detected_and_solved_with_the_other_three() {
+        let lights = booth_lights();
+        let normal = Vector3::new(-0.3, 0.25, 0.92).normalize();
+        for shadowed in 0..4 {
+            // Skin-coloured: with a grey surface and 4 symmetric lights, a partial shadow at one
+            // light and a highlight at a neighbouring one explain the readings equally well.
+            let mut readings = render(&normal, [0.7, 0.45, 0.35], &lights);
+            // A partial cast shadow (penumbra): 30% of the light remains, above the shadow
+            // threshold, so only the residual test can find it.
+            readings[shadowed] = readings[shadowed].map(|v| v * 0.3);
+            let sol = solve_pixel(&readings, &lights, &VIEW, &robust());
+            assert_eq!(sol.status, PixelStatus::Ok);
+            assert_eq!(sol.used, 0b1111 & !(1 << shadowed), "shadow at {shadowed}");
+            assert!(angle(&sol, &normal) < 1e-3);
+            let ls = solve_pixel(&readings, &lights, &VIEW, &least_squares());
+            assert!(angle(&ls, &normal) > 5.0);
+        }
+    }
+
+    #[test]
+    fn highlight_is_detected_by_the_mirror_direction() {
+        let lights = booth_lights();
+        for k in 0..4 {
+            // A normal halfway between the view and light k: light k's mirror direction.
+            let normal = (lights[k].direction + VIEW).normalize();
+            let mut readings = render(&normal, [0.4; 3], &lights);
+            readings[k] = readings[k].map(|v| v + 0.3);
+            let sol = solve_pixel(&readings, &lights, &VIEW, &robust());
+            assert_eq!(sol.used, 0b1111 & !(1 << k), "highlight at {k}");
+            assert!(angle(&sol, &normal) < 1e-3);
+        }
+    }
+
+    #[test]
+    fn highlight_on_coloured_skin_is_detected_by_chromaticity() {
+        let mut lights = booth_lights();
+        lights.push(LightSample {
+            direction: Vector3::new(0.0, 0.3, 0.95).normalize(),
+            irradiance: [1.0; 3],
+        });
+        let normal = Vector3::new(0.1, 0.1, 0.99).normalize();
+        let mut readings = render(&normal, [0.7, 0.45, 0.35], &lights);
+        // A white specular spike at light 4, just above the residual tolerance.
+        readings[4] = readings[4].map(|v| v + 0.06);
+        let sol = solve_pixel(&readings, &lights, &VIEW, &robust());
+        assert_eq!(sol.used, 0b01111);
+        assert!(angle(&sol, &normal) < 1e-3);
+    }
+
+    #[test]
+    fn attached_shadow_and_grazing_light_are_dropped() {
+        let lights = booth_lights();
+        // Tilted so light 3 (down-right) grazes at about 88 degrees and light 2 is behind.
+        let normal = Vector3::new(-0.55, 0.6, 0.58).normalize();
+        let readings = render(&normal, [0.5; 3], &lights);
+        let sol = solve_pixel(&readings, &lights, &VIEW, &robust());
+        assert!(sol.lights_used() <= 3);
+        if sol.status == PixelStatus::Ok {
+            assert!(angle(&sol, &normal) < 0.5);
+        } else {
+            assert_eq!(sol.status, PixelStatus::TooFewLights);
+            assert_eq!(sol.normal, [0.0; 3]);
+        }
+    }
+
+    #[test]
+    fn fewer_than_three_lights_is_flagged_not_guessed() {
+        let lights = booth_lights();
+        let normal = Vector3::new(0.0, 0.0, 1.0);
+        let mut readings = render(&normal, [0.5; 3], &lights);
+        readings[0] = [0.0; 3];
+        readings[1] = [1.0; 3]; // saturated
+        let sol = solve_pixel(&readings, &lights, &VIEW, &robust());
+        assert_eq!(sol.status, PixelStatus::TooFewLights);
+        assert_eq!((sol.normal, sol.albedo), ([0.0; 3], [0.0; 3]));
+    }
+
+    #[test]
+    fn near_coplanar_lights_are_flagged_ill_conditioned() {
+        // Four lights within 0.5 degree of one plane (x z).
+        let lights: Vec<LightSample> = [-40.0f64, -10.0, 15.0, 45.0]
+            .iter()
+            .enumerate()
+            .map(|(i, a)| LightSample {
+                direction: Vector3::new(
+                    a.to_radians().sin(),
+                    0.005 * (i as f64 - 1.5),
+                    a.to_radians().cos(),
+                )
+                .normalize(),
+                irradiance: [1.0; 3],
+            })
+            .collect();
+        let normal = Vector3::new(0.1, 0.2, 0.97).normalize();
+        let readings = render(&normal, [0.5; 3], &lights);
+        for params in [robust(), least_squares()] {
+            let sol = solve_pixel(&readings, &lights, &VIEW, &params);
+            assert_eq!(sol.status, PixelStatus::IllConditioned);
+            assert_eq!(sol.normal, [0.0; 3]);
+        }
+    }
+
+    #[test]
+    fn zero_nan_inf_and_huge_dynamic_range_never_produce_non_finite_output() {
+        let lights = booth_lights();
+        let cases: Vec<Vec<[f32; 3]>> = vec![
+            vec![[0.0; 3]; 4],
+            vec![[f32::NAN; 3], [0.3; 3], [0.3; 3], [0.3; 3]],
+            vec![[f32::INFINITY; 3], [0.2; 3], [0.3; 3], [0.25; 3]],
+            vec![[1e-30; 3], [1e-20; 3], [3e-30; 3], [1e-25; 3]],
+            vec![[3e38; 3], [1e38; 3], [2e38; 3], [1e38; 3]],
+            vec![[-0.5; 3], [0.2; 3], [0.3; 3], [0.25; 3]],
+        ];
+        let huge = PsParams {
+            saturation: f64::INFINITY,
+            ..PsParams::default()
+        };
+        for readings in cases {
+            for params in [robust(), least_squares(), huge] {
+                let sol = solve_pixel(&readings, &lights, &VIEW, &params);
+                assert!(
+                    sol.normal.iter().chain(&sol.albedo).all(|v| v.is_finite())
+                        && sol.residual.is_finite(),
+                    "{readings:?} -> {sol:?}"
+                );
+                if sol.status == PixelStatus::Ok {
+                    let len: f32 = sol.normal.iter().map(|v| v * v).sum();
+                    assert!((len - 1.0).abs() < 1e-4);
+                }
+            }
+        }
+        // All-zero readings carry no signal.
+        let sol = solve_pixel(&[[0.0; 3]; 4], &lights, &VIEW, &robust());
+        assert_eq!(sol.status, PixelStatus::NoSignal);
+    }
+
+    #[test]
+    fn robust_beats_least_squares_clearly_on_a_scene_with_shadows_and_highlights() {
+        let scene = super::super::ps_scene::render(&super::super::ps_scene::SceneParams {
+            width: 64,
+            height: 64,
+            lights: 8,
+            ..Default::default()
+        });
+        let lights = DirectionalLights {
+            lights: scene
+                .directions
+                .iter()
+                .zip(&scene.intensities)
+                .map(|(d, i)| LightSample {
+                    direction: *d,
+                    irradiance: *i,
+                })
+                .collect(),
+            view: VIEW,
+        };
+        let refs: Vec<_> = scene.images.iter().collect();
+        let errors = |params: &PsParams| {
+            let map = solve_images(&refs, &lights, Some(&scene.mask), params).unwrap();
+            angular_errors(&map.normal_image(), &scene.normals, Some(&scene.mask)).unwrap()
+        };
+        let (r, l) = (errors(&robust()), errors(&least_squares()));
+        assert!(r.mean_deg < 2.0 && r.median_deg < 0.6, "robust {r:?}");
+        assert!(
+            l.mean_deg > 3.0 * r.mean_deg,
+            "least squares {l:?} vs robust {r:?}"
+        );
+        assert!(r.pixels as f64 > 0.95 * scene.mask.iter().filter(|m| **m).count() as f64);
+    }
+}

@@ -1,0 +1,615 @@
+//! Direct/global separation with high-frequency illumination (Nayar et al. 2006), with the
+//! projector black-level correction of DESIGN section 4.
+//!
+//! Conventions
+//! - Inputs are linear camera values (the frames' scale), one image per shift of the stripe
+//!   pattern, all from the same projector; the images may also contain a constant offset from
+//!   light that does not change with the pattern (other projectors showing black, ambient), which
+//!   the caller removes beforehand if it knows it (it biases only the global component).
+//! - `black_level` b is the projector's emitted light for a black pixel as a fraction of white
+//!   (`calib::ProjectorResponse::black_level`); stripes are binary, so the response curve's gamma
+//!   plays no role here.
+//! - Output radiances are "under full white": `direct + global` equals the white image.
+//!
+//! Model per pixel and channel, for a stripe pattern that lights half of the projector pixels:
+//! `Lmax = Ld + (1 + b)/2 Lg` and `Lmin = b Ld + (1 + b)/2 Lg`, hence
+//! `Ld = (Lmax - Lmin)/(1 - b)` and `Lg = 2 (Lmin - b Lmax)/(1 - b^2)`.
+//!
+//! Limits (measured by the tests of this module, see `/work/notes/photometry.md`):
+//! - Saturated samples break `Lmax`: such pixels are flagged and their outputs are zero.
+//! - Projector defocus and a camera footprint straddling a stripe edge lower the contrast
+//!   `Lmax - Lmin`; with 3-px stripes shifted 1 px, a footprint up to 2 projector pixels still
+//!   sees one fully lit and one fully dark shift, so the estimate stays exact without blur.
+//! - The method assumes the global light is a smooth function of the pattern (half of it from lit
+//!   pixels whatever the shift). A scattering kernel that is not wide compared to the stripe period
+//!   leaks global light into the direct estimate; the leak is measured, not corrected.
+//! - `max`/`min` of noisy samples are biased (up and down by about 0.85 sigma with three samples per
+//!   level), which biases `Ld` up and `Lg` down by about 1.7 sigma of the frame noise.
+
+use image::Rgb32FImage;
+
+/// Errors of the separation.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SeparationError {
+    /// Fewer than two shifted frames were given.
+    #[error("separation needs at least 2 shifted high-frequency frames, got {0}")]
+    TooFewFrames(usize),
+    /// The frames do not all have the same size.
+    #[error("high-frequency frame {index} is {got:?}, the first one is {expected:?}")]
+    SizeMismatch {
+        index: usize,
+        got: (u32, u32),
+        expected: (u32, u32),
+    },
+    /// The black level is outside [0, 1).
+    #[error("projector black level {0} is outside [0, 1)")]
+    BadBlackLevel(f64),
+    /// The blur correction needs exactly one frame per stripe shift.
+    #[error("blur correction needs {expected} frames (2 x stripe width), got {got}")]
+    ShiftCount { expected: usize, got: usize },
+}
+
+/// Parameters of the separation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SeparationParams {
+    /// Projector black level b (fraction of white emitted by a black pixel).
+    pub black_level: f32,
+    /// A sample at or above this linear value is treated as saturated.
+    pub saturation: f32,
+    /// Blur of the stripes as seen by a camera pixel (projector defocus combined with the camera
+    /// footprint), Gaussian sigma in projector pixels. 0 applies Nayar's formulas as they are;
+    /// above 0 the contrast lost to the blur at the pixel's stripe phase is restored (see
+    /// [`blurred_contrast`]) and the global part is taken from the mean of the shifts.
+    pub blur_px: f32,
+    /// Stripe width of the pattern in projector pixels (the frames are the `2 * stripe_px` shifts);
+    /// needed only for the blur correction.
+    pub stripe_px: u32,
+}
+
+impl Default for SeparationParams {
+    fn default() -> Self {
+        Self {
+            black_level: 0.0,
+            // 12-bit sensor: the top code is 1.0; keep one code of margin.
+            saturation: 1.0 - 1.0 / 4095.0,
+            blur_px: 0.0,
+            stripe_px: 3,
+        }
+    }
+}
+
+/// Why a pixel has no separation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum SeparationFlag {
+    /// Separated normally.
+    Ok = 0,
+    /// A sample was saturated in some channel; outputs are zero.
+    Saturated = 1,
+    /// A sample was not finite; outputs are zero.
+    NonFinite = 2,
+}
+
+/// Direct and global images plus per-pixel flags and counters.
+#[derive(Debug, Clone)]
+pub struct Separation {
+    pub direct: Rgb32FImage,
+    pub global: Rgb32FImage,
+    /// Row-major [`SeparationFlag`] per pixel.
+    pub flags: Vec<SeparationFlag>,
+    pub stats: SeparationStats,
+}
+
+/// What the separation had to clamp or refuse.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct SeparationStats {
+    pub pixels: u64,
+    pub saturated_pixels: u64,
+    pub non_finite_pixels: u64,
+    /// Channel values where a negative direct or global was clamped to zero.
+    pub clamped_negative: u64,
+}
+
+/// Direct and global radiance of one channel from the extreme samples; never negative.
+/// Returns `(direct, global, clamped)`.
+pub fn separate_sample(lmax: f32, lmin: f32, black_level: f32) -> (f32, f32, bool) {
+    let b = black_level;
+    let direct = (lmax - lmin) / (1.0 - b);
+    let global = 2.0 * (lmin - b * lmax) / (1.0 - b * b);
+    // Noise can push the global part of a purely direct pixel (and, through `b`, vice versa)
+    // below zero; clamp and keep the sum `direct + global` where possible.
+    let total = direct + global;
+    match (direct < 0.0, global < 0.0) {
+        (false, false) => (direct, global, false),
+        (true, false) => (0.0, total.max(0.0), true),
+        (false, true) => (total.max(0.0), 0.0, true),
+        (true, true) => (0.0, 0.0, true),
+    }
+}
+
+/// Separates the direct and global components from the shifted stripe frames of one projector.
+pub fn separate(
+    frames: &[&Rgb32FImage],
+    params: &SeparationParams,
+) -> Result<Separation, SeparationError> {
+    if frames.len() < 2 {
+        return Err(SeparationError::TooFewFrames(frames.len()));
+    }
+    let b = params.black_level;
+    if !(0.0..1.0).contains(&b) {
+        return Err(SeparationError::BadBlackLevel(b as f64));
+    }
+    if params.blur_px > 0.0 && frames.len() != 2 * params.stripe_px as usize {
+        return Err(SeparationError::ShiftCount {
+            expected: 2 * params.stripe_px as usize,
+            got: frames.len(),
+        });
+    }
+    let (w, h) = frames[0].dimensions();
+    for (index, f) in frames.iter().enumerate() {
+        if f.dimensions() != (w, h) {
+            return Err(SeparationError::SizeMismatch {
+                index,
+                got: f.dimensions(),
+                expected: (w, h),
+            });
+        }
+    }
+    let raws: Vec<&[f32]> = frames.iter().map(|f| f.as_raw().as_slice()).collect();
+    let n = w as usize * h as usize;
+    let mut direct = vec![0.0f32; n * 3];
+    let mut global = vec![0.0f32; n * 3];
+    let mut flags = vec![SeparationFlag::Ok; n];
+    let mut stats = SeparationStats {
+        pixels: n as u64,
+        ..Default::default()
+    };
+
+    use rayon::prelude::*;
+    const ROWS: usize = 16;
+    let chunk = ROWS * w as usize;
+    let partial: Vec<SeparationStats> = direct
+        .par_chunks_mut(chunk * 3)
+        .zip(global.par_chunks_mut(chunk * 3))
+        .zip(flags.par_chunks_mut(chunk))
+        .enumerate()
+        .map(|(ci, ((d, g), fl))| {
+            let mut s = SeparationStats::default();
+            let base = ci * chunk;
+            for (p, flag) in fl.iter_mut().enumerate() {
+                *flag = separate_pixel(
+                    &raws,
+                    (base + p) * 3,
+                    params,
+                    &mut d[p * 3..p * 3 + 3],
+                    &mut g[p * 3..p * 3 + 3],
+                    &mut s,
+                );
+            }
+            s
+        })
+        .collect();
+    for s in partial {
+        stats.saturated_pixels += s.saturated_pixels;
+        stats.non_finite_pixels += s.non_finite_pixels;
+        stats.clamped_negative += s.clamped_negative;
+    }
+    let to_image =
+        |v: Vec<f32>| Rgb32FImage::from_raw(w, h, v).unwrap_or_else(|| Rgb32FImage::new(w, h));
+    Ok(Separation {
+        direct: to_image(direct),
+        global: to_image(global),
+        flags,
+        stats,
+    })
+}
+
+fn separate_pixel(
+    raws: &[&[f32]],
+    offset: usize,
+    params: &SeparationParams,
+    direct: &mut [f32],
+    global: &mut [f32],
+    stats: &mut SeparationStats,
+) -> SeparationFlag {
+    let mut lmax = [f32::NEG_INFINITY; 3];
+    let mut lmin = [f32::INFINITY; 3];
+    let mut sum = [0.0f32; 3];
+    // First DFT coefficient of the channel sum over the shifts: its phase is the stripe phase.
+    let (mut re, mut im) = (0.0f32, 0.0f32);
+    let omega = std::f32::consts::TAU / raws.len() as f32;
+    for (s, raw) in raws.iter().enumerate() {
+        let grey: f32 = raw[offset..offset + 3].iter().sum();
+        re += grey * (omega * s as f32).cos();
+        im -= grey * (omega * s as f32).sin();
+        for c in 0..3 {
+            let v = raw[offset + c];
+            if !v.is_finite() {
+                stats.non_finite_pixels += 1;
+                return SeparationFlag::NonFinite;
+            }
+            lmax[c] = lmax[c].max(v);
+            lmin[c] = lmin[c].min(v);
+            sum[c] += v;
+        }
+    }
+    if lmax.iter().any(|&v| v >= params.saturation) {
+        stats.saturated_pixels += 1;
+        return SeparationFlag::Saturated;
+    }
+    let b = params.black_level;
+    if params.blur_px > 0.0 {
+        let stripe = params.stripe_px as f32;
+        // Position of the pixel in the pattern (projector px, modulo one): see `blurred_contrast`.
+        let position = stripe / 2.0 - im.atan2(re) / omega;
+        let contrast = blurred_contrast(position.rem_euclid(1.0), stripe, params.blur_px);
+        for c in 0..3 {
+            let mean = sum[c] / raws.len() as f32;
+            // The mean over all shifts is (1 + b)/2 of the white image whatever the blur.
+            let total = 2.0 * mean / (1.0 + b);
+            let d = ((lmax[c] - lmin[c]) / ((1.0 - b) * contrast)).min(total);
+            let (d, g, clamped) = if d >= 0.0 && total >= d {
+                (d, total - d, false)
+            } else {
+                (d.clamp(0.0, total.max(0.0)), (total - d).max(0.0), true)
+            };
+            direct[c] = d;
+            global[c] = g;
+            stats.clamped_negative += clamped as u64;
+        }
+    } else {
+        for c in 0..3 {
+            let (d, g, clamped) = separate_sample(lmax[c], lmin[c], b);
+            direct[c] = d;
+            global[c] = g;
+            stats.clamped_negative += clamped as u64;
+        }
+    }
+    SeparationFlag::Ok
+}
+
+/// Contrast `max - min` over the integer shifts of a square wave (`stripe` px on, `stripe` px
+/// off) blurred by a Gaussian of sigma `blur` px, for a pixel at sub-pixel position `frac` in
+/// [0, 1) of the pattern. 1 for a sharp pattern; e.g. 0.93 at the worst phase for sigma 0.7 px
+/// and 3-px stripes.
+pub fn blurred_contrast(frac: f32, stripe: f32, blur: f32) -> f32 {
+    let period = 2.0 * stripe;
+    let lit = |y: f32| -> f32 {
+        if blur <= 0.0 {
+            return if y.rem_euclid(period) < stripe {
+                1.0
+            } else {
+                0.0
+            };
+        }
+        let y = y.rem_euclid(period);
+        (-2..=2)
+            .map(|m| {
+                let start = m as f32 * period;
+                normal_cdf((y - start) / blur) - normal_cdf((y - start - stripe) / blur)
+            })
+            .sum()
+    };
+    let (mut max, mut min) = (f32::MIN, f32::MAX);
+    for k in 0..(2 * stripe as u32) {
+        let v = lit(frac + k as f32);
+        max = max.max(v);
+        min = min.min(v);
+    }
+    // Never divide by less than a tenth: a washed-out pixel is reported low, not amplified noise.
+    (max - min).max(0.1)
+}
+
+/// Standard normal CDF (Abramowitz & Stegun 7.1.26, absolute error below 1.5e-7).
+fn normal_cdf(z: f32) -> f32 {
+    let x = (z as f64).abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.327_591_1 * x);
+    let poly = t
+        * (0.254_829_592
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    let erf = 1.0 - poly * (-x * x).exp();
+    let half = 0.5 * (1.0 + erf);
+    (if z >= 0.0 { half } else { 1.0 - half }) as f32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 1-D booth: camera pixels looking at a row of projector pixels through a footprint of
+    /// `footprint` projector px starting at `phase`, with Gaussian projector defocus `defocus`
+    /// (px) and a Gaussian global kernel of sigma `kernel` (px). Returns, per camera pixel, the
+    /// samples under the 6 stripe shifts and the true (direct, global) under white.
+    struct Row {
+        black: f64,
+        footprint: f64,
+        phase: f64,
+        defocus: f64,
+        kernel: f64,
+    }
+
+    fn gauss_blur(signal: &[f64], sigma: f64) -> Vec<f64> {
+        if sigma <= 0.0 {
+            return signal.to_vec();
+        }
+        let r = (4.0 * sigma).ceil() as i64;
+        let weights: Vec<f64> = (-r..=r)
+            .map(|k| (-(k as f64).powi(2) / (2.0 * sigma * sigma)).exp())
+            .collect();
+        let norm: f64 = weights.iter().sum();
+        let n = signal.len() as i64;
+        (0..n)
+            .map(|i| {
+                (-r..=r)
+                    .map(|k| signal[(i + k).rem_euclid(n) as usize] * weights[(k + r) as usize])
+                    .sum::<f64>()
+                    / norm
+            })
+            .collect()
+    }
+
+    fn v_len(n: usize) -> usize {
+        n
+    }
+
+    impl Row {
+        /// Samples on a fine grid (10 sub-samples per projector pixel) over a periodic row.
+        fn simulate(&self, ld: f64, lg: f64, camera_pixels: usize) -> (Vec<[f32; 6]>, f64, f64) {
+            const SUB: usize = 10;
+            // One period of the pattern, wrapped: every convolution below is circular.
+            let proj_px = 6usize;
+            let mut out = vec![[0f32; 6]; camera_pixels];
+            for shift in 0..6 {
+                let emission: Vec<f64> = (0..proj_px * SUB)
+                    .map(|i| {
+                        let u = (i / SUB) as i64;
+                        let lit = (u - shift).rem_euclid(6) < 3;
+                        if lit { 1.0 } else { self.black }
+                    })
+                    .collect();
+                let focused = gauss_blur(&emission, self.defocus * SUB as f64);
+                let scattered = gauss_blur(&focused, self.kernel * SUB as f64);
+                for (k, o) in out.iter_mut().enumerate() {
+                    let start = ((self.phase + k as f64 * self.footprint) * SUB as f64) as usize;
+                    let len = ((self.footprint * SUB as f64).round() as usize).max(1);
+                    let n = v_len(proj_px * SUB);
+                    let avg = |v: &[f64]| {
+                        (start..start + len).map(|i| v[i % n]).sum::<f64>() / len as f64
+                    };
+                    o[shift as usize] = (ld * avg(&focused) + lg * avg(&scattered)) as f32;
+                }
+            }
+            (out, ld, lg)
+        }
+
+        /// Worst relative errors with the blur-aware separation told the true blur.
+        fn worst_errors_corrected(&self, ld: f64, lg: f64) -> (f64, f64) {
+            let (samples, ld, lg) = self.simulate(ld, lg, 13);
+            let frames = images(&samples);
+            let refs: Vec<&Rgb32FImage> = frames.iter().collect();
+            // The camera footprint (a box) adds footprint^2 / 12 to the blur variance.
+            let blur = (self.defocus.powi(2) + self.footprint.powi(2) / 12.0).sqrt() as f32;
+            let params = SeparationParams {
+                black_level: self.black as f32,
+                blur_px: blur,
+                ..Default::default()
+            };
+            let sep = separate(&refs, &params).unwrap();
+            let mut worst = (0.0f64, 0.0f64);
+            for x in 0..samples.len() as u32 {
+                let d = sep.direct.get_pixel(x, 0).0[0] as f64;
+                let g = sep.global.get_pixel(x, 0).0[0] as f64;
+                worst.0 = worst.0.max(((d - ld) / ld).abs());
+                worst.1 = worst.1.max(((g - lg) / lg).abs());
+            }
+            worst
+        }
+
+        /// Worst relative errors of direct and global over the camera pixels.
+        fn worst_errors(&self, ld: f64, lg: f64) -> (f64, f64) {
+            let (samples, ld, lg) = self.simulate(ld, lg, 13);
+            let mut worst = (0.0f64, 0.0f64);
+            for s in samples {
+                let max = s.iter().cloned().fold(f32::MIN, f32::max);
+                let min = s.iter().cloned().fold(f32::MAX, f32::min);
+                let (d, g, _) = separate_sample(max, min, self.black as f32);
+                worst.0 = worst.0.max(((d as f64 - ld) / ld).abs());
+                worst.1 = worst.1.max(((g as f64 - lg) / lg).abs());
+            }
+            worst
+        }
+    }
+
+    fn row() -> Row {
+        Row {
+            black: 0.02,
+            footprint: 0.5,
+            phase: 0.0,
+            defocus: 0.0,
+            kernel: 30.0,
+        }
+    }
+
+    #[test]
+    fn black_level_formula_recovers_direct_and_global_exactly() {
+        // Hand-derived: Ld = 0.3, Lg = 0.2, b = 0.05.
+        let (ld, lg, b) = (0.3f32, 0.2f32, 0.05f32);
+        let lmax = ld + (1.0 + b) / 2.0 * lg;
+        let lmin = b * ld + (1.0 + b) / 2.0 * lg;
+        let (d, g, clamped) = separate_sample(lmax, lmin, b);
+        assert!((d - ld).abs() < 1e-6 && (g - lg).abs() < 1e-6 && !clamped);
+        // Ignoring the black level would be wrong by more than 5%.
+        let (d0, g0, _) = separate_sample(lmax, lmin, 0.0);
+        assert!((d0 - ld).abs() / ld > 0.04 && (g0 - lg).abs() / lg > 0.05);
+    }
+
+    #[test]
+    fn wide_kernel_and_any_footprint_up_to_two_pixels_is_exact() {
+        for footprint in [0.4, 1.0, 1.9] {
+            for phase in [0.0, 0.3, 0.5, 0.77] {
+                let r = Row {
+                    footprint,
+                    phase,
+                    ..row()
+                };
+                let (ed, eg) = r.worst_errors(0.3, 0.2);
+                // The global kernel (sigma 30 px) still has a residual ripple of ~1e-3.
+                assert!(
+                    ed < 0.01 && eg < 0.01,
+                    "footprint {footprint} phase {phase}: {ed} {eg}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn footprint_wider_than_two_pixels_loses_contrast() {
+        let r = Row {
+            footprint: 2.6,
+            phase: 0.5,
+            ..row()
+        };
+        let (ed, _) = r.worst_errors(0.3, 0.2);
+        assert!(
+            ed > 0.1,
+            "a 2.6-px footprint should underestimate direct, error {ed}"
+        );
+    }
+
+    #[test]
+    fn defocus_loses_contrast_and_the_blur_correction_restores_it() {
+        // The booth's projectors defocus by 0.5-0.7 px: plain Nayar loses over 5% of direct at the
+        // worst stripe phase, 60% at 1.5 px.
+        let (ed, _) = Row {
+            defocus: 0.7,
+            ..row()
+        }
+        .worst_errors(0.3, 0.2);
+        assert!(ed > 0.05, "defocus 0.7 uncorrected: {ed}");
+        let (ed, _) = Row {
+            defocus: 1.5,
+            ..row()
+        }
+        .worst_errors(0.3, 0.2);
+        assert!(ed > 0.5, "defocus 1.5 uncorrected: {ed}");
+        for defocus in [0.5, 0.7, 1.0, 1.5] {
+            let (cd, cg) = Row { defocus, ..row() }.worst_errors_corrected(0.3, 0.2);
+            assert!(
+                cd < 0.005 && cg < 0.005,
+                "defocus {defocus} corrected: {cd} {cg}"
+            );
+        }
+    }
+
+    #[test]
+    fn global_kernel_narrower_than_the_period_leaks_into_direct() {
+        // Gaussian scattering kernel of sigma 3 px (half the 6-px period): still within 1%.
+        let (cd, cg) = Row {
+            kernel: 3.0,
+            defocus: 0.6,
+            ..row()
+        }
+        .worst_errors_corrected(0.3, 0.2);
+        assert!(cd < 0.01 && cg < 0.01, "sigma 3 px: {cd} {cg}");
+        // Sigma 2 px: about 8% of direct is leaked global light; sigma 1 px: about 40%. Neither
+        // the formula nor the blur correction can tell such light from direct light.
+        let (cd, cg) = Row {
+            kernel: 2.0,
+            defocus: 0.6,
+            ..row()
+        }
+        .worst_errors_corrected(0.3, 0.2);
+        assert!(cd > 0.05 && cg > 0.07, "sigma 2 px: {cd} {cg}");
+        let (ed, eg) = Row {
+            kernel: 1.0,
+            ..row()
+        }
+        .worst_errors(0.3, 0.2);
+        assert!(ed > 0.3 && eg > 0.4, "sigma 1 px: direct {ed} global {eg}");
+    }
+
+    #[test]
+    fn blurred_contrast_matches_hand_values() {
+        // Sharp pattern: full contrast at any phase.
+        assert!((blurred_contrast(0.37, 3.0, 0.0) - 1.0).abs() < 1e-6);
+        // Sigma 1 px, pixel centred on a stripe: 2 * (Phi(1.5) - Phi(-1.5)) - 1 (up to the
+        // neighbouring stripes' tails, < 1e-3).
+        let expected = 2.0 * (0.933_193 - 0.066_807) - 1.0;
+        assert!((blurred_contrast(0.5, 3.0, 1.0) - expected).abs() < 2e-3);
+    }
+
+    fn images(samples: &[[f32; 6]]) -> Vec<Rgb32FImage> {
+        (0..6)
+            .map(|s| {
+                Rgb32FImage::from_fn(samples.len() as u32, 1, |x, _| {
+                    let v = samples[x as usize][s];
+                    image::Rgb([v, v * 0.5, v * 0.25])
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn saturated_and_non_finite_pixels_are_flagged_and_zero() {
+        let mut samples = vec![[0.5, 0.5, 0.5, 0.1, 0.1, 0.1]; 4];
+        samples[1][0] = 1.0;
+        samples[2][3] = f32::NAN;
+        samples[3] = [0.1, 0.1, 0.1, 0.12, 0.12, 0.12]; // min - b max < 0 never; max-min tiny
+        let frames = images(&samples);
+        let refs: Vec<&Rgb32FImage> = frames.iter().collect();
+        let sep = separate(
+            &refs,
+            &SeparationParams {
+                black_level: 0.02,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(sep.flags[0], SeparationFlag::Ok);
+        assert_eq!(sep.flags[1], SeparationFlag::Saturated);
+        assert_eq!(sep.flags[2], SeparationFlag::NonFinite);
+        assert_eq!(sep.direct.get_pixel(1, 0).0, [0.0; 3]);
+        assert_eq!(sep.global.get_pixel(2, 0).0, [0.0; 3]);
+        assert_eq!(sep.stats.saturated_pixels, 1);
+        assert_eq!(sep.stats.non_finite_pixels, 1);
+        let d = sep.direct.get_pixel(0, 0).0;
+        assert!((d[0] - 0.4 / 0.98).abs() < 1e-6 && (d[1] - 0.2 / 0.98).abs() < 1e-6);
+        for v in sep.direct.as_raw().iter().chain(sep.global.as_raw()) {
+            assert!(v.is_finite() && *v >= 0.0);
+        }
+    }
+
+    #[test]
+    fn negative_global_from_noise_is_clamped_and_counted() {
+        // A purely direct pixel whose dark samples read below b * max through noise.
+        let (d, g, clamped) = separate_sample(0.5, 0.005, 0.02);
+        assert!(clamped && g == 0.0);
+        assert!((d - (0.495 / 0.98 + 2.0 * (0.005 - 0.01) / (1.0 - 0.0004))).abs() < 1e-6);
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let a = Rgb32FImage::new(4, 3);
+        let b = Rgb32FImage::new(3, 4);
+        assert!(matches!(
+            separate(&[&a], &SeparationParams::default()),
+            Err(SeparationError::TooFewFrames(1))
+        ));
+        assert!(matches!(
+            separate(&[&a, &b], &SeparationParams::default()),
+            Err(SeparationError::SizeMismatch { index: 1, .. })
+        ));
+        assert!(matches!(
+            separate(
+                &[&a, &a],
+                &SeparationParams {
+                    black_level: 1.0,
+                    ..Default::default()
+                }
+            ),
+            Err(SeparationError::BadBlackLevel(_))
+        ));
+    }
+}
