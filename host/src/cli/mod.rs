@@ -3,6 +3,11 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod calibrate;
+pub mod decode;
 pub mod mc;
 pub mod normals;
+pub mod process;
 pub mod ps_scene;
+pub mod rig;
+pub mod simulate;
