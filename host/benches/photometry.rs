@@ -112,7 +112,10 @@ fn numpy_peer() {
         }
         Ok(out) => println!(
             "numpy peer skipped: {}",
-            String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
+            String::from_utf8_lossy(&out.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
         ),
         Err(e) => println!("numpy peer skipped: python3 not runnable ({e})"),
     }

@@ -24,6 +24,8 @@ enum Command {
     Normals(cli::normals::Args),
     /// Render a photometric-stereo test set with known normals, shadows and highlights.
     PsScene(cli::ps_scene::Args),
+    /// Projector response (gamma, black level) from calibration captures, into the calibration.
+    Response(cli::response::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
 }
@@ -34,6 +36,7 @@ fn main() -> ExitCode {
         Command::Booth(args) => cli::booth::run(args),
         Command::Normals(args) => cli::normals::run(args),
         Command::PsScene(args) => cli::ps_scene::run(args),
+        Command::Response(args) => cli::response::run(args),
         Command::Mc(args) => cli::mc::run(args),
     };
     match result {

@@ -6,3 +6,4 @@ pub mod booth;
 pub mod mc;
 pub mod normals;
 pub mod ps_scene;
+pub mod response;
