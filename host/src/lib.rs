@@ -7,9 +7,13 @@
 
 pub mod booth;
 pub mod calib;
+pub mod calibrate;
 pub mod capture;
 pub mod geometry;
 pub mod imageio;
 pub mod mc;
 pub mod photometry;
+pub mod pipeline;
+pub mod rig;
 pub mod subsurface;
+pub mod virtual_booth;

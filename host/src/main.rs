@@ -20,6 +20,12 @@ struct Cli {
 enum Command {
     /// Inspect a booth description: parse and validate it, summarise the frame plan.
     Booth(cli::booth::Args),
+    /// Booth controller: find it, run a capture, measure its timing (real board or QEMU).
+    Rig(cli::rig::Args),
+    /// Render a capture in the virtual booth (Monte Carlo skin, noise) with ground truth.
+    Simulate(cli::simulate::Args),
+    /// Calibrate the camera and projectors from chessboard poses (or convert an OpenCV calibration).
+    Calibrate(cli::calibrate::Args),
     /// Photometric stereo on an image set under distant lights (normals, albedo, errors).
     Normals(cli::normals::Args),
     /// Render a photometric-stereo test set with known normals, shadows and highlights.
@@ -28,16 +34,25 @@ enum Command {
     Response(cli::response::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
+    /// Decode Gray-code frames to projector coordinates per camera pixel (capture or OpenCV order).
+    Decode(cli::decode::Args),
+    /// Run the processing pipeline on a capture up to a stage (decode, geometry) and report.
+    Process(cli::process::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
+        Command::Rig(args) => cli::rig::run(args),
+        Command::Simulate(args) => cli::simulate::run(args),
+        Command::Calibrate(args) => cli::calibrate::run(args),
         Command::Normals(args) => cli::normals::run(args),
         Command::PsScene(args) => cli::ps_scene::run(args),
         Command::Response(args) => cli::response::run(args),
         Command::Mc(args) => cli::mc::run(args),
+        Command::Decode(args) => cli::decode::run(args),
+        Command::Process(args) => cli::process::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,18 +1,13 @@
 //! Helpers shared by the integration tests.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::{Mutex, OnceLock};
 
 /// Path of the `mlsss` binary built beside the test executable (`cargo test --workspace` builds it;
 /// `CARGO_BIN_EXE_*` is only set for binaries of the test's own package).
 pub fn mlsss_bin() -> PathBuf {
-    let exe = std::env::current_exe().expect("test executable path");
-    // target/<profile>/deps/integration-<hash> -> target/<profile>/mlsss
-    let profile_dir = exe
-        .parent()
-        .and_then(|deps| deps.parent())
-        .expect("test executable lives in target/<profile>/deps");
-    let bin = profile_dir.join(format!("mlsss{}", std::env::consts::EXE_SUFFIX));
+    let bin = profile_dir().join(format!("mlsss{}", std::env::consts::EXE_SUFFIX));
     assert!(
         bin.exists(),
         "{} not found: run the tests with `cargo test --workspace` so the binary is built",
@@ -21,7 +16,114 @@ pub fn mlsss_bin() -> PathBuf {
     bin
 }
 
+/// `target/<profile>` of the running test executable.
+fn profile_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    // target/<profile>/deps/integration-<hash> -> target/<profile>
+    exe.parent()
+        .and_then(|deps| deps.parent())
+        .expect("test executable lives in target/<profile>/deps")
+        .to_owned()
+}
+
 /// A `Command` running `mlsss`.
 pub fn mlsss() -> Command {
     Command::new(mlsss_bin())
+}
+
+/// Monte Carlo response cache shared by every test run (responses are content-hashed, so a
+/// stale entry can never be used for other inputs): `target/mlsss-test-cache`.
+pub fn mc_cache_dir() -> PathBuf {
+    profile_dir()
+        .parent()
+        .map(|target| target.join("mlsss-test-cache"))
+        .expect("target directory")
+}
+
+/// A fresh scratch directory for this test process, removed at exit by the OS temp cleaner only
+/// (kept for inspection when a test fails).
+pub fn scratch_dir() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("mlsss-tests-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("create scratch dir");
+        dir
+    })
+}
+
+/// Runs `mlsss simulate` with `args` into `out` (quick booth shrunk by `scale_down`, small photon
+/// counts unless `args` set `--photons`, shared Monte Carlo cache); panics with the tool's stderr on failure. Returns the
+/// `--json` report.
+pub fn simulate(out: &Path, scale_down: u32, args: &[&str]) -> serde_json::Value {
+    let mut cmd = mlsss();
+    cmd.args(["simulate", "--quick", "--json"]);
+    if !args.contains(&"--photons") {
+        cmd.args(["--photons", "4000"]);
+    }
+    let output = cmd
+        .args(["--scale-down", &scale_down.to_string()])
+        .arg("--cache")
+        .arg(mc_cache_dir())
+        .arg("--out")
+        .arg(out)
+        .args(args)
+        .output()
+        .expect("run mlsss simulate");
+    assert!(
+        output.status.success(),
+        "mlsss simulate {args:?} failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).expect("simulate --json prints one JSON object")
+}
+
+/// A simulated scan of `subject` (`plane`, `sphere`, `head`) with `seed`, made once per test
+/// binary run and shared by every test that asks for the same pair: the `--quick` booth shrunk
+/// 2x (230x171 camera, 128x96 projectors, 7-bit Gray code), all 4 projectors, full truth.
+pub fn quick_capture(subject: &str, seed: u64) -> PathBuf {
+    type Made = Vec<((String, u64), PathBuf)>;
+    static CAPTURES: OnceLock<Mutex<Made>> = OnceLock::new();
+    let captures = CAPTURES.get_or_init(|| Mutex::new(Vec::new()));
+    // Holding the lock while simulating makes concurrent tests wait for one simulation.
+    let mut done = captures.lock().unwrap_or_else(|e| e.into_inner());
+    let key = (subject.to_owned(), seed);
+    if let Some((_, path)) = done.iter().find(|(k, _)| *k == key) {
+        return path.clone();
+    }
+    let out = scratch_dir().join(format!("scan-{subject}-{seed}"));
+    simulate(
+        &out,
+        2,
+        &["--subject", subject, "--seed", &seed.to_string()],
+    );
+    done.push((key, out.clone()));
+    out
+}
+
+/// Chessboard calibration captures (`poses` poses, all 4 projectors) of the `--quick` booth
+/// shrunk 2x, made once per test binary run; returns the folder holding `pose00`, `pose01`, ...
+pub fn calibration_captures(poses: usize) -> PathBuf {
+    static CAPTURES: OnceLock<Mutex<Vec<(usize, PathBuf)>>> = OnceLock::new();
+    let captures = CAPTURES.get_or_init(|| Mutex::new(Vec::new()));
+    let mut done = captures.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((_, path)) = done.iter().find(|(k, _)| *k == poses) {
+        return path.clone();
+    }
+    let out = scratch_dir().join(format!("calibration-{poses}"));
+    simulate(
+        &out,
+        2,
+        &[
+            "--subject",
+            "chessboard",
+            "--calibration",
+            "--poses",
+            &poses.to_string(),
+            "--seed",
+            "1",
+        ],
+    );
+    done.push((poses, out.clone()));
+    out
 }

@@ -63,3 +63,15 @@ pub fn material_maps(truth: &Path) -> PathBuf {
 pub fn optics(truth: &Path) -> PathBuf {
     truth.join("optics.json")
 }
+
+/// Light the other projectors' black level adds to every frame lit by projector `k` (camera
+/// values, RGB): they show black, which still emits `black_level` of their white.
+pub fn stray_light(truth: &Path, k: usize) -> PathBuf {
+    truth.join(format!("proj{k}_stray.exr"))
+}
+
+/// Calibration target of a calibration capture (JSON): board geometry, pose, the inner corners
+/// in world coordinates and their true camera pixels (distortion included).
+pub fn target(truth: &Path) -> PathBuf {
+    truth.join("target.json")
+}

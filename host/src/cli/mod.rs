@@ -3,7 +3,12 @@
 //! progress and logs go to stderr.
 
 pub mod booth;
+pub mod calibrate;
+pub mod decode;
 pub mod mc;
 pub mod normals;
+pub mod process;
 pub mod ps_scene;
 pub mod response;
+pub mod rig;
+pub mod simulate;

@@ -17,9 +17,11 @@
 //!    difference exceeds both `min_bit_snr` standard deviations of the sensor noise and
 //!    `min_bit_contrast` of the pixel's amplitude. Subsurface scattering washes out the finest
 //!    stripes, so low bits are the ones that fail.
-//! 3. Pixels whose unreliable bits are all among the `repairable_bits` lowest are repaired: among
-//!    the codes the unreliable bits allow, the one closest to a plane fitted to the reliable
-//!    neighbours is kept if it is within `repair_tolerance_px`; otherwise the pixel is flagged.
+//! 3. Pixels with at most `max_repaired_bits` unreliable bits are repaired: among the codes the
+//!    unreliable bits allow, the one closest to a plane fitted to the decoded neighbours is kept if
+//!    it is within `repair_tolerance_px`; otherwise the pixel is flagged. This covers both the
+//!    blurred fine bits and any bit seen right at its own stripe edge (where either value gives
+//!    one of the two adjacent codes).
 //! 4. Every decoded pixel is checked against a robust plane through its neighbours' codes; a pixel
 //!    off by more than `outlier_px` is flagged (interreflections, specular glints, noise). The same
 //!    local plane, fitted with the pixel itself, gives the sub-pixel coordinate: integer codes are
@@ -105,8 +107,8 @@ pub struct DecodeParams {
     pub shot_noise_gain: f32,
     /// Read (and quantisation) noise standard deviation per frame.
     pub read_noise: f32,
-    /// How many of the lowest bits may be repaired from neighbours.
-    pub repairable_bits: u32,
+    /// Most unreliable bits a pixel may have and still be repaired from its neighbours.
+    pub max_repaired_bits: u32,
     /// Half-size of the square neighbourhood used for repair, consistency and sub-pixel fits.
     pub window_radius: u32,
     /// Largest distance between a repaired code and the neighbours' plane, projector pixels.
@@ -125,7 +127,7 @@ impl Default for DecodeParams {
             min_bit_snr: 3.0,
             shot_noise_gain: 1.0 / 12_000.0,
             read_noise: 2.0 / 4095.0,
-            repairable_bits: 3,
+            max_repaired_bits: 4,
             window_radius: 2,
             repair_tolerance_px: 1.0,
             outlier_px: 2.0,
@@ -534,7 +536,9 @@ fn decode_axis(
         repaired = (0..grid.len())
             .into_par_iter()
             .map(|i| match previous[i].1 {
-                PixelStatus::RepairFailed => repair(grid, i, &bits[i], &previous, size, params),
+                PixelStatus::RepairFailed => {
+                    repair(grid, i, &bits[i], nbits, &previous, size, params)
+                }
                 _ => previous[i],
             })
             .collect();
@@ -569,7 +573,7 @@ fn initial_code(b: &PixelBits, nbits: u32, size: u32, params: &DecodeParams) -> 
     if unreliable == 0 {
         return in_range(gray_decode(b.gray as u32), size, PixelStatus::Decoded);
     }
-    if unreliable & !bit_mask(params.repairable_bits) != 0 {
+    if unreliable.count_ones() > params.max_repaired_bits {
         return (-1, PixelStatus::UnreliableBits);
     }
     (-1, PixelStatus::RepairFailed)
@@ -596,25 +600,19 @@ fn repair(
     grid: Grid,
     i: usize,
     b: &PixelBits,
+    nbits: u32,
     first: &[(i32, PixelStatus)],
     size: u32,
     params: &DecodeParams,
 ) -> (i32, PixelStatus) {
     // A wider window than for the checks: in blurred regions the reliable pixels are sparse.
-    let samples: Vec<(f64, f64, f64)> = grid
-        .window(i, 2 * params.window_radius as usize)
-        .filter(|&(j, _, _)| first[j].1.is_valid())
-        .map(|(j, dx, dy)| (dx, dy, first[j].0 as f64))
-        .collect();
-    if samples.len() < params.min_neighbours as usize {
-        return (-1, PixelStatus::RepairFailed);
-    }
-    let Some(predicted) = robust_plane_at_centre(&samples, params) else {
+    let radius = 2 * params.window_radius as usize;
+    let Some(predicted) = neighbour_prediction(grid, i, radius, first, params) else {
         return (-1, PixelStatus::RepairFailed);
     };
-    let unreliable = !b.reliable & bit_mask(params.repairable_bits);
+    let unreliable = !b.reliable & bit_mask(nbits);
     let fixed = b.gray & !unreliable;
-    // Enumerate every setting of the unreliable bits (at most 2^repairable_bits).
+    // Enumerate every setting of the unreliable bits (at most 2^max_repaired_bits).
     let mut best: Option<(f64, u32)> = None;
     let mut subset: u16 = 0;
     loop {
@@ -648,8 +646,21 @@ fn check_and_refine(
     if !status.is_valid() {
         return (-1, f32::NAN, status);
     }
+    let radius = params.window_radius as usize;
+    let stats = WindowStats::new(grid, i, radius, codes);
+    if stats.is_full_and_smooth(radius) {
+        // Fast path: over a complete symmetric window the least-squares plane's value at the
+        // centre is the mean, so no fit is needed.
+        let predicted = stats.sum / stats.count as f64;
+        if (code as f64 - predicted).abs() > params.outlier_px as f64 {
+            return (-1, f32::NAN, PixelStatus::Inconsistent);
+        }
+        let refined = ((stats.sum + code as f64) / (stats.count + 1) as f64)
+            .clamp(code as f64 - 0.5, code as f64 + 0.5);
+        return (code, refined as f32, status);
+    }
     let samples: Vec<(f64, f64, f64)> = grid
-        .window(i, params.window_radius as usize)
+        .window(i, radius)
         .filter(|&(j, _, _)| codes[j].1.is_valid())
         .map(|(j, dx, dy)| (dx, dy, codes[j].0 as f64))
         .collect();
@@ -674,6 +685,87 @@ fn check_and_refine(
         .map(|p| p.clamp(code as f64 - 0.5, code as f64 + 0.5))
         .unwrap_or(code as f64);
     (code, refined as f32, status)
+}
+
+/// The neighbours' plane value at pixel `i` (valid neighbours within `radius`), if there are
+/// enough of them.
+fn neighbour_prediction(
+    grid: Grid,
+    i: usize,
+    radius: usize,
+    codes: &[(i32, PixelStatus)],
+    params: &DecodeParams,
+) -> Option<f64> {
+    let stats = WindowStats::new(grid, i, radius, codes);
+    if stats.is_full_and_smooth(radius) {
+        return Some(stats.sum / stats.count as f64);
+    }
+    if stats.count < params.min_neighbours as usize {
+        return None;
+    }
+    let samples: Vec<(f64, f64, f64)> = grid
+        .window(i, radius)
+        .filter(|&(j, _, _)| codes[j].1.is_valid())
+        .map(|(j, dx, dy)| (dx, dy, codes[j].0 as f64))
+        .collect();
+    // Interpolate, never extrapolate: a plane through integer codes on one side only (image
+    // border, shadow edge) is biased by the staircase of the codes.
+    let has = |side: fn(f64, f64) -> bool| samples.iter().any(|s| side(s.0, s.1));
+    let surrounded = has(|dx, _| dx < 0.0)
+        && has(|dx, _| dx > 0.0)
+        && has(|_, dy| dy < 0.0)
+        && has(|_, dy| dy > 0.0);
+    if !surrounded {
+        return None;
+    }
+    robust_plane_at_centre(&samples, params)
+}
+
+/// Count, sum and range of the valid codes around a pixel (itself excluded), without allocating.
+#[derive(Debug, Clone, Copy)]
+struct WindowStats {
+    count: usize,
+    sum: f64,
+    min: i32,
+    max: i32,
+    /// Pixels of the window inside the image (excluding the centre).
+    size: usize,
+}
+
+impl WindowStats {
+    fn new(grid: Grid, i: usize, radius: usize, codes: &[(i32, PixelStatus)]) -> Self {
+        let (x, y) = (i % grid.width, i / grid.width);
+        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
+        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(grid.height - 1));
+        let mut s = Self {
+            count: 0,
+            sum: 0.0,
+            min: i32::MAX,
+            max: i32::MIN,
+            size: (x1 - x0 + 1) * (y1 - y0 + 1) - 1,
+        };
+        for row in y0..=y1 {
+            for (j, &(code, status)) in codes[row * grid.width + x0..=row * grid.width + x1]
+                .iter()
+                .enumerate()
+            {
+                if status.is_valid() && row * grid.width + x0 + j != i {
+                    s.count += 1;
+                    s.sum += code as f64;
+                    s.min = s.min.min(code);
+                    s.max = s.max.max(code);
+                }
+            }
+        }
+        s
+    }
+
+    /// Every pixel of the full square window is decoded and the codes span no more than a surface
+    /// with a gradient of about one projector pixel per camera pixel would.
+    fn is_full_and_smooth(&self, radius: usize) -> bool {
+        let full = (2 * radius + 1).pow(2) - 1;
+        self.size == full && self.count == full && self.max - self.min <= 2 * radius as i32 + 2
+    }
 }
 
 /// Largest code difference to a neighbour that can still be on the same smooth surface.
@@ -875,7 +967,7 @@ mod tests {
         let mut scene = SyntheticGrayScene::new((160, 120), (256, 192));
         scene.u = [40.3, 0.47, 0.03];
         scene.v = [30.6, -0.02, 0.52];
-        scene.direct_fraction = 0.04;
+        scene.direct_fraction = 0.06;
         scene.global_blur_px = 3.0;
         scene.albedo = 0.5;
         scene.seed = 7;

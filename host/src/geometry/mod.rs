@@ -1,7 +1,10 @@
 //! Geometry from structured light: Gray-code decoding (`gray_code`), loading of the code frames
 //! from capture folders or OpenCV-ordered sequences (`code_frames`), and synthetic code frames with
-//! a known mapping for tests and benchmarks (`synthetic`).
+//! a known mapping for tests and benchmarks (`synthetic`), triangulation and fusion across
+//! projectors (`triangulation`), and the pixel-grid mesh with its PLY and shaded preview (`grid_mesh`).
 
 pub mod code_frames;
 pub mod gray_code;
+pub mod grid_mesh;
 pub mod synthetic;
+pub mod triangulation;

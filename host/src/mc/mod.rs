@@ -134,6 +134,8 @@ pub struct McResult {
     pub photons_per_second: f64,
     /// Worker threads used (does not change the result).
     pub threads: usize,
+    /// Mean number of interaction (absorption + scattering) events per photon: the cost driver.
+    pub interactions_per_photon: f64,
     /// The 2-D exit response, when `McConfig::grid` was given.
     pub response: Option<ExitResponse2D>,
     /// The radial profile R(r), when `McConfig::radial` was given.

@@ -219,6 +219,8 @@ pub(crate) struct BatchTally {
     pub grid_outside: f64,
     pub rings: Vec<f64>,
     pub rings_outside: f64,
+    /// Scattering/absorption events (not boundary hits), for cost figures.
+    pub interactions: u64,
 }
 
 impl BatchTally {
@@ -233,6 +235,7 @@ impl BatchTally {
             grid_outside: 0.0,
             rings: radial.map_or(Vec::new(), |r| vec![0.0; r.rings]),
             rings_outside: 0.0,
+            interactions: 0,
         }
     }
 
@@ -252,6 +255,7 @@ impl BatchTally {
             *a += b;
         }
         self.rings_outside += other.rings_outside;
+        self.interactions += other.interactions;
     }
 
     /// The grid as weight per unit area per incident photon.

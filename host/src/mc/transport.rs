@@ -29,8 +29,9 @@ const ROULETTE_SURVIVAL: f64 = 0.1;
 /// A photon trapped by total internal reflection in a non-scattering layer would bounce forever;
 /// after this many events it is dropped (its weight is then missing from every tally).
 const MAX_EVENTS_PER_PHOTON: u32 = 1_000_000;
-/// Directions closer than this to the z axis use the simplified spin formula (MCML's COSZERO).
-const COS_NEAR_ONE: f64 = 1.0 - 1e-12;
+/// Directions with 1 - uz^2 below this are treated as vertical by the spin formula (MCML's
+/// COSZERO, 1 - 1e-12, expressed on 1 - uz^2).
+const NEAR_VERTICAL: f64 = 2e-12;
 
 /// Per-layer constants precomputed once per run.
 #[derive(Debug, Clone, Copy)]
@@ -38,9 +39,11 @@ struct LayerConsts {
     z_top: f64,
     z_bottom: f64,
     mu_t: f64,
+    /// 1 / mu_t, infinite for a clear layer (so a step in it never ends inside it).
+    inv_mu_t: f64,
     /// mu_a / mu_t: fraction of the weight deposited at each interaction.
     absorb_fraction: f64,
-    g: f64,
+    hg: HenyeyGreenstein,
     n: f64,
     /// Index of the medium above and below this layer.
     n_up: f64,
@@ -67,8 +70,9 @@ impl Geometry {
                 z_top: z,
                 z_bottom: z + layer.thickness_mm,
                 mu_t,
+                inv_mu_t: 1.0 / mu_t,
                 absorb_fraction: if mu_t > 0.0 { layer.mu_a / mu_t } else { 0.0 },
-                g: layer.g,
+                hg: HenyeyGreenstein::new(layer.g),
                 n: layer.n,
                 n_up: if i == 0 {
                     medium.n_above
@@ -150,31 +154,59 @@ fn splitmix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// Cosine of the Henyey-Greenstein scattering angle (inverse CDF).
-#[inline(always)]
-fn sample_hg_cos(g: f64, xi: f64) -> f64 {
-    if g.abs() < 1e-6 {
-        2.0 * xi - 1.0
-    } else {
-        let t = (1.0 - g * g) / (1.0 - g + 2.0 * g * xi);
-        ((1.0 + g * g - t * t) / (2.0 * g)).clamp(-1.0, 1.0)
+/// Henyey-Greenstein phase function constants for inverse-CDF sampling of the scattering cosine.
+#[derive(Debug, Clone, Copy)]
+struct HenyeyGreenstein {
+    isotropic: bool,
+    one_plus_g2: f64,
+    one_minus_g2: f64,
+    one_minus_g: f64,
+    two_g: f64,
+    inv_two_g: f64,
+}
+
+impl HenyeyGreenstein {
+    fn new(g: f64) -> Self {
+        // Below |g| = 1e-6 the inverse CDF loses precision; the isotropic law is then exact enough.
+        let isotropic = g.abs() < 1e-6;
+        Self {
+            isotropic,
+            one_plus_g2: 1.0 + g * g,
+            one_minus_g2: 1.0 - g * g,
+            one_minus_g: 1.0 - g,
+            two_g: 2.0 * g,
+            inv_two_g: if isotropic { 0.0 } else { 0.5 / g },
+        }
+    }
+
+    /// Cosine of the scattering angle for a uniform `xi` in [0, 1).
+    #[inline(always)]
+    fn sample_cos(&self, xi: f64) -> f64 {
+        if self.isotropic {
+            2.0 * xi - 1.0
+        } else {
+            let t = self.one_minus_g2 / (self.one_minus_g + self.two_g * xi);
+            ((self.one_plus_g2 - t * t) * self.inv_two_g).clamp(-1.0, 1.0)
+        }
     }
 }
 
-/// Turns `dir` by polar cosine `cos_t` and azimuth (cos_p, sin_p) about itself.
+/// Turns `dir` by polar cosine `cos_t` and azimuth (cos_p, sin_p) about itself (MCML's formulas,
+/// with sin(theta) / sqrt(1 - uz^2) taken as one square root).
 #[inline(always)]
 fn spin(dir: &mut [f64; 3], cos_t: f64, cos_p: f64, sin_p: f64) {
-    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let sin_t_sq = (1.0 - cos_t * cos_t).max(0.0);
     let [ux, uy, uz] = *dir;
-    if uz.abs() > COS_NEAR_ONE {
+    let one_minus_uz2 = 1.0 - uz * uz;
+    if one_minus_uz2 < NEAR_VERTICAL {
+        let sin_t = sin_t_sq.sqrt();
         *dir = [sin_t * cos_p, sin_t * sin_p, cos_t * uz.signum()];
     } else {
-        let temp = (1.0 - uz * uz).sqrt();
-        let k = sin_t / temp;
+        let k = (sin_t_sq / one_minus_uz2).sqrt();
         *dir = [
             k * (ux * uz * cos_p - uy * sin_p) + ux * cos_t,
             k * (uy * uz * cos_p + ux * sin_p) + uy * cos_t,
-            -sin_t * cos_p * temp + uz * cos_t,
+            -k * cos_p * one_minus_uz2 + uz * cos_t,
         ];
     }
 }
@@ -230,38 +262,40 @@ fn trace_photon(
         if optical_left == 0.0 {
             optical_left = -rng.next_open().ln();
         }
-        let to_boundary = if dir[2] > 0.0 {
-            (layer.z_bottom - pos[2]) / dir[2]
-        } else if dir[2] < 0.0 {
-            (layer.z_top - pos[2]) / dir[2]
+        // Compare depths rather than path lengths: no division on the common, interior step.
+        let going_down = dir[2] > 0.0;
+        let depth_to_boundary = if going_down {
+            layer.z_bottom - pos[2]
         } else {
-            f64::INFINITY
+            pos[2] - layer.z_top
         };
-        let step = if layer.mu_t > 0.0 {
-            optical_left / layer.mu_t
-        } else {
-            f64::INFINITY
-        };
-        if step < to_boundary {
+        let uz_abs = dir[2].abs();
+        let step = optical_left * layer.inv_mu_t;
+        if step * uz_abs < depth_to_boundary {
             // Interaction inside the layer: move, deposit, scatter.
             pos[0] += step * dir[0];
             pos[1] += step * dir[1];
             pos[2] += step * dir[2];
             optical_left = 0.0;
+            tally.interactions += 1;
             let deposit = weight * layer.absorb_fraction;
             photon.absorbed[layer_index] += deposit;
             weight -= deposit;
-            let cos_t = sample_hg_cos(layer.g, rng.next());
+            let cos_t = layer.hg.sample_cos(rng.next());
             let (cos_p, sin_p) = rng.azimuth();
             spin(&mut dir, cos_t, cos_p, sin_p);
         } else {
             // Reach the boundary with the rest of the step kept in optical depth.
+            let to_boundary = depth_to_boundary / uz_abs;
+            if !to_boundary.is_finite() {
+                // Travelling parallel to the layers in a clear layer: never comes back.
+                return;
+            }
             pos[0] += to_boundary * dir[0];
             pos[1] += to_boundary * dir[1];
             if layer.mu_t > 0.0 {
                 optical_left = (optical_left - to_boundary * layer.mu_t).max(0.0);
             }
-            let going_down = dir[2] > 0.0;
             pos[2] = if going_down {
                 layer.z_bottom
             } else {
@@ -430,6 +464,7 @@ fn assemble(
             f64::INFINITY
         },
         threads,
+        interactions_per_photon: total.interactions as f64 / n as f64,
         response: geo.grid.as_ref().map(|g| total.response(g, n)),
         radial: geo.radial.as_ref().map(|r| total.radial(r, n)),
     }

@@ -173,6 +173,8 @@ pub fn controller_messages() -> Vec<(&'static str, C)> {
         ("late_ack", LateReason::AckLate),
         ("late_vsync", LateReason::VsyncMissing),
         ("late_silent", LateReason::HostSilent),
+        ("late_trigger_missed", LateReason::TriggerMissed),
+        ("late_exposure_missing", LateReason::ExposureMissing),
     ] {
         out.push((
             name,

@@ -1,0 +1,363 @@
+//! `mlsss rig`: find controllers, run a capture, measure the controller's timing.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use mlsss::booth::Booth;
+use mlsss::capture::{Capture, FramePlan};
+use mlsss::rig::acquire::{CaptureTarget, acquire};
+use mlsss::rig::backend::{CameraBackend, PatternCamera, ReplayCamera, VirtualProjectors};
+use mlsss::rig::link::{ByteLink, ControllerLink};
+use mlsss::rig::qemu::{self, QemuGuard};
+use mlsss::rig::schedule::RigSchedule;
+use mlsss::rig::session::{HostFaults, RunHooks, Session};
+use mlsss::rig::timing::timing_report;
+use mlsss::rig::{RigError, ports};
+use mlsss_shared::message::{PatternRequest, Triggered};
+use serialport::SerialPort;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(subcommand)]
+    command: RigCommand,
+}
+
+#[derive(Debug, clap::Subcommand)]
+enum RigCommand {
+    /// List serial ports and USB devices, marking those that look like a controller.
+    Ports(PortsArgs),
+    /// Run a capture on the controller and write the capture folder.
+    Run(RunArgs),
+    /// Run the full schedule against the firmware and report its timing.
+    TimingTest(TimingArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct PortsArgs {
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Where the controller is.
+#[derive(Debug, clap::Args)]
+struct ControllerArgs {
+    /// Serial port of a real controller (e.g. /dev/ttyACM0).
+    #[arg(
+        long,
+        conflicts_with = "emulated",
+        required_unless_present = "emulated"
+    )]
+    port: Option<String>,
+    /// Baud rate of --port.
+    #[arg(long, default_value_t = 115_200)]
+    baud: u32,
+    /// Boot the real firmware image under QEMU (mps2-an386) instead of using a board.
+    #[arg(long)]
+    emulated: bool,
+    /// Firmware image for --emulated (default: the one scripts/test.sh builds).
+    #[arg(long, requires = "emulated")]
+    firmware: Option<PathBuf>,
+    /// QEMU -icount shift (2^N ns of virtual time per instruction) for --emulated.
+    #[arg(long, default_value_t = qemu::DEFAULT_ICOUNT_SHIFT, requires = "emulated")]
+    icount_shift: u8,
+}
+
+#[derive(Debug, clap::Args)]
+struct BoothArgs {
+    /// Booth file (default: the built-in hardware/booth.toml).
+    #[arg(long)]
+    booth: Option<PathBuf>,
+    /// Use the built-in --quick booth (small images).
+    #[arg(long, conflicts_with = "booth")]
+    quick: bool,
+    /// Run only the first N frames of the scan plan (default: all).
+    #[arg(long)]
+    frames: Option<usize>,
+}
+
+#[derive(Debug, clap::Args)]
+struct RunArgs {
+    #[command(flatten)]
+    controller: ControllerArgs,
+    #[command(flatten)]
+    booth: BoothArgs,
+    /// Output capture folder (must not exist).
+    #[arg(long, default_value = "out/rig-capture")]
+    out: PathBuf,
+    /// Camera backend: `virtual` renders the pattern on screen; `replay:DIR` replays the frames
+    /// of a recorded capture folder.
+    #[arg(long, default_value = "virtual")]
+    camera: String,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, clap::Args)]
+struct TimingArgs {
+    #[command(flatten)]
+    controller: ControllerArgs,
+    #[command(flatten)]
+    booth: BoothArgs,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    match args.command {
+        RigCommand::Ports(a) => run_ports(a),
+        RigCommand::Run(a) => run_capture(a),
+        RigCommand::TimingTest(a) => run_timing(a),
+    }
+}
+
+fn run_ports(args: PortsArgs) -> anyhow::Result<()> {
+    let serial = ports::serial_ports().context("enumerating serial ports")?;
+    let usb = ports::usb_devices(std::path::Path::new("/sys/bus/usb/devices"));
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({ "serial_ports": serial, "usb_devices": usb })
+        );
+        return Ok(());
+    }
+    println!("serial ports:");
+    if serial.is_empty() {
+        println!("  (none)");
+    }
+    for p in &serial {
+        let ids = match (p.vid, p.pid) {
+            (Some(v), Some(d)) => format!(" {v:04x}:{d:04x}"),
+            _ => String::new(),
+        };
+        let mark = p
+            .controller
+            .as_deref()
+            .map(|r| format!("  <- controller? {r}"));
+        println!("  {}{ids}{}", p.path, mark.unwrap_or_default());
+    }
+    println!("usb devices:");
+    if usb.is_empty() {
+        println!("  (none)");
+    }
+    for d in &usb {
+        let mark = d
+            .controller
+            .as_deref()
+            .map(|r| format!("  <- controller? {r}"));
+        println!(
+            "  {} {:04x}:{:04x} {}{}",
+            d.bus_path,
+            d.vid,
+            d.pid,
+            d.product.as_deref().unwrap_or(""),
+            mark.unwrap_or_default()
+        );
+    }
+    Ok(())
+}
+
+/// An open controller connection, and QEMU if emulated (killed when this drops).
+struct Connection {
+    port: Box<dyn SerialPort>,
+    _qemu: Option<QemuGuard>,
+    description: serde_json::Value,
+}
+
+fn connect(args: &ControllerArgs) -> anyhow::Result<Connection> {
+    if args.emulated {
+        let image = args
+            .firmware
+            .clone()
+            .unwrap_or_else(qemu::default_firmware_image);
+        let (guard, port) = qemu::spawn(&image, args.icount_shift)?;
+        Ok(Connection {
+            port,
+            _qemu: Some(guard),
+            description: serde_json::json!({
+                "emulated": true,
+                "firmware": image.display().to_string(),
+                "icount_shift": args.icount_shift,
+            }),
+        })
+    } else {
+        let path = args.port.as_deref().unwrap_or_default();
+        let port = serialport::new(path, args.baud)
+            .timeout(Duration::from_millis(50))
+            .open()
+            .with_context(|| format!("opening serial port {path} (see `mlsss rig ports`)"))?;
+        Ok(Connection {
+            port,
+            _qemu: None,
+            description: serde_json::json!({ "port": path, "baud": args.baud }),
+        })
+    }
+}
+
+fn load_booth(args: &BoothArgs) -> anyhow::Result<(Booth, FramePlan)> {
+    let booth = match &args.booth {
+        Some(path) => {
+            Booth::from_file(path).with_context(|| format!("loading booth {}", path.display()))?
+        }
+        None => Booth::builtin(args.quick),
+    };
+    let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
+    if args.frames == Some(0) {
+        bail!("--frames must be at least 1");
+    }
+    Ok((booth, plan))
+}
+
+fn progress_bar(frames: usize) -> ProgressBar {
+    let bar = ProgressBar::new(frames as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} frames {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_prefix("rig");
+    bar
+}
+
+fn open_session<L: ByteLink>(link: ControllerLink<L>) -> anyhow::Result<Session<L>> {
+    let session = Session::open(link).context("handshake with the controller")?;
+    let c = session.controller();
+    eprintln!(
+        "controller: {:?}, firmware {}.{}.{}, protocol {}, {} projectors",
+        c.board,
+        c.firmware_version[0],
+        c.firmware_version[1],
+        c.firmware_version[2],
+        c.protocol_version,
+        c.projectors
+    );
+    Ok(session)
+}
+
+fn run_capture(args: RunArgs) -> anyhow::Result<()> {
+    let (booth, plan) = load_booth(&args.booth)?;
+    let schedule = RigSchedule::from_plan(&plan, &booth.timing, args.booth.frames)?;
+    let camera: Box<dyn CameraBackend> = match args.camera.strip_prefix("replay:") {
+        Some(dir) => {
+            let capture = Capture::open(std::path::Path::new(dir))
+                .with_context(|| format!("opening the capture to replay, {dir}"))?;
+            Box::new(ReplayCamera::new(capture))
+        }
+        None if args.camera == "virtual" => Box::new(PatternCamera::new(&booth)),
+        None => bail!(
+            "unknown --camera '{}': use `virtual` or `replay:DIR`",
+            args.camera
+        ),
+    };
+    let connection = connect(&args.controller)?;
+    let mut session = open_session(ControllerLink::new(connection.port))?;
+    let bar = progress_bar(schedule.entries.len());
+    let mut projectors = VirtualProjectors::new();
+    let acquired = acquire(
+        &mut session,
+        &schedule,
+        CaptureTarget {
+            booth: &booth,
+            plan: &plan,
+            out: &args.out,
+            source: connection.description,
+        },
+        &mut projectors,
+        camera,
+        &HostFaults::default(),
+        &mut |_| bar.inc(1),
+    )?;
+    bar.finish_and_clear();
+    let report = timing_report(&acquired.log, 0.0);
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "capture": acquired.folder.display().to_string(),
+                "frames_written": acquired.frames_written,
+                "complete": acquired.complete,
+                "frames_late": report.frames_late,
+                "frames_dropped": report.frames_dropped,
+            })
+        );
+    } else {
+        println!(
+            "wrote {} ({} frames{})",
+            acquired.folder.display(),
+            acquired.frames_written,
+            if acquired.complete {
+                ""
+            } else {
+                ", INCOMPLETE"
+            }
+        );
+    }
+    if !acquired.complete {
+        bail!(
+            "the run did not capture every frame: {:?}",
+            acquired.log.done.outcome
+        );
+    }
+    Ok(())
+}
+
+/// Timing test hooks: nothing to show or capture, only progress.
+struct TimingHooks {
+    schedule: RigSchedule,
+    bar: ProgressBar,
+}
+
+impl RunHooks for TimingHooks {
+    fn show(&mut self, request: &PatternRequest) -> Result<(), RigError> {
+        mlsss::rig::acquire::checked_pattern(&self.schedule, request).map(|_| ())
+    }
+
+    fn triggered(&mut self, _trigger: &Triggered) -> Result<(), RigError> {
+        self.bar.inc(1);
+        Ok(())
+    }
+}
+
+fn run_timing(args: TimingArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let (booth, plan) = load_booth(&args.booth)?;
+    let schedule = RigSchedule::from_plan(&plan, &booth.timing, args.booth.frames)?;
+    let Connection {
+        port, _qemu: qemu, ..
+    } = connect(&args.controller)?;
+    let mut session = open_session(ControllerLink::new(port))?;
+    let mut hooks = TimingHooks {
+        schedule: schedule.clone(),
+        bar: progress_bar(schedule.entries.len()),
+    };
+    let log = session.run(&schedule, &mut hooks, &HostFaults::default())?;
+    hooks.bar.finish_and_clear();
+    drop(session);
+    drop(qemu); // QEMU shut down before the wall clock stops
+    let report = timing_report(&log, started.elapsed().as_secs_f64());
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        println!(
+            "{} of {} frames triggered, {} lost, {} late; period {:.1} us mean, max error {:.1} us \
+             ({:.1} us vs the measured refresh); VSYNC alignment max {:.1} us; {} settle violations; \
+             {} CRC errors; {:.1} s virtual in {:.1} s wall",
+            report.frames_triggered,
+            report.frames_requested,
+            report.frames_lost,
+            report.frames_late,
+            report.period_us_mean,
+            report.period_us_max_abs_error,
+            report.period_us_max_abs_error_vs_refresh,
+            report.vsync_alignment_us_max,
+            report.settle_violations,
+            report.crc_errors,
+            report.virtual_duration_s,
+            report.wall_duration_s
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,136 @@
+//! `mlsss simulate`: render a capture (or chessboard calibration captures) in the virtual booth,
+//! with ground truth under `truth/` and a contact sheet PNG.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+use mlsss::booth::Booth;
+use mlsss::virtual_booth::{
+    Progress, ResponseCache, SimulationOptions, SkinPreset, SubjectKind, scaled_booth,
+    simulate_calibration, simulate_scan,
+};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Use the built-in --quick booth (small images, 8-bit Gray code).
+    #[arg(long, conflicts_with = "booth")]
+    quick: bool,
+    /// Shrink the booth further by this factor (images and focal lengths), for fast tests.
+    #[arg(long, value_name = "FACTOR", default_value_t = 1)]
+    scale_down: u32,
+    /// Booth description (default: the built-in hardware/booth.toml).
+    #[arg(long, value_name = "FILE")]
+    booth: Option<PathBuf>,
+    /// What stands in the booth.
+    #[arg(long, value_enum)]
+    subject: SubjectKind,
+    /// Skin type (optical properties from the literature).
+    #[arg(long, value_enum, default_value_t = SkinPreset::Light)]
+    skin: SkinPreset,
+    /// Seed of everything random (material maps, noise, board poses).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Render chessboard calibration captures (one capture folder per pose under --out).
+    #[arg(long, requires = "poses")]
+    calibration: bool,
+    /// Number of chessboard poses for --calibration.
+    #[arg(long, value_name = "K")]
+    poses: Option<usize>,
+    /// Uniform skin: no freckles, vessels or stubble.
+    #[arg(long)]
+    no_maps: bool,
+    /// Dark projectors emit nothing (default: they emit their black level, as real ones do).
+    #[arg(long)]
+    no_stray_black: bool,
+    /// Camera sub-samples per pixel along each axis.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
+    supersampling: u32,
+    /// Photons per Monte Carlo response (per material, angle and channel); default depends on
+    /// the booth size.
+    #[arg(long)]
+    photons: Option<u64>,
+    /// Directory of the Monte Carlo response cache (default: $MLSSS_CACHE or ~/.cache/mlsss).
+    #[arg(long, value_name = "DIR")]
+    cache: Option<PathBuf>,
+    /// Output capture folder (must not exist).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Print one JSON object (the report) on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Shows the simulator's stages as an indicatif bar on stderr.
+struct Bar(ProgressBar);
+
+impl Progress for Bar {
+    fn stage(&self, name: &str, total: u64) {
+        self.0.set_length(total);
+        self.0.set_position(0);
+        self.0.set_message(name.to_owned());
+    }
+
+    fn advance(&self, n: u64) {
+        self.0.inc(n);
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut booth = match &args.booth {
+        Some(path) => {
+            Booth::from_file(path).with_context(|| format!("loading booth {}", path.display()))?
+        }
+        None => Booth::builtin(args.quick),
+    };
+    if args.scale_down > 1 {
+        booth = scaled_booth(&booth, args.scale_down);
+    }
+    if args.calibration && args.subject != SubjectKind::Chessboard {
+        anyhow::bail!("--calibration needs --subject chessboard");
+    }
+    let mut opts = SimulationOptions::for_booth(&booth, args.subject, args.skin, args.seed);
+    opts.material_maps = !args.no_maps;
+    opts.stray_black = !args.no_stray_black;
+    opts.supersampling = args.supersampling;
+    if let Some(p) = args.photons {
+        anyhow::ensure!(p > 0, "--photons must be positive");
+        opts.mc.photons = p;
+    }
+    if let Some(dir) = &args.cache {
+        opts.cache = ResponseCache::new(dir);
+    }
+    let bar = ProgressBar::new(1);
+    bar.set_style(
+        ProgressStyle::with_template("{msg:32} [{bar:40}] {pos}/{len} {elapsed_precise}")
+            .context("progress bar template")?
+            .progress_chars("=> "),
+    );
+    bar.enable_steady_tick(Duration::from_millis(200));
+    let progress = Bar(bar.clone());
+    let report = if args.calibration {
+        let poses = args.poses.unwrap_or(1);
+        anyhow::ensure!(poses > 0, "--poses must be at least 1");
+        simulate_calibration(&booth, &opts, poses, &args.out, &progress)
+    } else {
+        simulate_scan(&booth, &opts, &args.out, &progress)
+    }
+    .with_context(|| format!("simulating into {}", args.out.display()))?;
+    bar.finish_and_clear();
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        eprintln!(
+            "wrote {} frames in {:.1} s to {} (Monte Carlo: {} cached, {} computed in {:.1} s; cache {})",
+            report.frames,
+            report.seconds,
+            args.out.display(),
+            report.cache.hits,
+            report.cache.misses,
+            report.cache.mc_seconds,
+            opts.cache.dir().display(),
+        );
+    }
+    Ok(())
+}

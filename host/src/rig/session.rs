@@ -1,0 +1,415 @@
+//! A session with the controller: handshake, schedule upload, and the run itself (answering
+//! pattern requests, collecting every trigger and fault report).
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use mlsss_shared::message::{
+    ControllerState, DoneSummary, ExposureDone, FrameDropped, FrameLate, FrameRetried, Hello,
+    HelloReply, HostHeartbeat, Nack, PatternRequest, PatternShown, ProjectorTiming, StatusReport,
+    Triggered,
+};
+use mlsss_shared::{ControllerMessage, HostMessage, PROTOCOL_VERSION, SCHEMA_HASH};
+
+use super::RigError;
+use super::link::{ByteLink, ControllerLink, HostLinkStats};
+use super::schedule::RigSchedule;
+
+/// How often the host proves it is alive while waiting.
+const HEARTBEAT_EVERY: Duration = Duration::from_millis(200);
+/// Wall time without any message from a running controller before the host gives up.
+const CONTROLLER_SILENCE_LIMIT: Duration = Duration::from_secs(10);
+/// After `Done`, how long to keep collecting the per-projector timing reports.
+const AFTER_DONE_QUIET: Duration = Duration::from_millis(300);
+/// Attempts of the handshake (the controller may still be booting).
+const HELLO_ATTEMPTS: u32 = 10;
+const HELLO_TIMEOUT: Duration = Duration::from_millis(500);
+
+/// What the host does when it reconnects to a paused run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReconnectAction {
+    /// Continue the run where it stopped.
+    Resume,
+    /// End the run (frames captured so far are kept).
+    Abort,
+}
+
+/// A simulated disconnect: at the pattern request of `at_frame` the host goes away for
+/// `duration` (hears and says nothing), then reconnects and resumes or aborts.
+#[derive(Debug, Clone, Copy)]
+pub struct Disconnect {
+    /// Frame whose request the host leaves unanswered.
+    pub at_frame: u16,
+    /// Wall time away.
+    pub duration: Duration,
+    /// What to do after reconnecting.
+    pub then: ReconnectAction,
+}
+
+/// Host-side behaviour changes for fault-injection runs.
+#[derive(Debug, Clone, Default)]
+pub struct HostFaults {
+    /// Frames whose first pattern request is answered only after the controller reported
+    /// the frame late.
+    pub late_ack_frames: Vec<u16>,
+    /// At most one disconnect.
+    pub disconnect: Option<Disconnect>,
+}
+
+/// Everything the controller reported during a run.
+#[derive(Debug, Clone)]
+pub struct RunLog {
+    /// The controller's identification.
+    pub controller: HelloReply,
+    /// The schedule that ran.
+    pub schedule: RigSchedule,
+    /// Controller status just before `Start`.
+    pub status_before: StatusReport,
+    /// Controller status after `Done`.
+    pub status_after: Option<StatusReport>,
+    /// Pattern requests in arrival order.
+    pub requests: Vec<PatternRequest>,
+    /// The trigger of each frame (the last one if a frame were ever reported twice).
+    pub triggers: BTreeMap<u16, Triggered>,
+    /// Exposure ends by frame.
+    pub exposures: BTreeMap<u16, ExposureDone>,
+    /// Late reports in order.
+    pub late: Vec<FrameLate>,
+    /// Retries in order.
+    pub retried: Vec<FrameRetried>,
+    /// Dropped frames in order.
+    pub dropped: Vec<FrameDropped>,
+    /// Refusals (of pattern acks, typically) during the run.
+    pub nacks: Vec<Nack>,
+    /// Frames triggered twice (must stay empty).
+    pub duplicate_triggers: Vec<u16>,
+    /// The final summary.
+    pub done: DoneSummary,
+    /// Measured VSYNC timing by projector (the latest report of each).
+    pub projector_timing: BTreeMap<u8, ProjectorTiming>,
+    /// Statuses the controller reported when the host reconnected.
+    pub reconnect_statuses: Vec<StatusReport>,
+    /// Host end link counters.
+    pub host_link: HostLinkStats,
+}
+
+/// Callbacks of a run: the projector output and the frame sink.
+pub trait RunHooks {
+    /// Put pattern `pattern` (schedule id) on `projector` now; return when it is on screen.
+    fn show(&mut self, request: &PatternRequest) -> Result<(), RigError>;
+    /// The camera was triggered for a frame.
+    fn triggered(&mut self, trigger: &Triggered) -> Result<(), RigError>;
+    /// The exposure of a frame ended.
+    fn exposure_done(&mut self, _exposure: &ExposureDone) -> Result<(), RigError> {
+        Ok(())
+    }
+}
+
+/// An open session with an identified controller.
+pub struct Session<L: ByteLink> {
+    link: ControllerLink<L>,
+    controller: HelloReply,
+}
+
+impl<L: ByteLink> Session<L> {
+    /// Identifies the controller; refuses a protocol version or schema mismatch.
+    pub fn open(mut link: ControllerLink<L>) -> Result<Self, RigError> {
+        let controller = hello(&mut link)?;
+        Ok(Self { link, controller })
+    }
+
+    /// The controller's identification.
+    pub fn controller(&self) -> &HelloReply {
+        &self.controller
+    }
+
+    /// The link (fault injection, raw access).
+    pub fn link_mut(&mut self) -> &mut ControllerLink<L> {
+        &mut self.link
+    }
+
+    /// Uploads and commits a schedule. A refusal is [`RigError::Refused`] with the typed code.
+    pub fn upload(&mut self, schedule: &RigSchedule) -> Result<(), RigError> {
+        self.link
+            .command(&HostMessage::ScheduleBegin(schedule.header))?;
+        for chunk in schedule.chunks() {
+            self.link.command(&HostMessage::ScheduleChunk(chunk))?;
+        }
+        self.link
+            .command(&HostMessage::ScheduleCommit(schedule.commit()))
+    }
+
+    /// Asks for the controller's status.
+    pub fn status(&mut self) -> Result<StatusReport, RigError> {
+        self.link.command(&HostMessage::StatusQuery)?;
+        let deadline = Instant::now() + Duration::from_secs(2);
+        while Instant::now() < deadline {
+            if let Some(ControllerMessage::Status(status)) =
+                self.link.recv(Duration::from_millis(100))?
+            {
+                return Ok(status);
+            }
+        }
+        Err(RigError::NoAnswer {
+            command: "StatusQuery",
+            attempts: 1,
+        })
+    }
+
+    /// Uploads `schedule`, arms, starts and runs it to the end.
+    pub fn run(
+        &mut self,
+        schedule: &RigSchedule,
+        hooks: &mut dyn RunHooks,
+        faults: &HostFaults,
+    ) -> Result<RunLog, RigError> {
+        self.upload(schedule)?;
+        self.link.command(&HostMessage::Arm)?;
+        let status_before = self.status()?;
+        self.link.command(&HostMessage::Start)?;
+        let mut run = RunState::new(self.controller, schedule.clone(), status_before);
+        if let Err(error) = self.event_loop(&mut run, hooks, faults) {
+            // Best effort: do not leave the controller triggering for a host that gave up.
+            let _ = self.link.send(&HostMessage::Abort);
+            return Err(error);
+        }
+        run.status_after = self.status().ok();
+        run.finish(self.link.stats())
+    }
+
+    fn event_loop(
+        &mut self,
+        run: &mut RunState,
+        hooks: &mut dyn RunHooks,
+        faults: &HostFaults,
+    ) -> Result<(), RigError> {
+        let mut last_sent = Instant::now();
+        let mut last_heard = Instant::now();
+        let mut withheld: Vec<PatternRequest> = vec![];
+        let mut disconnect = faults.disconnect;
+        loop {
+            if last_sent.elapsed() >= HEARTBEAT_EVERY {
+                self.heartbeat()?;
+                last_sent = Instant::now();
+            }
+            let Some(message) = self.link.recv(Duration::from_millis(50))? else {
+                if last_heard.elapsed() > CONTROLLER_SILENCE_LIMIT {
+                    return Err(RigError::ControllerSilent(CONTROLLER_SILENCE_LIMIT));
+                }
+                continue;
+            };
+            last_heard = Instant::now();
+            match message {
+                ControllerMessage::PatternRequest(request) => {
+                    run.requests.push(request);
+                    if let Some(d) = disconnect.filter(|d| d.at_frame == request.frame) {
+                        disconnect = None;
+                        if self.away_and_back(run, d)? == ReconnectAction::Abort {
+                            continue;
+                        }
+                    } else if request.attempt == 0
+                        && faults.late_ack_frames.contains(&request.frame)
+                    {
+                        withheld.push(request);
+                    } else {
+                        self.show_and_ack(hooks, &request)?;
+                    }
+                    last_sent = Instant::now();
+                }
+                ControllerMessage::FrameLate(late) => {
+                    run.late.push(late);
+                    // A withheld ack is now late: send it (the controller retries the frame).
+                    if let Some(i) = withheld.iter().position(|r| r.frame == late.frame) {
+                        let request = withheld.swap_remove(i);
+                        self.show_and_ack(hooks, &request)?;
+                        last_sent = Instant::now();
+                    }
+                }
+                ControllerMessage::Triggered(trigger) => {
+                    if run.triggers.insert(trigger.frame, trigger).is_some() {
+                        run.duplicate_triggers.push(trigger.frame);
+                    }
+                    hooks.triggered(&trigger)?;
+                }
+                ControllerMessage::ExposureDone(exposure) => {
+                    run.exposures.insert(exposure.frame, exposure);
+                    hooks.exposure_done(&exposure)?;
+                }
+                ControllerMessage::FrameRetried(retried) => run.retried.push(retried),
+                ControllerMessage::FrameDropped(dropped) => run.dropped.push(dropped),
+                ControllerMessage::Nack(nack) => run.nacks.push(nack),
+                ControllerMessage::ProjectorTiming(timing) => {
+                    run.projector_timing.insert(timing.projector, timing);
+                }
+                ControllerMessage::Done(done) => {
+                    run.done = Some(done);
+                    self.collect_after_done(run)?;
+                    return Ok(());
+                }
+                ControllerMessage::HelloReply(_)
+                | ControllerMessage::Ack(_)
+                | ControllerMessage::LinkStats(_)
+                | ControllerMessage::Heartbeat(_)
+                | ControllerMessage::Status(_) => {}
+            }
+        }
+    }
+
+    fn show_and_ack(
+        &mut self,
+        hooks: &mut dyn RunHooks,
+        request: &PatternRequest,
+    ) -> Result<(), RigError> {
+        hooks.show(request)?;
+        self.link.send(&HostMessage::PatternShown(PatternShown {
+            frame: request.frame,
+            attempt: request.attempt,
+            pattern: request.pattern,
+        }))?;
+        Ok(())
+    }
+
+    fn heartbeat(&mut self) -> Result<(), RigError> {
+        let host_time_us = u64::try_from(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap_or_default()
+                .as_micros(),
+        )
+        .unwrap_or(u64::MAX);
+        self.link
+            .send(&HostMessage::Heartbeat(HostHeartbeat { host_time_us }))?;
+        Ok(())
+    }
+
+    /// The host goes away, comes back, identifies again, reads the state and resumes or aborts.
+    fn away_and_back(
+        &mut self,
+        run: &mut RunState,
+        disconnect: Disconnect,
+    ) -> Result<ReconnectAction, RigError> {
+        self.link.go_silent(disconnect.duration)?;
+        self.link.resync();
+        self.controller = hello(&mut self.link)?;
+        let status = self.status()?;
+        run.reconnect_statuses.push(status);
+        match (disconnect.then, status.state) {
+            (ReconnectAction::Resume, ControllerState::Paused) => {
+                self.link.command(&HostMessage::Resume)?;
+            }
+            (ReconnectAction::Resume, _) => {}
+            (ReconnectAction::Abort, _) => self.link.command(&HostMessage::Abort)?,
+        }
+        Ok(disconnect.then)
+    }
+
+    fn collect_after_done(&mut self, run: &mut RunState) -> Result<(), RigError> {
+        while let Some(message) = self.link.recv(AFTER_DONE_QUIET)? {
+            if let ControllerMessage::ProjectorTiming(timing) = message {
+                run.projector_timing.insert(timing.projector, timing);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Handshake: Hello until a HelloReply comes; version and schema must match.
+fn hello<L: ByteLink>(link: &mut ControllerLink<L>) -> Result<HelloReply, RigError> {
+    let ours = Hello {
+        protocol_version: PROTOCOL_VERSION,
+        schema_hash: SCHEMA_HASH,
+    };
+    for _ in 0..HELLO_ATTEMPTS {
+        link.send(&HostMessage::Hello(ours))?;
+        let deadline = Instant::now() + HELLO_TIMEOUT;
+        while Instant::now() < deadline {
+            let remaining = deadline.saturating_duration_since(Instant::now());
+            if let Some(ControllerMessage::HelloReply(reply)) = link.recv(remaining)? {
+                return check_identity(reply);
+            }
+        }
+    }
+    Err(RigError::NoAnswer {
+        command: "Hello",
+        attempts: HELLO_ATTEMPTS,
+    })
+}
+
+fn check_identity(reply: HelloReply) -> Result<HelloReply, RigError> {
+    if reply.protocol_version != PROTOCOL_VERSION {
+        return Err(RigError::ProtocolMismatch {
+            host: PROTOCOL_VERSION,
+            controller: reply.protocol_version,
+        });
+    }
+    if reply.schema_hash != SCHEMA_HASH {
+        return Err(RigError::SchemaMismatch {
+            host: SCHEMA_HASH,
+            controller: reply.schema_hash,
+        });
+    }
+    Ok(reply)
+}
+
+/// A run in progress.
+struct RunState {
+    controller: HelloReply,
+    schedule: RigSchedule,
+    status_before: StatusReport,
+    status_after: Option<StatusReport>,
+    requests: Vec<PatternRequest>,
+    triggers: BTreeMap<u16, Triggered>,
+    exposures: BTreeMap<u16, ExposureDone>,
+    late: Vec<FrameLate>,
+    retried: Vec<FrameRetried>,
+    dropped: Vec<FrameDropped>,
+    nacks: Vec<Nack>,
+    duplicate_triggers: Vec<u16>,
+    done: Option<DoneSummary>,
+    projector_timing: BTreeMap<u8, ProjectorTiming>,
+    reconnect_statuses: Vec<StatusReport>,
+}
+
+impl RunState {
+    fn new(controller: HelloReply, schedule: RigSchedule, status_before: StatusReport) -> Self {
+        Self {
+            controller,
+            schedule,
+            status_before,
+            status_after: None,
+            requests: vec![],
+            triggers: BTreeMap::new(),
+            exposures: BTreeMap::new(),
+            late: vec![],
+            retried: vec![],
+            dropped: vec![],
+            nacks: vec![],
+            duplicate_triggers: vec![],
+            done: None,
+            projector_timing: BTreeMap::new(),
+            reconnect_statuses: vec![],
+        }
+    }
+
+    fn finish(self, host_link: HostLinkStats) -> Result<RunLog, RigError> {
+        let done = self.done.ok_or(RigError::NoDone)?;
+        Ok(RunLog {
+            controller: self.controller,
+            schedule: self.schedule,
+            status_before: self.status_before,
+            status_after: self.status_after,
+            requests: self.requests,
+            triggers: self.triggers,
+            exposures: self.exposures,
+            late: self.late,
+            retried: self.retried,
+            dropped: self.dropped,
+            nacks: self.nacks,
+            duplicate_triggers: self.duplicate_triggers,
+            done,
+            projector_timing: self.projector_timing,
+            reconnect_statuses: self.reconnect_statuses,
+            host_link,
+        })
+    }
+}

@@ -1,0 +1,342 @@
+//! Spatial maps of the skin's composition: freckles and moles (epidermal melanin), redness and a
+//! network of superficial vessels (dermal blood), and beard stubble (pigmented hair shafts through
+//! the layers). The maps give, at a surface point, the weights of the basis materials of
+//! `skin_optics` that the subsurface response blends.
+//!
+//! Conventions
+//! - Maps are functions of the world (x, y) of the surface point, mm (the subjects face the camera,
+//!   so (x, y) is a good chart of the visible surface).
+//! - Weights are in [0, 1]: `[melanin, blood, stubble]`, each the fraction of the basis material
+//!   `MELANIN_RICH`, `BLOOD_RICH`, `STUBBLE` (the rest is `BASE`); their sum is at most 1.
+//! - Everything is a pure function of the seed.
+
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+
+use super::subjects::SubjectKind;
+
+/// A round spot with a soft edge (freckle, mole, redness blob).
+#[derive(Debug, Clone, Copy)]
+struct Spot {
+    x: f64,
+    y: f64,
+    radius_mm: f64,
+    weight: f64,
+}
+
+impl Spot {
+    fn eval(&self, x: f64, y: f64) -> f64 {
+        let r = ((x - self.x).powi(2) + (y - self.y).powi(2)).sqrt() / self.radius_mm;
+        if r >= 1.0 {
+            0.0
+        } else {
+            // Smooth falloff to zero at the rim.
+            let s = 1.0 - r * r;
+            self.weight * s * s
+        }
+    }
+}
+
+/// A straight piece of vessel with a Gaussian cross-section.
+#[derive(Debug, Clone, Copy)]
+struct VesselSegment {
+    a: [f64; 2],
+    b: [f64; 2],
+    half_width_mm: f64,
+    weight: f64,
+}
+
+impl VesselSegment {
+    fn eval(&self, x: f64, y: f64) -> f64 {
+        let (dx, dy) = (self.b[0] - self.a[0], self.b[1] - self.a[1]);
+        let len2 = dx * dx + dy * dy;
+        let t = (((x - self.a[0]) * dx + (y - self.a[1]) * dy) / len2).clamp(0.0, 1.0);
+        let (px, py) = (self.a[0] + t * dx - x, self.a[1] + t * dy - y);
+        let d2 = (px * px + py * py) / (self.half_width_mm * self.half_width_mm);
+        if d2 > 12.0 {
+            0.0
+        } else {
+            self.weight * (-0.5 * d2).exp()
+        }
+    }
+}
+
+/// Hair follicles on a jittered grid; pitch gives ~70 hairs/cm^2 (a dense beard).
+const STUBBLE_PITCH_MM: f64 = 1.2;
+/// Radius of a stubble hair shaft's absorbing footprint, mm.
+const HAIR_RADIUS_MM: f64 = 0.12;
+
+/// The composition maps of one subject.
+#[derive(Debug, Clone)]
+pub struct MaterialMaps {
+    spots: Vec<Spot>,
+    redness: Vec<Spot>,
+    vessels: Vec<VesselSegment>,
+    stubble: StubbleRegion,
+    stubble_seed: u64,
+}
+
+/// Where stubble grows.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum StubbleRegion {
+    None,
+    /// Below this y (mm) on a plane.
+    Below(f64),
+    /// The beard area of the head (upper lip, chin, jaw).
+    Beard,
+}
+
+impl StubbleRegion {
+    fn density(&self, x: f64, y: f64) -> f64 {
+        match *self {
+            StubbleRegion::None => 0.0,
+            StubbleRegion::Below(y0) => smoothstep(y0, y0 + 4.0, y),
+            StubbleRegion::Beard => {
+                let upper_lip = smoothstep(22.0, 26.0, y) * (1.0 - smoothstep(36.0, 39.0, y));
+                let chin = smoothstep(52.0, 58.0, y);
+                let jaw = smoothstep(38.0, 46.0, x.abs()) * smoothstep(10.0, 20.0, y);
+                upper_lip.max(chin).max(jaw)
+            }
+        }
+    }
+}
+
+fn smoothstep(a: f64, b: f64, x: f64) -> f64 {
+    let t = ((x - a) / (b - a)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Visible extent of the subject, mm: `[x_min, x_max, y_min, y_max]`.
+pub type Extent = [f64; 4];
+
+impl MaterialMaps {
+    /// Maps with no variation (pure base skin).
+    pub fn uniform() -> Self {
+        Self {
+            spots: Vec::new(),
+            redness: Vec::new(),
+            vessels: Vec::new(),
+            stubble: StubbleRegion::None,
+            stubble_seed: 0,
+        }
+    }
+
+    /// Random maps for a subject seen over `extent`, reproducible from `seed`.
+    pub fn generate(subject: SubjectKind, extent: Extent, seed: u64) -> Self {
+        let mut rng = Pcg64::seed_from_u64(seed ^ 0x6d61_7073);
+        let [x0, x1, y0, y1] = extent;
+        let area_cm2 = (x1 - x0) * (y1 - y0) / 100.0;
+        let uniform_xy = |rng: &mut Pcg64| (rng.gen_range(x0..x1), rng.gen_range(y0..y1));
+        // Freckles cluster on the nose and cheeks of a face; elsewhere they are uniform.
+        let freckle_density = |x: f64, y: f64| match subject {
+            SubjectKind::Head => {
+                let cheeks_nose = smoothstep(-25.0, -5.0, y) * (1.0 - smoothstep(25.0, 35.0, y));
+                0.15 + 0.85 * cheeks_nose * (1.0 - smoothstep(55.0, 65.0, x.abs()))
+            }
+            _ => 1.0,
+        };
+        let mut spots = Vec::new();
+        let freckles = (area_cm2 * 0.8).round() as usize;
+        while spots.len() < freckles {
+            let (x, y) = uniform_xy(&mut rng);
+            if rng.r#gen::<f64>() < freckle_density(x, y) {
+                spots.push(Spot {
+                    x,
+                    y,
+                    radius_mm: rng.gen_range(0.5..1.6),
+                    weight: rng.gen_range(0.25..0.6),
+                });
+            }
+        }
+        let moles = 1 + (area_cm2 / 60.0).round() as usize;
+        for _ in 0..moles {
+            let (x, y) = uniform_xy(&mut rng);
+            spots.push(Spot {
+                x,
+                y,
+                radius_mm: rng.gen_range(1.2..2.5),
+                weight: 1.0,
+            });
+        }
+        let redness = match subject {
+            SubjectKind::Head => vec![
+                Spot {
+                    x: -38.0,
+                    y: 18.0,
+                    radius_mm: 22.0,
+                    weight: 0.35,
+                },
+                Spot {
+                    x: 38.0,
+                    y: 18.0,
+                    radius_mm: 22.0,
+                    weight: 0.35,
+                },
+                Spot {
+                    x: 0.0,
+                    y: 6.0,
+                    radius_mm: 12.0,
+                    weight: 0.3,
+                },
+            ],
+            _ => (0..3)
+                .map(|_| {
+                    let (x, y) = uniform_xy(&mut rng);
+                    Spot {
+                        x,
+                        y,
+                        radius_mm: rng.gen_range(8.0..18.0),
+                        weight: rng.gen_range(0.2..0.4),
+                    }
+                })
+                .collect(),
+        };
+        let trees = 2 + (area_cm2 / 25.0).round() as usize;
+        let mut vessels = Vec::new();
+        for _ in 0..trees {
+            let (x, y) = uniform_xy(&mut rng);
+            let heading = rng.gen_range(0.0..std::f64::consts::TAU);
+            grow_vessel(&mut rng, &mut vessels, [x, y], heading, 0.2, 3);
+        }
+        let stubble = match subject {
+            SubjectKind::Head => StubbleRegion::Beard,
+            SubjectKind::Plane => StubbleRegion::Below(y0 + 0.72 * (y1 - y0)),
+            SubjectKind::Sphere | SubjectKind::Chessboard => StubbleRegion::None,
+        };
+        Self {
+            spots,
+            redness,
+            vessels,
+            stubble,
+            stubble_seed: rng.r#gen(),
+        }
+    }
+
+    /// Weights `[melanin, blood, stubble]` at (x, y).
+    pub fn weights(&self, x: f64, y: f64) -> [f64; 3] {
+        let melanin = self
+            .spots
+            .iter()
+            .map(|s| s.eval(x, y))
+            .fold(0.0, f64::max)
+            .min(1.0);
+        let blood_red = self.redness.iter().map(|s| s.eval(x, y)).sum::<f64>();
+        let blood_vessel = self
+            .vessels
+            .iter()
+            .map(|v| v.eval(x, y))
+            .fold(0.0, f64::max);
+        let blood = blood_red.max(blood_vessel).min(1.0);
+        let stubble = self.stubble_at(x, y);
+        let sum = melanin + blood + stubble;
+        let scale = if sum > 1.0 { 1.0 / sum } else { 1.0 };
+        [melanin * scale, blood * scale, stubble * scale]
+    }
+
+    fn stubble_at(&self, x: f64, y: f64) -> f64 {
+        if self.stubble == StubbleRegion::None {
+            return 0.0;
+        }
+        let (ci, cj) = (
+            (x / STUBBLE_PITCH_MM).floor() as i64,
+            (y / STUBBLE_PITCH_MM).floor() as i64,
+        );
+        let mut cover: f64 = 0.0;
+        for dj in -1..=1 {
+            for di in -1..=1 {
+                let (i, j) = (ci + di, cj + dj);
+                let h = hash3(self.stubble_seed, i, j);
+                let jx = (h & 0xffff) as f64 / 65535.0;
+                let jy = ((h >> 16) & 0xffff) as f64 / 65535.0;
+                let keep = ((h >> 32) & 0xffff) as f64 / 65535.0;
+                let fx = (i as f64 + jx) * STUBBLE_PITCH_MM;
+                let fy = (j as f64 + jy) * STUBBLE_PITCH_MM;
+                if keep >= self.stubble.density(fx, fy) {
+                    continue;
+                }
+                let d2 = (x - fx).powi(2) + (y - fy).powi(2);
+                let r2 = HAIR_RADIUS_MM * HAIR_RADIUS_MM;
+                cover = cover.max((-0.5 * d2 / r2).exp());
+            }
+        }
+        cover
+    }
+}
+
+/// A vessel: a wiggly path that branches, each branch thinner.
+fn grow_vessel(
+    rng: &mut Pcg64,
+    out: &mut Vec<VesselSegment>,
+    start: [f64; 2],
+    mut heading: f64,
+    half_width_mm: f64,
+    depth: u32,
+) {
+    let mut p = start;
+    let steps = rng.gen_range(8..16);
+    for step in 0..steps {
+        heading += rng.gen_range(-0.45..0.45);
+        let len = rng.gen_range(0.8..2.0);
+        let q = [p[0] + len * heading.cos(), p[1] + len * heading.sin()];
+        out.push(VesselSegment {
+            a: p,
+            b: q,
+            half_width_mm,
+            weight: 0.85,
+        });
+        p = q;
+        if depth > 1 && step > 2 && rng.r#gen::<f64>() < 0.18 {
+            let side = if rng.r#gen::<bool>() { 1.0 } else { -1.0 };
+            let branch_heading = heading + side * rng.gen_range(0.5..1.1);
+            grow_vessel(rng, out, p, branch_heading, half_width_mm * 0.7, depth - 1);
+        }
+    }
+}
+
+/// A well-mixed 64-bit hash of a seed and a grid cell (SplitMix64 finaliser).
+fn hash3(seed: u64, i: i64, j: i64) -> u64 {
+    let mut z = seed
+        ^ (i as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
+        ^ (j as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn maps_are_reproducible_and_bounded() {
+        let extent = [-60.0, 60.0, -45.0, 45.0];
+        let a = MaterialMaps::generate(SubjectKind::Head, extent, 7);
+        let b = MaterialMaps::generate(SubjectKind::Head, extent, 7);
+        let c = MaterialMaps::generate(SubjectKind::Head, extent, 8);
+        let mut differs = false;
+        for i in 0..400 {
+            let (x, y) = (-60.0 + 0.3 * i as f64, -40.0 + 0.21 * i as f64);
+            let wa = a.weights(x, y);
+            assert_eq!(wa, b.weights(x, y));
+            assert!(wa.iter().all(|w| (0.0..=1.0).contains(w)));
+            assert!(wa.iter().sum::<f64>() <= 1.0 + 1e-12);
+            differs |= wa != c.weights(x, y);
+        }
+        assert!(differs, "a different seed must give different maps");
+    }
+
+    #[test]
+    fn beard_grows_on_the_chin_not_the_forehead() {
+        let maps = MaterialMaps::generate(SubjectKind::Head, [-60.0, 60.0, -80.0, 80.0], 1);
+        let covered = |y0: f64| {
+            (0..2000)
+                .filter(|k| {
+                    let (x, y) = (-20.0 + 0.02 * *k as f64, y0 + 0.013 * *k as f64);
+                    maps.weights(x, y)[2] > 0.5
+                })
+                .count()
+        };
+        assert!(covered(60.0) > 20, "{}", covered(60.0));
+        assert_eq!(covered(-60.0), 0);
+    }
+}
