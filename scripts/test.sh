@@ -42,4 +42,6 @@ if [ -f firmware/Cargo.toml ]; then
 fi
 
 step "host tests (unit, integration, hardware-in-the-loop)"
+# The integration tests run the `mlsss` binary; `cargo test` does not build it for another package.
+cargo build -p mlsss --bin mlsss
 cargo test --workspace

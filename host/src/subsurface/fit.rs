@@ -387,3 +387,45 @@ fn tile_pixel(
         .flat_map(|y| (x0..x1).map(move |x| y * w + x))
         .find(|&i| lit(i))
 }
+
+/// The dipole baseline over the surface: one isotropic dipole per pixel and channel, fitted to the
+/// same profiles (see [`super::dipole`]). Pixels without light get no layers.
+pub fn fit_dipole_model(
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    eta: f64,
+) -> Result<LayerModel, FitError> {
+    if geometries.len() != sweeps.len() {
+        return Err(FitError::ProjectorCount {
+            geometries: geometries.len(),
+            sweeps: sweeps.len(),
+        });
+    }
+    let table = super::dipole::DipoleTable::new(eta);
+    let n = surface.len();
+    let fits: Vec<[Vec<SplatLayer>; 3]> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut out: [Vec<SplatLayer>; 3] = Default::default();
+            if !surface.mask[i] {
+                return out;
+            }
+            for (c, layers) in out.iter_mut().enumerate() {
+                let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
+                if profiles.is_empty() {
+                    continue;
+                }
+                if let Some(fit) = table.fit(&profiles, weight_scale(&profiles, &ew)) {
+                    *layers = fit.layers;
+                }
+            }
+            out
+        })
+        .collect();
+    Ok(LayerModel::from_fn(
+        surface.width,
+        surface.height,
+        |i, c| fits[i][c].clone(),
+    ))
+}

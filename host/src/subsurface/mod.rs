@@ -3,6 +3,7 @@
 //! the renderer of paper eqs. 3-5 with its baselines.
 
 pub mod boxed_gaussian;
+pub mod dipole;
 pub mod em_free;
 pub mod em_layered;
 pub mod fit;
