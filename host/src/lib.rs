@@ -9,6 +9,8 @@ pub mod booth;
 pub mod calib;
 pub mod calibrate;
 pub mod capture;
+pub mod demo;
+pub mod evaluate;
 pub mod geometry;
 pub mod imageio;
 pub mod mc;
