@@ -16,6 +16,7 @@ pub mod imageio;
 pub mod mc;
 pub mod photometry;
 pub mod pipeline;
+pub mod report;
 pub mod rig;
 pub mod subsurface;
 pub mod virtual_booth;

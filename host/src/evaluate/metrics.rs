@@ -88,7 +88,7 @@ impl SquaredErrors {
     }
 
     /// Pools two sets of sums (e.g. several patterns of the held-out projector).
-    pub fn add(self, other: Self) -> Self {
+    pub fn pooled_with(self, other: Self) -> Self {
         Self {
             pixels: self.pixels + other.pixels,
             error: self.error + other.error,
@@ -177,7 +177,7 @@ mod tests {
         let a2 = [[0.8f32, 0.8, 0.7]];
         let pooled = SquaredErrors::accumulate(&a1, &r1, &[true; 2])
             .unwrap()
-            .add(SquaredErrors::accumulate(&a2, &r2, &[true]).unwrap())
+            .pooled_with(SquaredErrors::accumulate(&a2, &r2, &[true]).unwrap())
             .errors()
             .unwrap();
         let all_r: Vec<_> = r1.iter().chain(&r2).copied().collect();
