@@ -4,5 +4,6 @@ mod decode_cli;
 mod mc_cli;
 mod mc_validation;
 mod normals_cli;
+mod photometry_pipeline;
 mod rig_hil;
 mod simulate;
