@@ -5,5 +5,6 @@ mod demo_cli;
 mod mc_cli;
 mod mc_validation;
 mod normals_cli;
+mod photometry_pipeline;
 mod rig_hil;
 mod simulate;
