@@ -5,6 +5,7 @@
 pub mod booth;
 pub mod calibrate;
 pub mod decode;
+pub mod demo;
 pub mod mc;
 pub mod normals;
 pub mod process;
