@@ -13,3 +13,4 @@ pub mod ps_scene;
 pub mod response;
 pub mod rig;
 pub mod simulate;
+pub mod size_arg;

@@ -2,25 +2,19 @@
 //! photometric stereo against the simulator's truth) and `mlsss response` (projector gamma and
 //! black level against the true calibration).
 
-use mlsss_tests::{calibration_captures, mlsss, quick_capture};
+use mlsss_tests::{calibration_captures, mlsss, quick_capture, run_json};
 
 #[test]
 fn process_until_normals_reports_separation_and_normal_errors_on_a_head() {
     let capture = quick_capture("head", 1);
     let out = tempfile::tempdir().unwrap();
-    let run = mlsss()
-        .arg("process")
-        .arg(&capture)
-        .args(["--calib", "truth", "--until", "normals", "--json", "--out"])
-        .arg(out.path())
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let report = run_json(
+        mlsss()
+            .arg("process")
+            .arg(&capture)
+            .args(["--calib", "truth", "--until", "normals", "--json", "--out"])
+            .arg(out.path()),
     );
-    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
     let sep = &report["separate"];
     // Direct + global reproduce the truth's total once the stray black light is removed.
     assert!(sep["total_rel_rmse"].as_f64().unwrap() < 0.05, "{sep}");
@@ -46,20 +40,14 @@ fn response_recovers_gamma_and_black_level_of_the_virtual_booth() {
     let out = tempfile::tempdir().unwrap();
     let calib = out.path().join("calib.json");
     std::fs::copy(root.join("pose00/truth/calibration.json"), &calib).unwrap();
-    let run = mlsss()
-        .arg("response")
-        .args((0..2).map(|p| root.join(format!("pose{p:02}"))))
-        .arg("--calib")
-        .arg(&calib)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
+    let report = run_json(
+        mlsss()
+            .arg("response")
+            .args((0..2).map(|p| root.join(format!("pose{p:02}"))))
+            .arg("--calib")
+            .arg(&calib)
+            .arg("--json"),
     );
-    let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
     let written: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
     for k in 0..4 {
