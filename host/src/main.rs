@@ -38,6 +38,8 @@ enum Command {
     Decode(cli::decode::Args),
     /// Run the processing pipeline on a capture up to a stage (decode, geometry) and report.
     Process(cli::process::Args),
+    /// Simulate, calibrate, process with a projector held out, relight it, evaluate: the main job.
+    Demo(cli::demo::Args),
 }
 
 fn main() -> ExitCode {
@@ -53,6 +55,7 @@ fn main() -> ExitCode {
         Command::Mc(args) => cli::mc::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Process(args) => cli::process::run(args),
+        Command::Demo(args) => cli::demo::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

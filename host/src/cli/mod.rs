@@ -5,6 +5,7 @@
 pub mod booth;
 pub mod calibrate;
 pub mod decode;
+pub mod demo;
 pub mod mc;
 pub mod normals;
 pub mod process;
@@ -12,3 +13,4 @@ pub mod ps_scene;
 pub mod response;
 pub mod rig;
 pub mod simulate;
+pub mod size_arg;
