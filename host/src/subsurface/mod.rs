@@ -11,6 +11,7 @@ pub mod mixture;
 pub mod profiles;
 pub mod relight;
 pub mod render;
+pub mod slit_global;
 pub mod surface;
 
 #[cfg(test)]
