@@ -175,10 +175,7 @@ impl Booth {
     /// Parses and validates booth TOML; `path` is only used in error messages.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Self, BoothError> {
         let booth: Booth = toml::from_str(text).map_err(|e| {
-            let (line, column) = e
-                .span()
-                .map(|span| line_column(text, span.start))
-                .unwrap_or((0, 0));
+            let (line, column) = toml_error_location(text, &e);
             BoothError::Parse {
                 path: path.to_owned(),
                 line,
@@ -288,6 +285,14 @@ impl Booth {
             extrinsics: Extrinsics::look_at(p.position_mm, p.look_at_mm, p.up),
         })
     }
+}
+
+/// 1-based line and column where a TOML parse error points (0, 0 when it has no span).
+pub(crate) fn toml_error_location(text: &str, error: &toml::de::Error) -> (usize, usize) {
+    error
+        .span()
+        .map(|span| line_column(text, span.start))
+        .unwrap_or((0, 0))
 }
 
 /// 1-based line and column of a byte offset.

@@ -30,6 +30,8 @@ enum Command {
     Normals(cli::normals::Args),
     /// Render a photometric-stereo test set with known normals, shadows and highlights.
     PsScene(cli::ps_scene::Args),
+    /// Projector response (gamma, black level) from calibration captures, into the calibration.
+    Response(cli::response::Args),
     /// Monte Carlo light transport in layered media (MCML physics): slab, layers file, benchmark.
     Mc(cli::mc::Args),
     /// Decode Gray-code frames to projector coordinates per camera pixel (capture or OpenCV order).
@@ -47,6 +49,7 @@ fn main() -> ExitCode {
         Command::Calibrate(args) => cli::calibrate::run(args),
         Command::Normals(args) => cli::normals::run(args),
         Command::PsScene(args) => cli::ps_scene::run(args),
+        Command::Response(args) => cli::response::run(args),
         Command::Mc(args) => cli::mc::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Process(args) => cli::process::run(args),

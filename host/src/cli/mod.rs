@@ -9,5 +9,6 @@ pub mod mc;
 pub mod normals;
 pub mod process;
 pub mod ps_scene;
+pub mod response;
 pub mod rig;
 pub mod simulate;

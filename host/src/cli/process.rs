@@ -13,7 +13,7 @@ pub struct Args {
     /// `truth/calibration.json`. Needed from the geometry stage on.
     #[arg(long)]
     calib: Option<String>,
-    /// Last stage to run (its inputs run first; cached stages are reused). Stages: decode, geometry.
+    /// Last stage to run (its inputs run first; cached stages are reused). Stages: decode, geometry, separate, normals.
     #[arg(long, default_value = "geometry")]
     until: String,
     /// Output folder: one sub-folder per stage, plus report.json.

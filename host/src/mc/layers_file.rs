@@ -71,10 +71,7 @@ impl LayersFile {
     /// Parses layers TOML; `path` is only used in error messages.
     pub fn parse(text: &str, path: &Path) -> Result<Self, McError> {
         let file: LayersFile = toml::from_str(text).map_err(|e| {
-            let (line, column) = e
-                .span()
-                .map(|span| line_column(text, span.start))
-                .unwrap_or((0, 0));
+            let (line, column) = crate::booth::toml_error_location(text, &e);
             McError::Parse {
                 path: path.to_owned(),
                 line,
@@ -104,14 +101,6 @@ impl LayersFile {
             n_below: self.n_below,
         }
     }
-}
-
-/// 1-based line and column of a byte offset.
-fn line_column(text: &str, offset: usize) -> (usize, usize) {
-    let before = &text[..offset.min(text.len())];
-    let line = before.matches('\n').count() + 1;
-    let column = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
-    (line, column)
 }
 
 #[cfg(test)]

@@ -46,7 +46,9 @@ pub enum PhotometricStereoError {
 }
 
 /// Solver variant.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Method {
     /// Least squares on every usable reading (the textbook baseline).

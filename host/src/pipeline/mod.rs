@@ -34,6 +34,8 @@
 
 pub mod decode;
 pub mod geometry;
+pub mod normals;
+pub mod separate;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -46,7 +48,12 @@ use crate::calib::{Calibration, CalibrationError};
 use crate::capture::{Capture, CaptureError, truth};
 
 /// Every stage, in an order where inputs come first.
-pub const STAGES: &[Stage] = &[decode::STAGE, geometry::STAGE];
+pub const STAGES: &[Stage] = &[
+    decode::STAGE,
+    geometry::STAGE,
+    separate::STAGE,
+    normals::STAGE,
+];
 
 /// Name of the cache record in each stage folder.
 pub const STAGE_RECORD: &str = "stage.json";
