@@ -40,6 +40,8 @@ enum Command {
     Process(cli::process::Args),
     /// Render a projector's pattern on the measured face from a fitted model file (EXR + PNG).
     Render(cli::render::Args),
+    /// Simulate, calibrate, process with a projector held out, relight it, evaluate: the main job.
+    Demo(cli::demo::Args),
 }
 
 fn main() -> ExitCode {
@@ -56,6 +58,7 @@ fn main() -> ExitCode {
         Command::Decode(args) => cli::decode::run(args),
         Command::Process(args) => cli::process::run(args),
         Command::Render(args) => cli::render::run(args),
+        Command::Demo(args) => cli::demo::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

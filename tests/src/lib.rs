@@ -52,6 +52,18 @@ pub fn scratch_dir() -> &'static Path {
     })
 }
 
+/// Runs `cmd`, fails the test with its stderr unless it succeeds, and returns the one JSON object
+/// it printed on stdout (the `--json` contract).
+pub fn run_json(cmd: &mut Command) -> serde_json::Value {
+    let output = cmd.output().expect("run the command");
+    assert!(
+        output.status.success(),
+        "{cmd:?} failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).expect("--json prints one JSON object on stdout")
+}
+
 /// Runs `mlsss simulate` with `args` into `out` (quick booth shrunk by `scale_down`, small photon
 /// counts unless `args` set `--photons`, shared Monte Carlo cache); panics with the tool's stderr on failure. Returns the
 /// `--json` report.
@@ -61,21 +73,13 @@ pub fn simulate(out: &Path, scale_down: u32, args: &[&str]) -> serde_json::Value
     if !args.contains(&"--photons") {
         cmd.args(["--photons", "4000"]);
     }
-    let output = cmd
-        .args(["--scale-down", &scale_down.to_string()])
+    cmd.args(["--scale-down", &scale_down.to_string()])
         .arg("--cache")
         .arg(mc_cache_dir())
         .arg("--out")
         .arg(out)
-        .args(args)
-        .output()
-        .expect("run mlsss simulate");
-    assert!(
-        output.status.success(),
-        "mlsss simulate {args:?} failed:\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&output.stdout).expect("simulate --json prints one JSON object")
+        .args(args);
+    run_json(&mut cmd)
 }
 
 /// A simulated scan of `subject` (`plane`, `sphere`, `head`) with `seed`, made once per test

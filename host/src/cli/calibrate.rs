@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use super::size_arg::parse_size;
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::calibrate::local_homography::LocalHomographyOptions;
@@ -52,20 +53,6 @@ pub struct Args {
     /// Print one JSON object on stdout.
     #[arg(long)]
     json: bool,
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (a, b) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("`{s}` is not WxH (e.g. 9x7)"))?;
-    let parse = |t: &str| {
-        t.trim()
-            .parse::<u32>()
-            .ok()
-            .filter(|&v| v > 0)
-            .ok_or_else(|| format!("`{t}` in `{s}` is not a positive integer"))
-    };
-    Ok((parse(a)?, parse(b)?))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {

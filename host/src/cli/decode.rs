@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use super::size_arg::parse_size;
 use anyhow::{Context, bail};
 use mlsss::geometry::code_frames;
 use mlsss::geometry::gray_code::{DecodeParams, decode};
@@ -39,21 +40,6 @@ pub struct Args {
     /// Print one JSON object on stdout.
     #[arg(long)]
     json: bool,
-}
-
-/// Parses `WIDTHxHEIGHT`.
-pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT (e.g. 1024x768)"))?;
-    let parse = |v: &str| {
-        v.trim()
-            .parse::<u32>()
-            .ok()
-            .filter(|&n| n > 0)
-            .ok_or_else(|| format!("`{s}` is not WIDTHxHEIGHT with positive integers"))
-    };
-    Ok((parse(w)?, parse(h)?))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {

@@ -5,6 +5,7 @@
 pub mod booth;
 pub mod calibrate;
 pub mod decode;
+pub mod demo;
 pub mod mc;
 pub mod normals;
 pub mod process;
@@ -13,3 +14,4 @@ pub mod render;
 pub mod response;
 pub mod rig;
 pub mod simulate;
+pub mod size_arg;

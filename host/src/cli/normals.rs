@@ -140,20 +140,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         mlsss::imageio::write_exr_rgb(path, &map.albedo_image())?;
     }
     let stats = map.stats();
-    let mut report = serde_json::json!({
-        "method": args.method,
-        "images": selected.len(),
-        "pixels": stats.pixels,
-        "solved": stats.solved,
-        "lights_used_mean": stats.lights_used_mean,
-        "flagged": {
-            "too_few_lights": stats.too_few_lights,
-            "ill_conditioned": stats.ill_conditioned,
-            "no_signal": stats.no_signal,
-            "back_facing": stats.back_facing,
-        },
-        "out": args.out,
-    });
+    let mut report = stats.report_json();
+    report["method"] = serde_json::json!(args.method);
+    report["images"] = selected.len().into();
+    report["out"] = serde_json::json!(args.out);
     if let Some(path) = &args.truth {
         let truth = image_set::read_truth_normals(path)?;
         if truth.dimensions() != (width, height) {

@@ -555,6 +555,23 @@ pub struct NormalMapStats {
     pub lights_used_mean: f64,
 }
 
+impl NormalMapStats {
+    /// The report fields shared by `mlsss normals --json` and the pipeline's normals stage.
+    pub fn report_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "pixels": self.pixels,
+            "solved": self.solved,
+            "lights_used_mean": self.lights_used_mean,
+            "flagged": {
+                "too_few_lights": self.too_few_lights,
+                "ill_conditioned": self.ill_conditioned,
+                "no_signal": self.no_signal,
+                "back_facing": self.back_facing,
+            },
+        })
+    }
+}
+
 impl NormalMap {
     /// Outcome counts.
     pub fn stats(&self) -> NormalMapStats {

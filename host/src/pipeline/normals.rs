@@ -256,20 +256,10 @@ fn run_normals(ctx: &StageContext) -> Result<Value, NormalsStageError> {
     )?;
     write_preview(&dir.join("normals.png"), &normals)?;
     let stats = map.stats();
-    let mut report = json!({
-        "input": params.input,
-        "points": params.points,
-        "method": params.method,
-        "pixels": stats.pixels,
-        "solved": stats.solved,
-        "lights_used_mean": stats.lights_used_mean,
-        "flagged": {
-            "too_few_lights": stats.too_few_lights,
-            "ill_conditioned": stats.ill_conditioned,
-            "no_signal": stats.no_signal,
-            "back_facing": stats.back_facing,
-        },
-    });
+    let mut report = stats.report_json();
+    report["input"] = json!(params.input);
+    report["points"] = json!(params.points);
+    report["method"] = json!(params.method);
     if let Some(t) = ctx.truth_dir() {
         let truth_normals = imageio::read_exr_rgb(&truth::normals(&t))?;
         let mask = image::open(truth::mask(&t)).ok().map(|m| {

@@ -111,15 +111,14 @@ struct BandTable {
 }
 
 impl BandTable {
-    fn build(grid: &ResponseGrid, band: &Band, cell_size_mm: f64) -> Self {
-        // Resample finely enough for bilinear lookups of the low-passed table to be accurate
-        // (MC cells finer than this are summed, coarser ones land on one sample each).
-        let spacing = TABLE_SPACING_CELLS * cell_size_mm;
-        let reach = band
-            .r_max()
-            .min(grid.half_extent_mm() * std::f64::consts::SQRT_2)
-            + FILTER_REACH_CELLS * cell_size_mm;
-        let half = (reach / spacing).ceil() as usize;
+    /// The band-windowed, low-passed `grid` on the table layout `spacing` (mm) x `half`.
+    fn build(
+        grid: &ResponseGrid,
+        band: &Band,
+        cell_size_mm: f64,
+        spacing: f64,
+        half: usize,
+    ) -> Self {
         let side = 2 * half + 1;
         // Bin the windowed MC grid into the table samples (keeps the integral).
         let mut boxed = vec![[0.0f64; 3]; side * side];
@@ -153,8 +152,9 @@ impl BandTable {
         }
     }
 
-    /// Bilinear value and gradient (d/dx, d/dy) at (x, y), mm; zero outside the table.
-    #[inline]
+    /// Bilinear value and gradient (d/dx, d/dy) at (x, y), mm; zero outside the table. The
+    /// reference for [`PackedTables::lookup`].
+    #[cfg(test)]
     fn lookup(&self, x: f32, y: f32) -> [[f32; 3]; 3] {
         let inv = 1.0 / self.spacing as f32;
         let fx = x * inv + self.half as f32;
@@ -181,6 +181,143 @@ impl BandTable {
             out[2][k] = (bottom - top) * inv;
         }
         out
+    }
+}
+
+/// Every (material, angle) table of one level interleaved texel by texel, so that one pair of
+/// cells costs one index computation and four contiguous texel reads whatever the material mix.
+#[derive(Debug, Clone)]
+struct PackedTables {
+    spacing: f32,
+    half: usize,
+    side: usize,
+    /// Floats per texel: 3 channels x materials x angles, ordered `[material][angle][channel]`.
+    stride: usize,
+    values: Vec<f32>,
+}
+
+/// One (material, angle) table of a cell's mix: offset of its channels in a texel, and weight.
+#[derive(Debug, Clone, Copy, Default)]
+struct Tap {
+    offset: u32,
+    weight: f32,
+}
+
+/// At most two angles for each of the four basis materials.
+const MAX_TAPS: usize = 8;
+
+/// The tables a cell of these material weights and angle interpolation mixes, with their
+/// weights (materials below 1e-4 are skipped), for tables packed with `angles` angles.
+fn mix_taps(
+    materials: &[f32; 4],
+    angle_index: u16,
+    angle_t: f32,
+    angles: usize,
+) -> ([Tap; MAX_TAPS], u8) {
+    let mut taps = [Tap::default(); MAX_TAPS];
+    let mut count = 0;
+    let a0 = angle_index as usize;
+    for (m, &wm) in materials.iter().enumerate() {
+        if wm <= 1e-4 {
+            continue;
+        }
+        let (w_lo, w_hi) = (wm * (1.0 - angle_t), wm * angle_t);
+        let offset = |a: usize| (3 * (m * angles + a)) as u32;
+        taps[count] = Tap {
+            offset: offset(a0),
+            weight: w_lo,
+        };
+        count += 1;
+        if w_hi > 0.0 && a0 + 1 < angles {
+            taps[count] = Tap {
+                offset: offset(a0 + 1),
+                weight: w_hi,
+            };
+            count += 1;
+        }
+    }
+    (taps, count as u8)
+}
+
+impl PackedTables {
+    /// The tables of every material and angle of `grids[material][angle]` for one band and cell
+    /// size, on one common layout reaching `response_reach_mm` (the largest response extent).
+    fn build(
+        grids: &[Vec<ResponseGrid>],
+        angles: usize,
+        band: &Band,
+        cell_size_mm: f64,
+        response_reach_mm: f64,
+    ) -> Self {
+        // Resample finely enough for bilinear lookups of the low-passed table to be accurate
+        // (MC cells finer than this are summed, coarser ones land on one sample each).
+        let spacing = TABLE_SPACING_CELLS * cell_size_mm;
+        let reach = band.r_max().min(response_reach_mm) + FILTER_REACH_CELLS * cell_size_mm;
+        let half = (reach / spacing).ceil() as usize;
+        let side = 2 * half + 1;
+        let stride = 3 * grids.len() * angles;
+        let mut values = vec![0.0f32; side * side * stride];
+        for (m, per_angle) in grids.iter().enumerate() {
+            for (a, grid) in per_angle.iter().take(angles).enumerate() {
+                let table = BandTable::build(grid, band, cell_size_mm, spacing, half);
+                debug_assert!(table.half == half && table.spacing == spacing);
+                let offset = 3 * (m * angles + a);
+                for (i, v) in table.values.iter().enumerate() {
+                    values[i * stride + offset..i * stride + offset + 3].copy_from_slice(v);
+                }
+            }
+        }
+        Self {
+            spacing: spacing as f32,
+            half,
+            side,
+            stride,
+            values,
+        }
+    }
+
+    /// The weighted mix of the tables `taps` at (x, y), mm, bilinearly interpolated, with its
+    /// gradient (d/dx, d/dy) when `GRADIENT`; `None` outside the tables (where they are zero).
+    #[inline]
+    fn lookup<const GRADIENT: bool>(&self, x: f32, y: f32, taps: &[Tap]) -> Option<[[f32; 3]; 3]> {
+        let inv = 1.0 / self.spacing;
+        let fx = x * inv + self.half as f32;
+        let fy = y * inv + self.half as f32;
+        let last = (self.side - 1) as f32;
+        if !(fx >= 0.0 && fy >= 0.0 && fx < last && fy < last) {
+            return None;
+        }
+        let (ix, iy) = (fx as usize, fy as usize);
+        let (tx, ty) = (fx - ix as f32, fy - iy as f32);
+        let base = (iy * self.side + ix) * self.stride;
+        let corners = [
+            base,
+            base + self.stride,
+            base + self.side * self.stride,
+            base + (self.side + 1) * self.stride,
+        ];
+        let mut mix = [[0.0f32; 3]; 4];
+        for (m, &corner) in mix.iter_mut().zip(&corners) {
+            for tap in taps {
+                let at = corner + tap.offset as usize;
+                let texel = &self.values[at..at + 3];
+                for c in 0..3 {
+                    m[c] += tap.weight * texel[c];
+                }
+            }
+        }
+        let [a, b, c, d] = mix;
+        let mut out = [[0.0f32; 3]; 3];
+        for k in 0..3 {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            out[0][k] = top + (bottom - top) * ty;
+            if GRADIENT {
+                out[1][k] = ((b[k] - a[k]) * (1.0 - ty) + (d[k] - c[k]) * ty) * inv;
+                out[2][k] = (bottom - top) * inv;
+            }
+        }
+        Some(out)
     }
 }
 
@@ -255,10 +392,16 @@ struct Cell {
     point: [f32; 3],
     forward: [f32; 3],
     side: [f32; 3],
-    /// Index of the lower tabulated angle and interpolation weight towards the next.
-    angle_index: u16,
-    angle_t: f32,
-    materials: [f32; 4],
+    /// The (material, angle) tables this cell's response mixes: its material weights times the
+    /// interpolation weights of the two tabulated angles around its incidence angle.
+    taps: [Tap; MAX_TAPS],
+    tap_count: u8,
+}
+
+impl Cell {
+    fn taps(&self) -> &[Tap] {
+        &self.taps[..self.tap_count as usize]
+    }
 }
 
 /// One level of the kernel: the band it covers and its filtered tables.
@@ -268,8 +411,8 @@ struct KernelLevel {
     /// Nominal cell size, mm (the scale of the tables' filter).
     cell_mm: f64,
     band: Band,
-    /// `tables[material][angle]`.
-    tables: Vec<Vec<BandTable>>,
+    /// Every material's and angle's table for this band.
+    tables: PackedTables,
     /// Cells to search around an output cell.
     search_radius: isize,
 }
@@ -309,16 +452,13 @@ impl SubsurfaceKernel {
                 };
                 let scale = 1usize << j;
                 let cell_mm = scale as f64 * pixel_mm;
-                let tables = responses
-                    .grids
-                    .iter()
-                    .map(|per_angle| {
-                        per_angle
-                            .iter()
-                            .map(|g| BandTable::build(g, &band, cell_mm))
-                            .collect()
-                    })
-                    .collect();
+                let tables = PackedTables::build(
+                    &responses.grids,
+                    responses.angles_deg.len(),
+                    &band,
+                    cell_mm,
+                    reach,
+                );
                 let r_max = band.r_max().min(reach) + FILTER_REACH_CELLS * cell_mm;
                 let search_radius = (r_max / (scale as f64 * min_pixel_mm)).ceil() as isize + 1;
                 KernelLevel {
@@ -457,6 +597,75 @@ impl<'k> SubsurfaceOperator<'k> {
     }
 }
 
+/// Adds `sum over pairs of K * flux(source)` (minus the first-moment correction
+/// `grad K . m(source)` when `moments` are given) to `acc` = `[c * frames + f]`.
+fn sum_pairs(
+    pairs: &[Pair],
+    flux: &[f32],
+    moments: Option<(&[f32], &[f32])>,
+    frames: usize,
+    acc: &mut [f32],
+) {
+    let mut f0 = 0;
+    while f0 + FRAME_BLOCK <= frames {
+        sum_block::<FRAME_BLOCK>(pairs, flux, moments, frames, f0, acc);
+        f0 += FRAME_BLOCK;
+    }
+    for f in f0..frames {
+        sum_block::<1>(pairs, flux, moments, frames, f, acc);
+    }
+}
+
+/// [`sum_pairs`] for frames `f0..f0 + B`.
+#[inline(always)]
+fn sum_block<const B: usize>(
+    pairs: &[Pair],
+    flux: &[f32],
+    moments: Option<(&[f32], &[f32])>,
+    frames: usize,
+    f0: usize,
+    acc: &mut [f32],
+) {
+    let mut sum = [[0.0f32; B]; 3];
+    match moments {
+        None => {
+            for p in pairs {
+                let at = p.source as usize * frames + f0;
+                let phi = &flux[at..at + B];
+                for (sum_c, k_c) in sum.iter_mut().zip(p.k) {
+                    for j in 0..B {
+                        sum_c[j] += k_c * phi[j];
+                    }
+                }
+            }
+        }
+        Some((along_forward, along_side)) => {
+            for p in pairs {
+                let at = p.source as usize * frames + f0;
+                let (phi, mf, ms) = (
+                    &flux[at..at + B],
+                    &along_forward[at..at + B],
+                    &along_side[at..at + B],
+                );
+                // A source displaced by m/phi from the cell point sees the offset d - m/phi:
+                // first-order correction -grad K . m.
+                for (c, sum_c) in sum.iter_mut().enumerate() {
+                    let (k, gx, gy) = (p.k[c], p.gx[c], p.gy[c]);
+                    for j in 0..B {
+                        sum_c[j] += k * phi[j] - (gx * mf[j] + gy * ms[j]);
+                    }
+                }
+            }
+        }
+    }
+    for (c, channel) in sum.iter().enumerate() {
+        let at = c * frames + f0;
+        for (a, v) in acc[at..at + B].iter_mut().zip(channel) {
+            *a += v;
+        }
+    }
+}
+
 /// Area-weighted aggregation of the entry samples into cells of `scale x scale` pixels.
 fn aggregate(
     width: usize,
@@ -498,14 +707,19 @@ fn aggregate(
             let (forward, side) = tangent_frame(&n, &l);
             let angle = cos_i.acos().to_degrees();
             let (angle_index, angle_t) = angle_interpolation(angles, angle);
+            let (taps, tap_count) = mix_taps(
+                &m.map(|x| (x / area) as f32),
+                angle_index,
+                angle_t,
+                angles.len(),
+            );
             let f32v = |v: Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
             Some(Cell {
                 point: f32v(p / area),
                 forward: f32v(forward),
                 side: f32v(side),
-                angle_index,
-                angle_t,
-                materials: m.map(|x| (x / area) as f32),
+                taps,
+                tap_count,
             })
         })
         .collect()
@@ -547,18 +761,26 @@ fn angle_interpolation(angles: &[f64], angle: f64) -> (u16, f32) {
     ((angles.len() - 2) as u16, 1.0)
 }
 
-fn accumulate(acc: &mut [[f32; 3]; 3], v: &[[f32; 3]; 3], w: f32) {
-    for (a, b) in acc.iter_mut().zip(v) {
-        for c in 0..3 {
-            a[c] += w * b[c];
-        }
-    }
+/// One source cell's contribution to an output cell: the band response at their offset and,
+/// for aggregated cells, its derivatives along the source's forward and side axes.
+#[derive(Debug, Clone, Copy)]
+struct Pair {
+    source: u32,
+    k: [f32; 3],
+    gx: [f32; 3],
+    gy: [f32; 3],
 }
+
+/// Frames are summed in blocks of this many: the block's accumulators stay in registers while
+/// every source of an output cell is visited, instead of a read-modify-write of every frame's
+/// accumulator per pair.
+const FRAME_BLOCK: usize = 8;
 
 impl KernelLevel {
     /// Exitance at each cell of this level from the band's pairs: `[(cell * 3 + c) * frames + f]`.
     /// `moments` holds, per cell and frame, the first moments of the flux about the cell's point
     /// along its forward and side axes (`None` at the pixel level, where cells are points).
+    /// The band response of each pair is looked up once and reused for every frame.
     fn evaluate(
         &self,
         grid: &LevelCells,
@@ -573,76 +795,83 @@ impl KernelLevel {
                     && flux[i * frames..(i + 1) * frames].iter().any(|&v| v > 0.0)
             })
             .collect();
-        // The tables are filtered, so they reach a little beyond the band.
-        let reach = FILTER_REACH_CELLS * self.cell_mm;
-        let r_min = (self.band.r_min() - reach).max(0.0) as f32;
-        let r_max = (self.band.r_max() + reach) as f32;
-        let rad = self.search_radius;
         let mut out = vec![0.0f32; w * h * 3 * frames];
         out.par_chunks_mut(w * 3 * frames)
             .enumerate()
-            .for_each(|(oy, row)| {
+            .for_each_init(Vec::new, |pairs, (oy, row)| {
                 for ox in 0..w {
                     let Some(o) = &grid.cells[oy * w + ox] else {
                         continue;
                     };
+                    pairs.clear();
+                    self.gather_pairs(grid, &lit, o, [ox, oy], moments.is_some(), pairs);
                     let acc = &mut row[ox * 3 * frames..(ox + 1) * 3 * frames];
-                    let (acc_r, rest) = acc.split_at_mut(frames);
-                    let (acc_g, acc_b) = rest.split_at_mut(frames);
-                    let y_range =
-                        (oy as isize - rad).max(0)..(oy as isize + rad + 1).min(h as isize);
-                    for sy in y_range {
-                        let x_range =
-                            (ox as isize - rad).max(0)..(ox as isize + rad + 1).min(w as isize);
-                        for sx in x_range {
-                            let si = sy as usize * w + sx as usize;
-                            if !lit[si] {
-                                continue;
-                            }
-                            let Some(s) = &grid.cells[si] else { continue };
-                            let d = [
-                                o.point[0] - s.point[0],
-                                o.point[1] - s.point[1],
-                                o.point[2] - s.point[2],
-                            ];
-                            let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                            if r >= r_max || r < r_min {
-                                continue;
-                            }
-                            let [k, gx, gy] = self.kernel(s, d, r);
-                            if k == [0.0; 3] && gx == [0.0; 3] && gy == [0.0; 3] {
-                                continue;
-                            }
-                            let range = si * frames..(si + 1) * frames;
-                            let src = &flux[range.clone()];
-                            for f in 0..frames {
-                                let phi = src[f];
-                                acc_r[f] += k[0] * phi;
-                                acc_g[f] += k[1] * phi;
-                                acc_b[f] += k[2] * phi;
-                            }
-                            // A source displaced by m/phi from the cell point sees the
-                            // offset d - m/phi: first-order correction -grad K . m.
-                            if let Some((mf, ms)) = moments {
-                                let (mf, ms) = (&mf[range.clone()], &ms[range]);
-                                for f in 0..frames {
-                                    let (a, b) = (mf[f], ms[f]);
-                                    acc_r[f] -= gx[0] * a + gy[0] * b;
-                                    acc_g[f] -= gx[1] * a + gy[1] * b;
-                                    acc_b[f] -= gx[2] * a + gy[2] * b;
-                                }
-                            }
-                        }
-                    }
+                    sum_pairs(pairs, flux, moments, frames, acc);
                 }
             });
         out
     }
 
-    /// Band response from source cell `s` at offset `d` (world mm, |d| = r), and its
-    /// derivatives with respect to the offset along the cell's forward and side axes.
+    /// The lit source cells within this band's reach of output cell `o` (at `[ox, oy]`) and
+    /// their band responses (with derivatives when `gradient`).
+    fn gather_pairs(
+        &self,
+        grid: &LevelCells,
+        lit: &[bool],
+        o: &Cell,
+        [ox, oy]: [usize; 2],
+        gradient: bool,
+        pairs: &mut Vec<Pair>,
+    ) {
+        let (w, h) = (grid.width as isize, grid.height as isize);
+        // The tables are filtered, so they reach a little beyond the band.
+        let reach = FILTER_REACH_CELLS * self.cell_mm;
+        let r_min = (self.band.r_min() - reach).max(0.0) as f32;
+        let r_max = (self.band.r_max() + reach) as f32;
+        let rad = self.search_radius;
+        let (ox, oy) = (ox as isize, oy as isize);
+        for sy in (oy - rad).max(0)..(oy + rad + 1).min(h) {
+            for sx in (ox - rad).max(0)..(ox + rad + 1).min(w) {
+                let si = (sy * w + sx) as usize;
+                if !lit[si] {
+                    continue;
+                }
+                let Some(s) = &grid.cells[si] else { continue };
+                let d = [
+                    o.point[0] - s.point[0],
+                    o.point[1] - s.point[1],
+                    o.point[2] - s.point[2],
+                ];
+                let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                if r >= r_max || r < r_min {
+                    continue;
+                }
+                let response = if gradient {
+                    self.kernel::<true>(s, d, r)
+                } else {
+                    self.kernel::<false>(s, d, r)
+                };
+                let Some([k, gx, gy]) = response else {
+                    continue;
+                };
+                if k == [0.0; 3] && gx == [0.0; 3] && gy == [0.0; 3] {
+                    continue;
+                }
+                pairs.push(Pair {
+                    source: si as u32,
+                    k,
+                    gx,
+                    gy,
+                });
+            }
+        }
+    }
+
+    /// Band response from source cell `s` at offset `d` (world mm, |d| = r), and (when
+    /// `GRADIENT`) its derivatives with respect to the offset along the cell's forward and side
+    /// axes; `None` beyond the tables.
     #[inline]
-    fn kernel(&self, s: &Cell, d: [f32; 3], r: f32) -> [[f32; 3]; 3] {
+    fn kernel<const GRADIENT: bool>(&self, s: &Cell, d: [f32; 3], r: f32) -> Option<[[f32; 3]; 3]> {
         let dot = |a: [f32; 3]| a[0] * d[0] + a[1] * d[1] + a[2] * d[2];
         let (mut x, mut y) = (dot(s.forward), dot(s.side));
         // Keep the 3-D distance: project the offset onto the tangent plane, then rescale.
@@ -651,20 +880,7 @@ impl KernelLevel {
             x *= r / t;
             y *= r / t;
         }
-        let mut k = [[0.0f32; 3]; 3];
-        let a0 = s.angle_index as usize;
-        for (m, &wm) in s.materials.iter().enumerate() {
-            if wm <= 1e-4 {
-                continue;
-            }
-            let tables = &self.tables[m];
-            let (w_lo, w_hi) = (wm * (1.0 - s.angle_t), wm * s.angle_t);
-            accumulate(&mut k, &tables[a0].lookup(x, y), w_lo);
-            if w_hi > 0.0 && a0 + 1 < tables.len() {
-                accumulate(&mut k, &tables[a0 + 1].lookup(x, y), w_hi);
-            }
-        }
-        k
+        self.tables.lookup::<GRADIENT>(x, y, s.taps())
     }
 
     /// Adds the bilinear interpolation of this level's cell values to full-resolution pixels,
@@ -782,6 +998,78 @@ mod tests {
                 vec![grid.clone()],
                 vec![grid],
             ],
+        }
+    }
+
+    /// The packed, interleaved tables give the same mix as looking every (material, angle)
+    /// table up on its own and weighting the results (the evaluation before packing).
+    #[test]
+    fn packed_lookup_equals_the_weighted_per_table_lookups() {
+        let angles = [0.0, 40.0, 80.0];
+        let grids: Vec<Vec<ResponseGrid>> = (0..4)
+            .map(|m| {
+                angles
+                    .iter()
+                    .map(|&a| {
+                        let t = 0.1 * (m + 1) as f64 + a / 400.0;
+                        synthetic_response(0.2, 41, [t, 0.5 * t, 0.25 * t])
+                    })
+                    .collect()
+            })
+            .collect();
+        let band = Band {
+            rho_inner: Some(0.5),
+            rho_outer: Some(1.0),
+        };
+        let (cell_mm, reach) = (0.4, 0.5 * 41.0 * 0.2 * std::f64::consts::SQRT_2);
+        let packed = PackedTables::build(&grids, angles.len(), &band, cell_mm, reach);
+        let spacing = TABLE_SPACING_CELLS * cell_mm;
+        let reference: Vec<Vec<BandTable>> = grids
+            .iter()
+            .map(|per_angle| {
+                per_angle
+                    .iter()
+                    .map(|g| BandTable::build(g, &band, cell_mm, spacing, packed.half))
+                    .collect()
+            })
+            .collect();
+        let materials = [0.55, 0.3, 0.0, 0.15];
+        let (angle_index, angle_t) = (1u16, 0.3f32);
+        let (taps, count) = mix_taps(&materials, angle_index, angle_t, angles.len());
+        assert_eq!(count, 6, "three materials x two angles");
+        for i in 0..200 {
+            let (x, y) = (-3.0 + 0.031 * i as f32, 2.5 * (0.37 * i as f32).sin());
+            let mut expected = [[0.0f32; 3]; 3];
+            for (m, &wm) in materials.iter().enumerate() {
+                if wm <= 1e-4 {
+                    continue;
+                }
+                for (a, wa) in [(1, 1.0 - angle_t), (2, angle_t)] {
+                    let v = reference[m][a].lookup(x, y);
+                    for (e, v) in expected.iter_mut().zip(v) {
+                        for c in 0..3 {
+                            e[c] += wm * wa * v[c];
+                        }
+                    }
+                }
+            }
+            let got = packed
+                .lookup::<true>(x, y, &taps[..count as usize])
+                .unwrap_or([[0.0; 3]; 3]);
+            // Only float rounding may differ (the mix is summed in another order; gradients
+            // are differences scaled by 1 / spacing).
+            let scale = expected
+                .iter()
+                .flatten()
+                .fold(1e-6f32, |m, v| m.max(v.abs()));
+            for (g, e) in got.iter().zip(&expected) {
+                for c in 0..3 {
+                    assert!(
+                        (g[c] - e[c]).abs() <= 1e-5 * scale,
+                        "({x}, {y}): packed {got:?}, per table {expected:?}"
+                    );
+                }
+            }
         }
     }
 

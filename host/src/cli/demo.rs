@@ -1,0 +1,120 @@
+//! `mlsss demo`: simulate, calibrate, process with a projector held out, relight it and evaluate
+//! against the truth (the project's main command).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+use mlsss::demo::{CalibrationMode, DemoOptions, DemoProgress, run_demo};
+use mlsss::virtual_booth::{Progress, SkinPreset, SubjectKind};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum CalibChoice {
+    /// Calibrate from simulated chessboard poses, as with a real booth.
+    Estimated,
+    /// Use the simulator's exact calibration (isolates the rest from calibration error).
+    Truth,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Use the small built-in --quick booth (fast; the full-size booth otherwise).
+    #[arg(long)]
+    quick: bool,
+    /// Shrink the booth further by this factor (images and focal lengths): tiny scenes for tests.
+    #[arg(long, value_name = "FACTOR", default_value_t = 1)]
+    scale_down: u32,
+    /// What stands in the booth.
+    #[arg(long, value_enum, default_value_t = SubjectKind::Head)]
+    subject: SubjectKind,
+    /// Skin type (optical properties from the literature).
+    #[arg(long, value_enum, default_value_t = SkinPreset::Light)]
+    skin: SkinPreset,
+    /// Seed of everything random (material maps, noise, board poses).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Projector held out of the fit, relit from the model and compared with its frames.
+    #[arg(long, default_value_t = 3)]
+    holdout: usize,
+    /// Where the calibration comes from.
+    #[arg(long, value_enum, default_value_t = CalibChoice::Estimated)]
+    calib: CalibChoice,
+    /// Chessboard poses simulated for an estimated calibration.
+    #[arg(long, default_value_t = 5)]
+    poses: usize,
+    /// Monte Carlo photons per skin response (default: the simulator's for the booth).
+    #[arg(long)]
+    photons: Option<u64>,
+    /// Monte Carlo response cache folder (default: $MLSSS_CACHE or ~/.cache/mlsss).
+    #[arg(long, value_name = "DIR")]
+    cache: Option<PathBuf>,
+    /// Output folder (created; a previous demo's outputs in it are replaced).
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    /// Print the report as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Progress on stderr: one bar, relabelled per step.
+struct Bar(ProgressBar);
+
+impl Progress for Bar {
+    fn stage(&self, name: &str, total: u64) {
+        self.0.set_length(total);
+        self.0.set_position(0);
+        self.0.set_message(name.to_owned());
+    }
+
+    fn advance(&self, n: u64) {
+        self.0.inc(n);
+    }
+}
+
+impl DemoProgress for Bar {
+    fn step(&self, name: &str) {
+        self.0.println(format!("== {name}"));
+        self.stage(name, 1);
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    anyhow::ensure!(args.scale_down >= 1, "--scale-down must be at least 1");
+    let mut opts = DemoOptions::new(args.quick, args.scale_down, &args.out);
+    opts.subject = args.subject;
+    anyhow::ensure!(
+        opts.subject != SubjectKind::Chessboard,
+        "--subject chessboard is a calibration target, not a skin subject"
+    );
+    opts.skin = args.skin;
+    opts.seed = args.seed;
+    opts.holdout = args.holdout;
+    opts.calibration = match args.calib {
+        CalibChoice::Truth => CalibrationMode::Truth,
+        CalibChoice::Estimated => CalibrationMode::Estimated { poses: args.poses },
+    };
+    opts.photons = args.photons;
+    opts.cache = args.cache.clone();
+    let bar = ProgressBar::new(1);
+    bar.set_style(
+        ProgressStyle::with_template("{msg:32} [{bar:40}] {pos}/{len} {elapsed_precise}")
+            .context("progress bar template")?
+            .progress_chars("=> "),
+    );
+    bar.enable_steady_tick(Duration::from_millis(200));
+    let progress = Bar(bar.clone());
+    let outcome =
+        run_demo(&opts, &progress).with_context(|| format!("demo into {}", args.out.display()))?;
+    bar.finish_and_clear();
+    if args.json {
+        println!("{}", serde_json::to_string(&outcome.report)?);
+    } else {
+        eprintln!("{}", serde_json::to_string_pretty(&outcome.report)?);
+        eprintln!(
+            "report: {}",
+            args.out.join(mlsss::demo::REPORT_FILE).display()
+        );
+    }
+    Ok(())
+}

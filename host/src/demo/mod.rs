@@ -1,0 +1,472 @@
+//! The end-to-end demonstration (`mlsss demo`): simulate a scan and chessboard calibration poses
+//! in the virtual booth, calibrate the booth from the poses, process the scan with one projector
+//! held out, relight that projector from the model and evaluate everything against the
+//! simulator's truth.
+//!
+//! ```text
+//! OUT/
+//!   capture/              the simulated scan (frames + truth/)
+//!   calibration-poses/    pose00, pose01, ... (only with an estimated calibration)
+//!   calibration.json      the estimated calibration, in the truth's world frame (see below)
+//!   processed/            the pipeline's stage folders and report.json
+//!   demo.json             the report (what `--json` prints)
+//! ```
+//!
+//! The estimated calibration lives in the camera's frame; it is re-expressed in the booth's world
+//! frame through the TRUE camera pose before processing
+//! ([`crate::evaluate::calibration_error::align_world_frame`]): the world frame is a free choice
+//! and the truth's maps (points, normals) are stored in the booth's frame. Nothing the calibration
+//! measured changes.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::Serialize;
+use serde_json::{Map, Value, json};
+
+use crate::booth::Booth;
+use crate::calib::{Calibration, CalibrationError};
+use crate::calibrate::local_homography::LocalHomographyOptions;
+use crate::calibrate::pose_measurement::{
+    BoardCorners, PoseLayout, PoseMeasurementError, measure_pose,
+};
+use crate::calibrate::procam::{BoardSpec, ProcamError, ProcamOptions, calibrate_procam};
+use crate::capture::{Capture, CaptureError, Pattern, truth};
+use crate::evaluate::calibration_error::{
+    CalibrationErrorError, align_world_frame, calibration_errors,
+};
+use crate::evaluate::resources::peak_memory_mb;
+use crate::photometry::response::{LevelFrames, ResponseError, estimate_responses};
+use crate::pipeline::{CalibrationSource, Pipeline, PipelineError};
+use crate::virtual_booth::{
+    Progress, ResponseCache, SimulationOptions, SkinPreset, SubjectKind, VirtualBoothError,
+    scaled_booth, simulate_calibration, simulate_scan,
+};
+
+/// File name of the report in the output folder.
+pub const REPORT_FILE: &str = "demo.json";
+
+/// Errors of the demonstration.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DemoError {
+    /// The virtual booth failed.
+    #[error("simulation failed")]
+    Simulation(#[from] VirtualBoothError),
+    /// A calibration pose could not be measured.
+    #[error("measuring a calibration pose failed")]
+    PoseMeasurement(#[from] PoseMeasurementError),
+    /// The calibration from the poses failed.
+    #[error("calibration from the chessboard poses failed")]
+    Procam(#[from] ProcamError),
+    /// The projector responses could not be estimated.
+    #[error("projector response estimation failed")]
+    Response(#[from] ResponseError),
+    /// A calibration file could not be read or written.
+    #[error(transparent)]
+    CalibrationFile(#[from] CalibrationError),
+    /// The estimate and the truth describe different booths.
+    #[error("comparing the calibration with the truth failed")]
+    CalibrationComparison(#[from] CalibrationErrorError),
+    /// A capture could not be read.
+    #[error(transparent)]
+    Capture(#[from] CaptureError),
+    /// The processing pipeline failed.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// The output folder cannot be used.
+    #[error("{path}: {reason}")]
+    Output { path: PathBuf, reason: String },
+    /// A file of the output could not be written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// An option is out of range.
+    #[error("{option}: {reason}")]
+    InvalidOption {
+        option: &'static str,
+        reason: String,
+    },
+}
+
+/// Where the demonstration's calibration comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationMode {
+    /// Simulated chessboard poses, calibrated like real ones (the honest path).
+    Estimated { poses: usize },
+    /// The simulator's exact calibration (isolates the rest of the pipeline from calibration
+    /// error).
+    Truth,
+}
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct DemoOptions {
+    pub booth: Booth,
+    pub subject: SubjectKind,
+    pub skin: SkinPreset,
+    pub seed: u64,
+    /// Projector held out of the fit and relit for the evaluation.
+    pub holdout: usize,
+    pub calibration: CalibrationMode,
+    /// Monte Carlo photons per response (`None`: the simulator's default for the booth).
+    pub photons: Option<u64>,
+    /// Monte Carlo response cache folder (`None`: the simulator's default).
+    pub cache: Option<PathBuf>,
+    pub out: PathBuf,
+}
+
+impl DemoOptions {
+    /// Defaults: the built-in booth (`quick` or full size) shrunk by `scale_down`, a light-skinned
+    /// head, seed 1, projector 3 held out, calibration estimated from 5 poses.
+    pub fn new(quick: bool, scale_down: u32, out: &Path) -> Self {
+        let mut booth = Booth::builtin(quick);
+        if scale_down > 1 {
+            booth = scaled_booth(&booth, scale_down);
+        }
+        Self {
+            booth,
+            subject: SubjectKind::Head,
+            skin: SkinPreset::Light,
+            seed: 1,
+            holdout: 3,
+            calibration: CalibrationMode::Estimated { poses: 5 },
+            photons: None,
+            cache: None,
+            out: out.to_owned(),
+        }
+    }
+}
+
+/// What the demonstration produced.
+#[derive(Debug, Clone)]
+pub struct DemoOutcome {
+    /// The report (also in `OUT/demo.json`).
+    pub report: Value,
+    pub capture: PathBuf,
+    pub processed: PathBuf,
+}
+
+/// Wall-clock seconds per step, in the order they ran.
+#[derive(Debug, Default)]
+struct Timings(Map<String, Value>);
+
+impl Timings {
+    fn time<T>(&mut self, key: &str, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        self.add(key, start.elapsed().as_secs_f64());
+        out
+    }
+
+    fn add(&mut self, key: &str, seconds: f64) {
+        let prev = self.0.get(key).and_then(Value::as_f64).unwrap_or(0.0);
+        self.0.insert(key.to_owned(), json!(prev + seconds));
+    }
+}
+
+/// Checks the options and prepares the output folder: a folder that exists must be empty or a
+/// previous demonstration's (it holds `demo.json` or the demo's sub-folders), whose outputs are
+/// then replaced.
+fn prepare_output(opts: &DemoOptions) -> Result<(), DemoError> {
+    let projectors = opts.booth.projectors.len();
+    if projectors < 2 || opts.holdout >= projectors {
+        return Err(DemoError::InvalidOption {
+            option: "--holdout",
+            reason: format!(
+                "projector {} does not exist or leaves no training projector (the booth has {projectors})",
+                opts.holdout
+            ),
+        });
+    }
+    if let CalibrationMode::Estimated { poses } = opts.calibration
+        && poses < 3
+    {
+        return Err(DemoError::InvalidOption {
+            option: "--poses",
+            reason: format!("a calibration needs at least 3 chessboard poses, got {poses}"),
+        });
+    }
+    let out = &opts.out;
+    let io = |source| DemoError::Io {
+        path: out.clone(),
+        source,
+    };
+    let owned = [
+        "capture",
+        "calibration-poses",
+        "calibration.json",
+        "processed",
+        "report.html",
+    ];
+    if out.exists() {
+        let entries: Vec<_> = std::fs::read_dir(out)
+            .map_err(io)?
+            .filter_map(Result::ok)
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        let ours = |name: &str| name == REPORT_FILE || owned.contains(&name);
+        if !entries.is_empty() && !entries.iter().any(|n| ours(n)) {
+            return Err(DemoError::Output {
+                path: out.clone(),
+                reason: "exists and is not a demo output folder: choose an empty or new --out"
+                    .into(),
+            });
+        }
+        for name in owned.iter().chain([REPORT_FILE].iter()) {
+            let p = out.join(name);
+            let removed = if p.is_dir() {
+                std::fs::remove_dir_all(&p)
+            } else if p.exists() {
+                std::fs::remove_file(&p)
+            } else {
+                Ok(())
+            };
+            removed.map_err(|source| DemoError::Io { path: p, source })?;
+        }
+    }
+    std::fs::create_dir_all(out).map_err(io)
+}
+
+fn simulation_options(opts: &DemoOptions, subject: SubjectKind) -> SimulationOptions {
+    let mut sim = SimulationOptions::for_booth(&opts.booth, subject, opts.skin, opts.seed);
+    if let Some(p) = opts.photons {
+        sim.mc.photons = p;
+    }
+    if let Some(dir) = &opts.cache {
+        sim.cache = ResponseCache::new(dir);
+    }
+    sim
+}
+
+/// Chessboard layout of a simulated calibration pose (from its manifest).
+fn board_of(pose: &Path) -> Result<BoardSpec, DemoError> {
+    let capture = Capture::open(pose)?;
+    let board = &capture.manifest.source["board"];
+    let corners = board["inner_corners"].as_array();
+    let size = |i: usize| {
+        corners
+            .and_then(|c| c.get(i))
+            .and_then(Value::as_u64)
+            .map(|v| v as usize)
+    };
+    match (size(0), size(1), board["square_mm"].as_f64()) {
+        (Some(cols), Some(rows), Some(square_mm)) => Ok(BoardSpec {
+            cols,
+            rows,
+            square_mm,
+        }),
+        _ => Err(DemoError::Output {
+            path: pose.to_owned(),
+            reason: "capture.json has no source.board (inner_corners, square_mm)".into(),
+        }),
+    }
+}
+
+/// The full-field levels a projector response is estimated from.
+fn response_level(pattern: &Pattern) -> Option<f64> {
+    match *pattern {
+        Pattern::White => Some(1.0),
+        Pattern::Black => Some(0.0),
+        Pattern::Grey { level_milli } => Some(f64::from(level_milli) / 1000.0),
+        _ => None,
+    }
+}
+
+fn level_frames(pose: &Path) -> Result<Vec<LevelFrames>, DemoError> {
+    let capture = Capture::open(pose)?;
+    (0..capture.manifest.booth.projectors.len())
+        .map(|k| {
+            let mut frames = LevelFrames::default();
+            for spec in capture.manifest.plan.for_projector(k as u8) {
+                if let Some(l) = response_level(&spec.pattern) {
+                    frames.frames.push((l, capture.read(spec)?));
+                }
+            }
+            Ok(frames)
+        })
+        .collect()
+}
+
+/// Calibrates the booth from the pose folders: geometry (`calibrate_procam`) and projector
+/// responses; returns the calibration (camera frame) and its report.
+fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoError> {
+    let board = board_of(&poses[0])?;
+    let corners = BoardCorners {
+        cols: board.cols,
+        rows: board.rows,
+    };
+    let measured = poses
+        .par_iter()
+        .map(|dir| {
+            measure_pose(
+                dir,
+                PoseLayout::Capture,
+                corners,
+                &LocalHomographyOptions::default(),
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let first = &measured[0];
+    let corner_sets: Vec<_> = measured.iter().map(|m| m.corners.clone()).collect();
+    let result = calibrate_procam(
+        &corner_sets,
+        &board,
+        first.camera_size,
+        &first.projector_sizes,
+        &ProcamOptions::default(),
+    )?;
+    let levels = poses
+        .iter()
+        .map(|p| level_frames(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let responses = estimate_responses(&levels)?;
+    let mut calibration = result.calibration.clone();
+    for (p, fit) in calibration.projectors.iter_mut().zip(&responses) {
+        p.response = Some(fit.response());
+    }
+    let report = json!({
+        "poses_used": result.poses.iter().filter(|p| p.used).count(),
+        "poses_total": result.poses.len(),
+        "camera_rms_px": result.camera_rms_px,
+        "projector_rms_px": result.projector_rms_px,
+        "stereo_rms_px": result.stereo_rms_px,
+        "responses": responses,
+    });
+    Ok((calibration, report))
+}
+
+/// Errors of the estimated responses against the truth, percent.
+fn response_errors(estimate: &Calibration, truth: &Calibration) -> Value {
+    let rel = |a: f64, b: f64| 100.0 * (a - b) / b;
+    let per: Vec<Value> = estimate
+        .projectors
+        .iter()
+        .zip(&truth.projectors)
+        .filter_map(|(e, t)| {
+            let (e, t) = (e.response?, t.response?);
+            Some(json!({
+                "gamma_rel_pct": rel(e.gamma, t.gamma),
+                "black_level_rel_pct": rel(e.black_level, t.black_level),
+            }))
+        })
+        .collect();
+    Value::Array(per)
+}
+
+/// Mean of a numeric field over the entries of `report[section].projectors`.
+fn mean_over_projectors(report: &Value, section: &str, field: &str) -> Option<f64> {
+    let values: Vec<f64> = report[section]["projectors"]
+        .as_array()?
+        .iter()
+        .filter_map(|p| p[field].as_f64())
+        .collect();
+    (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+}
+
+/// Callbacks of a running demonstration (progress on stderr in the CLI).
+pub trait DemoProgress: Progress {
+    /// A new step starts (simulation steps report through [`Progress`] as well).
+    fn step(&self, name: &str);
+}
+
+/// Runs the demonstration.
+pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoOutcome, DemoError> {
+    let total = Instant::now();
+    prepare_output(opts)?;
+    let out = &opts.out;
+    let mut timing = Timings::default();
+
+    progress.step("simulating the scan");
+    let capture = out.join("capture");
+    let scan_opts = simulation_options(opts, opts.subject);
+    let sim = timing.time("simulate_scan", || {
+        simulate_scan(&opts.booth, &scan_opts, &capture, progress)
+    })?;
+    let truth_dir = capture.join("truth");
+    let truth_calibration = Calibration::load(&truth::calibration(&truth_dir))?;
+
+    let (calib_source, calibration_report) = match opts.calibration {
+        CalibrationMode::Truth => (CalibrationSource::Truth, json!({ "source": "truth" })),
+        CalibrationMode::Estimated { poses } => {
+            progress.step("simulating calibration poses");
+            let pose_root = out.join("calibration-poses");
+            let pose_opts = simulation_options(opts, SubjectKind::Chessboard);
+            let sim_cal = timing.time("simulate_calibration", || {
+                simulate_calibration(&opts.booth, &pose_opts, poses, &pose_root, progress)
+            })?;
+            progress.step("calibrating");
+            let (estimate, mut report) =
+                timing.time("calibrate", || calibrate_from_poses(&sim_cal.captures))?;
+            let aligned = align_world_frame(&estimate, &truth_calibration.camera.extrinsics);
+            let path = out.join("calibration.json");
+            aligned.save(&path)?;
+            report["source"] = json!("estimated");
+            report["file"] = json!(path);
+            report["errors"] =
+                serde_json::to_value(calibration_errors(&aligned, &truth_calibration)?)
+                    .unwrap_or(Value::Null);
+            report["response_errors"] = response_errors(&aligned, &truth_calibration);
+            (CalibrationSource::File(path), report)
+        }
+    };
+
+    progress.step("processing");
+    let processed = out.join("processed");
+    let pipeline = Pipeline::new(&capture, &processed, &calib_source)?;
+    let report = pipeline.run_until("normals")?;
+    for (stage, seconds) in report["timing_s"].as_object().into_iter().flatten() {
+        timing.add(stage, seconds.as_f64().unwrap_or(0.0));
+    }
+
+    let simulate_total = ["simulate_scan", "simulate_calibration"]
+        .iter()
+        .filter_map(|k| timing.0.get(*k).and_then(Value::as_f64))
+        .sum::<f64>();
+    timing.add("simulate", simulate_total);
+    timing.add("total", total.elapsed().as_secs_f64());
+
+    let mut demo = json!({
+        "demo": {
+            "booth": opts.booth.name,
+            "camera": [opts.booth.camera.width, opts.booth.camera.height],
+            "subject": opts.subject,
+            "skin": opts.skin,
+            "seed": opts.seed,
+            "holdout_projector": opts.holdout,
+            "calibration": opts.calibration,
+            "monte_carlo": { "cached": sim.cache.hits, "computed": sim.cache.misses },
+            "out": out,
+        },
+        "calibration": calibration_report,
+        "decode": {
+            "exact_fraction": mean_over_projectors(&report, "decode", "exact_fraction"),
+            "valid_fraction": report["decode"]["valid_fraction"],
+            "wrong_fraction": mean_over_projectors(&report, "decode", "wrong_fraction"),
+            "projectors": report["decode"]["projectors"],
+        },
+        "depth_rmse_mm": report["geometry"]["depth_rmse_mm"],
+        "geometry": report["geometry"],
+        "separation": {
+            "global_rel_rmse": report["separate"]["global_rel_rmse"],
+            "direct_rel_rmse": report["separate"]["direct_rel_rmse"],
+            "total_rel_rmse": report["separate"]["total_rel_rmse"],
+        },
+        "normals": report["normals"],
+        "timing_s": Value::Object(timing.0),
+        "peak_memory_mb": peak_memory_mb(),
+    });
+    demo["report_json"] = json!(out.join(REPORT_FILE));
+    let path = out.join(REPORT_FILE);
+    let text = serde_json::to_string_pretty(&demo).unwrap_or_default();
+    std::fs::write(&path, text).map_err(|source| DemoError::Io { path, source })?;
+    Ok(DemoOutcome {
+        report: demo,
+        capture,
+        processed,
+    })
+}

@@ -1,0 +1,85 @@
+//! `mlsss demo` end to end on a tiny scene (the quick booth shrunk 4x, exact calibration), and its
+//! refusal of bad options.
+
+use mlsss_tests::{mc_cache_dir, mlsss, scratch_dir};
+use serde_json::Value;
+
+fn number(report: &Value, path: &str) -> f64 {
+    let mut v = report;
+    for key in path.split('.') {
+        v = &v[key];
+    }
+    v.as_f64()
+        .unwrap_or_else(|| panic!("{path} is not a number in {report}"))
+}
+
+#[test]
+fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
+    let out = scratch_dir().join("demo-tiny");
+    let output = mlsss()
+        .args(["demo", "--quick", "--scale-down", "4", "--calib", "truth"])
+        .args(["--photons", "4000", "--json", "--cache"])
+        .arg(mc_cache_dir())
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run mlsss demo");
+    assert!(
+        output.status.success(),
+        "mlsss demo failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let report: Value = serde_json::from_slice(&output.stdout).expect("one JSON object on stdout");
+    // Sane against the simulator's truth (tiny 115x85 camera: loose bounds).
+    let exact = number(&report, "decode.exact_fraction");
+    assert!((0.5..=1.0).contains(&exact), "{exact}");
+    let depth = number(&report, "depth_rmse_mm");
+    assert!(depth > 0.0 && depth < 3.0, "{depth}");
+    let normals = number(&report, "normals.mean_angular_error_deg");
+    assert!(normals > 0.0 && normals < 15.0, "{normals}");
+    let sep = number(&report, "separation.global_rel_rmse");
+    assert!(sep.is_finite() && sep > 0.0, "{sep}");
+    for key in ["simulate", "decode", "separate", "normals", "total"] {
+        let t = number(&report, &format!("timing_s.{key}"));
+        assert!(t >= 0.0 && t.is_finite(), "timing_s.{key} = {t}");
+    }
+    assert!(number(&report, "timing_s.total") >= number(&report, "timing_s.simulate"));
+    let mem = number(&report, "peak_memory_mb");
+    assert!(mem > 1.0 && mem < 64_000.0, "{mem}");
+    assert_eq!(report["calibration"]["source"], "truth");
+    // The report on disk is the one printed.
+    let on_disk: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("demo.json")).unwrap()).unwrap();
+    assert_eq!(on_disk, report);
+}
+
+#[test]
+fn demo_refuses_a_missing_projector_and_a_foreign_output_folder() {
+    let out = scratch_dir().join("demo-bad-holdout");
+    let output = mlsss()
+        .args(["demo", "--quick", "--scale-down", "4", "--holdout", "7"])
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run mlsss demo");
+    assert!(!output.status.success());
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        err.contains("--holdout") && err.contains("projector 7"),
+        "{err}"
+    );
+
+    let foreign = scratch_dir().join("demo-foreign");
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("precious.txt"), "keep me").unwrap();
+    let output = mlsss()
+        .args(["demo", "--quick", "--scale-down", "4"])
+        .arg("--out")
+        .arg(&foreign)
+        .output()
+        .expect("run mlsss demo");
+    assert!(!output.status.success());
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(err.contains("not a demo output folder"), "{err}");
+    assert!(foreign.join("precious.txt").is_file());
+}
