@@ -42,6 +42,10 @@ enum Command {
     Render(cli::render::Args),
     /// Simulate, calibrate, process with a projector held out, relight it, evaluate: the main job.
     Demo(cli::demo::Args),
+    /// Relight a held-out projector from a fitted model and compare with its frames (and truth).
+    Eval(cli::eval::Args),
+    /// Runtime against held-out error over the quality knobs: CSV table and Pareto-front plot.
+    Bench(cli::bench::Args),
 }
 
 fn main() -> ExitCode {
@@ -59,6 +63,8 @@ fn main() -> ExitCode {
         Command::Process(args) => cli::process::run(args),
         Command::Render(args) => cli::render::run(args),
         Command::Demo(args) => cli::demo::run(args),
+        Command::Eval(args) => cli::eval::run(args),
+        Command::Bench(args) => cli::bench::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -43,6 +43,16 @@ pub struct Args {
     /// Chessboard poses simulated for an estimated calibration.
     #[arg(long, default_value_t = 5)]
     poses: usize,
+    /// Fit: Gaussian components per fit at the start (the paper: 20; BIC prunes).
+    #[arg(long, default_value_t = mlsss::demo::quick_fit_params().components)]
+    components: usize,
+    /// Fit: one EM fit per BLOCK x BLOCK pixel tile, each pixel keeping its own amplitude
+    /// (1 = every pixel, slow).
+    #[arg(long, default_value_t = mlsss::demo::quick_fit_params().block)]
+    block: usize,
+    /// Fit: EM iteration cap per pixel.
+    #[arg(long, default_value_t = 200)]
+    max_iterations: usize,
     /// Monte Carlo photons per skin response (default: the simulator's for the booth).
     #[arg(long)]
     photons: Option<u64>,
@@ -94,6 +104,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         CalibChoice::Truth => CalibrationMode::Truth,
         CalibChoice::Estimated => CalibrationMode::Estimated { poses: args.poses },
     };
+    opts.fit.components = args.components;
+    opts.fit.block = args.block;
+    opts.fit.max_iterations = args.max_iterations;
     opts.photons = args.photons;
     opts.cache = args.cache.clone();
     let bar = ProgressBar::new(1);

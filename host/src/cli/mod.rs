@@ -2,10 +2,12 @@
 //! Commands that measure something take `--json` and print exactly one JSON object on stdout;
 //! progress and logs go to stderr.
 
+pub mod bench;
 pub mod booth;
 pub mod calibrate;
 pub mod decode;
 pub mod demo;
+pub mod eval;
 pub mod mc;
 pub mod normals;
 pub mod process;

@@ -1,6 +1,9 @@
-//! Evaluation (DESIGN stage 9): image metrics of the held-out relighting, errors of an estimated
-//! calibration against the truth, and the process's resource use.
+//! Evaluation (DESIGN stage 9): the held-out relighting and its image metrics, the
+//! runtime-versus-error sweep of the quality knobs, errors of an estimated calibration against the
+//! truth, and the process's resource use.
 
 pub mod calibration_error;
+pub mod holdout;
 pub mod metrics;
+pub mod quality_sweep;
 pub mod resources;

@@ -39,7 +39,22 @@ fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
     assert!(normals > 0.0 && normals < 15.0, "{normals}");
     let sep = number(&report, "separation.global_rel_rmse");
     assert!(sep.is_finite() && sep > 0.0, "{sep}");
-    for key in ["simulate", "decode", "separate", "normals", "total"] {
+    // Held-out relighting: every renderer scored, the subsurface part against the truth.
+    assert_eq!(report["relight"]["holdout_projector"], 3);
+    for r in ["mlsss", "homogeneous", "dipole", "direct_only"] {
+        let psnr = number(&report, &format!("relight.psnr_db.{r}"));
+        assert!(psnr > 15.0 && psnr < 80.0, "{r}: {psnr}");
+        let rmse = number(&report, &format!("relight.rmse.{r}"));
+        // PSNR and RMSE describe the same error (peak 1).
+        assert!((psnr + 20.0 * rmse.log10()).abs() < 1e-6, "{r}");
+    }
+    for r in ["mlsss", "homogeneous", "dipole"] {
+        let g = number(&report, &format!("relight.global_rel_rmse.{r}"));
+        assert!(g > 0.0 && g < 1.0, "{r}: {g}");
+    }
+    for key in [
+        "simulate", "decode", "separate", "normals", "profiles", "fit", "render", "total",
+    ] {
         let t = number(&report, &format!("timing_s.{key}"));
         assert!(t >= 0.0 && t.is_finite(), "timing_s.{key} = {t}");
     }
@@ -49,6 +64,7 @@ fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
     assert_eq!(report["calibration"]["source"], "truth");
     let html = std::fs::read_to_string(out.join("report.html")).expect("report.html written");
     assert!(html.contains("Pipeline against the truth") && html.contains("data:image/png;base64,"));
+    assert!(html.contains("Fig. 9") && html.contains("Fig. 10") && html.contains("Fig. 11"));
     // The report on disk is the one printed.
     let on_disk: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("demo.json")).unwrap()).unwrap();
