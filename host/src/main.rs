@@ -36,8 +36,10 @@ enum Command {
     Mc(cli::mc::Args),
     /// Decode Gray-code frames to projector coordinates per camera pixel (capture or OpenCV order).
     Decode(cli::decode::Args),
-    /// Run the processing pipeline on a capture up to a stage (decode, geometry) and report.
+    /// Run the processing pipeline on a capture up to a stage (decode ... fit) and report.
     Process(cli::process::Args),
+    /// Render a projector's pattern on the measured face from a fitted model file (EXR + PNG).
+    Render(cli::render::Args),
     /// Simulate, calibrate, process with a projector held out, relight it, evaluate: the main job.
     Demo(cli::demo::Args),
 }
@@ -55,6 +57,7 @@ fn main() -> ExitCode {
         Command::Mc(args) => cli::mc::run(args),
         Command::Decode(args) => cli::decode::run(args),
         Command::Process(args) => cli::process::run(args),
+        Command::Render(args) => cli::render::run(args),
         Command::Demo(args) => cli::demo::run(args),
     };
     match result {

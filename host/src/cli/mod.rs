@@ -10,6 +10,7 @@ pub mod mc;
 pub mod normals;
 pub mod process;
 pub mod ps_scene;
+pub mod render;
 pub mod response;
 pub mod rig;
 pub mod simulate;

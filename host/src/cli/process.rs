@@ -3,7 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use mlsss::pipeline::fit::FitParams;
+use mlsss::pipeline::profiles::{DirectPart, ProfilesParams};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
+use mlsss::subsurface::fit::EmVariant;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -13,15 +16,52 @@ pub struct Args {
     /// `truth/calibration.json`. Needed from the geometry stage on.
     #[arg(long)]
     calib: Option<String>,
-    /// Last stage to run (its inputs run first; cached stages are reused). Stages: decode, geometry, separate, normals.
+    /// Last stage to run (its inputs run first; cached stages are reused). Stages: decode,
+    /// geometry, separate, normals, profiles, fit.
     #[arg(long, default_value = "geometry")]
     until: String,
+    /// Fit stage: projector left out of training (for held-out evaluation); default none.
+    #[arg(long)]
+    holdout: Option<usize>,
+    /// Fit stage: EM variant, `layered` (means tied to layer depth, joint over projectors and
+    /// axes; ours) or `free` (free means per profile, averaged; the paper).
+    #[arg(long, value_enum, default_value_t = EmArg::Layered)]
+    em: EmArg,
+    /// Fit stage: Gaussian components per fit at the start (the paper: 20); BIC reduces them
+    /// per pixel where the profile does not support them.
+    #[arg(long, default_value_t = 20)]
+    components: usize,
+    /// Profiles stage: direct reflection removed from the slit frames, `separation` (the
+    /// separate stage's direct image), `colourless` (its smallest channel: skin's surface
+    /// reflection is colourless, the subsurface light that leaks into a coarse separation is
+    /// not) or `none` (all slit light counts as subsurface light).
+    #[arg(long, value_enum, default_value_t = DirectArg::None)]
+    direct: DirectArg,
+    /// Fit stage: fit one pixel per BLOCK x BLOCK tile (1 = every pixel; larger is faster and
+    /// coarser).
+    #[arg(long, default_value_t = 1)]
+    block: usize,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
+}
+
+/// EM variants (DESIGN section 5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum EmArg {
+    Layered,
+    Free,
+}
+
+/// Direct part of the slit frames (see `pipeline::profiles::DirectPart`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum DirectArg {
+    Separation,
+    Colourless,
+    None,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -32,6 +72,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut pipeline = Pipeline::new(&args.capture, &args.out, &calib)
         .with_context(|| format!("opening {}", args.capture.display()))?;
+    let fit = FitParams {
+        holdout: args.holdout,
+        em: match args.em {
+            EmArg::Layered => EmVariant::Layered,
+            EmArg::Free => EmVariant::Free,
+        },
+        components: args.components,
+        block: args.block,
+        ..FitParams::default()
+    };
+    pipeline.set_params("fit", serde_json::to_value(&fit)?);
+    let profiles = ProfilesParams {
+        direct: match args.direct {
+            DirectArg::Separation => DirectPart::Separation,
+            DirectArg::Colourless => DirectPart::Colourless,
+            DirectArg::None => DirectPart::None,
+        },
+        ..ProfilesParams::default()
+    };
+    pipeline.set_params("profiles", serde_json::to_value(&profiles)?);
     pipeline.on_stage = Some(Box::new(|name, cached| {
         eprintln!("{name}{}", if cached { " (cached)" } else { " ..." });
     }));

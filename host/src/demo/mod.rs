@@ -10,6 +10,7 @@
 //!   calibration.json      the estimated calibration, in the truth's world frame (see below)
 //!   processed/            the pipeline's stage folders and report.json
 //!   demo.json             the report (what `--json` prints)
+//!   report.html           the HTML report (figures, metrics, timings)
 //! ```
 //!
 //! The estimated calibration lives in the camera's frame; it is re-expressed in the booth's world
@@ -17,6 +18,8 @@
 //! ([`crate::evaluate::calibration_error::align_world_frame`]): the world frame is a free choice
 //! and the truth's maps (points, normals) are stored in the booth's frame. Nothing the calibration
 //! measured changes.
+
+pub mod html_report;
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -46,6 +49,8 @@ use crate::virtual_booth::{
 
 /// File name of the report in the output folder.
 pub const REPORT_FILE: &str = "demo.json";
+/// File name of the HTML report in the output folder.
+pub const HTML_FILE: &str = "report.html";
 
 /// Errors of the demonstration.
 #[derive(Debug, thiserror::Error)]
@@ -75,6 +80,9 @@ pub enum DemoError {
     /// The processing pipeline failed.
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
+    /// The HTML report could not be written.
+    #[error("writing the HTML report failed")]
+    Report(#[from] html_report::DemoReportError),
     /// The output folder cannot be used.
     #[error("{path}: {reason}")]
     Output { path: PathBuf, reason: String },
@@ -461,6 +469,9 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
         "peak_memory_mb": peak_memory_mb(),
     });
     demo["report_json"] = json!(out.join(REPORT_FILE));
+    let html = out.join(HTML_FILE);
+    demo["report_html"] = json!(html);
+    html_report::write_report(&html, &demo, None, &processed)?;
     let path = out.join(REPORT_FILE);
     let text = serde_json::to_string_pretty(&demo).unwrap_or_default();
     std::fs::write(&path, text).map_err(|source| DemoError::Io { path, source })?;

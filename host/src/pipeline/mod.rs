@@ -33,8 +33,11 @@
 //!    [`StageFailure::new`].
 
 pub mod decode;
+pub mod fit;
 pub mod geometry;
+pub mod line_plot;
 pub mod normals;
+pub mod profiles;
 pub mod separate;
 
 use std::collections::BTreeMap;
@@ -53,6 +56,8 @@ pub const STAGES: &[Stage] = &[
     geometry::STAGE,
     separate::STAGE,
     normals::STAGE,
+    profiles::STAGE,
+    fit::STAGE,
 ];
 
 /// Name of the cache record in each stage folder.

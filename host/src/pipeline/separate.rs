@@ -135,7 +135,7 @@ fn projector_frames(
 /// Blur of the stripes seen by a camera pixel, projector px: defocus of the booth description
 /// combined with the camera footprint (a box, variance w^2 / 12), from the focal lengths and the
 /// devices' distances to the world origin (the subject's nominal centre).
-fn stripe_blur(ctx: &StageContext, k: usize) -> f32 {
+pub fn stripe_blur(ctx: &StageContext, k: usize) -> f32 {
     let Some(calib) = ctx.calibration else {
         return 0.0;
     };

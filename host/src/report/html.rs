@@ -35,11 +35,39 @@ pub enum HtmlReportError {
     },
 }
 
-/// One image of a figure.
+/// One image of a figure: PNG or SVG bytes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Panel {
     pub label: String,
-    pub png: Vec<u8>,
+    pub bytes: Vec<u8>,
+    /// `image/png` or `image/svg+xml`.
+    pub mime: &'static str,
+}
+
+impl Panel {
+    pub fn png(label: &str, bytes: Vec<u8>) -> Self {
+        Self {
+            label: label.to_owned(),
+            bytes,
+            mime: "image/png",
+        }
+    }
+
+    /// A panel from an image file beside the report (PNG or SVG by extension); `None` when the
+    /// file cannot be read (figures of optional stages).
+    pub fn from_file(label: &str, path: &Path) -> Option<Self> {
+        let bytes = std::fs::read(path).ok()?;
+        let mime = match path.extension().and_then(|e| e.to_str()) {
+            Some("svg") => "image/svg+xml",
+            Some("png") => "image/png",
+            _ => return None,
+        };
+        Some(Self {
+            label: label.to_owned(),
+            bytes,
+            mime,
+        })
+    }
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -196,9 +224,10 @@ impl HtmlReport {
                     html.push_str("<figure><div class=\"panels\">");
                     for p in panels {
                         html.push_str(&format!(
-                            "<div class=\"panel\"><img alt=\"{l}\" src=\"data:image/png;base64,{d}\">{l}</div>",
+                            "<div class=\"panel\"><img alt=\"{l}\" src=\"data:{m};base64,{d}\">{l}</div>",
                             l = escape(&p.label),
-                            d = b64.encode(&p.png)
+                            m = p.mime,
+                            d = b64.encode(&p.bytes)
                         ));
                     }
                     html.push_str(&format!(
@@ -235,13 +264,7 @@ mod tests {
         let mut r = HtmlReport::new("A <test> & more");
         r.heading("Metrics")
             .table(&["name", "value"], vec![vec!["psnr".into(), "31.2".into()]])
-            .figure(
-                "two pixels",
-                vec![Panel {
-                    label: "real".into(),
-                    png: png.clone(),
-                }],
-            )
+            .figure("two pixels", vec![Panel::png("real", png.clone())])
             .paragraph("x < y");
         let html = r.to_html();
         assert!(html.starts_with("<!DOCTYPE html>"));

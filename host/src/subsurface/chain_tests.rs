@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 
 use super::fit::{FitOptions, fit_dipole_model, fit_model};
 use super::mixture::EmConfig;
-use super::profiles::{ProjectorView, SlitFrame, SlitSweep, irradiance, pixel_geometry};
+use super::profiles::{Falloff, ProjectorView, SlitFrame, SlitSweep, irradiance, pixel_geometry};
 use super::relight::{pattern_irradiance, shifts};
 use super::render::{RenderOptions, render_global};
 use super::surface::{Surface, ViewRay};
@@ -62,7 +62,12 @@ type LitAlong<'a> = Box<dyn Fn(i64) -> f32 + 'a>;
 
 /// Truth global image of projector k under white or a slit pattern.
 fn truth_global(s: &Surface, k: usize, pattern: &Pattern) -> Vec<[f32; 3]> {
-    let e0 = irradiance(&s.points[0], &s.normals[0], &projector_centre(k));
+    let e0 = irradiance(
+        &s.points[0],
+        &s.normals[0],
+        &projector_centre(k),
+        &Falloff::Isotropic,
+    );
     let t = super::relight::shifts(s, &projector_centre(k), ETA, ViewRay::Refracted)[0].unwrap();
     let wrap = |c: i64, n: i64| c.rem_euclid(n) as u32;
     let (lit_x, lit_y): (LitAlong, LitAlong) = match *pattern {
@@ -150,6 +155,7 @@ fn profiles_fit_and_relight_a_held_out_projector() {
         .iter()
         .map(|&k| ProjectorView {
             centre: projector_centre(k),
+            falloff: Falloff::Isotropic,
             coords: &coords,
         })
         .collect();
@@ -187,11 +193,12 @@ fn profiles_fit_and_relight_a_held_out_projector() {
     // Held-out projector 3: white and one slit frame along each axis.
     let held = ProjectorView {
         centre: projector_centre(3),
+        falloff: Falloff::Isotropic,
         coords: &coords,
     };
     let shift = shifts(&s, &held.centre, ETA, ViewRay::Refracted);
-    let homogeneous = fit.model.homogeneous(&s.mask);
-    let dipole = fit_dipole_model(&s, &geometries, &sweeps, ETA).unwrap();
+    let homogeneous = fit.model.homogeneous(&s.mask, &s.mask);
+    let dipole = fit_dipole_model(&s, &geometries, &sweeps, ETA, 1).unwrap();
     let ropts = RenderOptions::default();
     for pattern in [
         Pattern::White,
@@ -208,7 +215,7 @@ fn profiles_fit_and_relight_a_held_out_projector() {
             offset: 6,
         },
     ] {
-        let e = pattern_irradiance(&s, &held, &pattern, 0.0);
+        let e = pattern_irradiance(&s, &held, &pattern, 0.0, 0.0);
         let truth = truth_global(&s, 3, &pattern);
         let ours = render_global(&s, &e, &shift, &fit.model, &ropts).unwrap();
         let homog = render_global(&s, &e, &shift, &homogeneous, &ropts).unwrap();

@@ -248,14 +248,31 @@ impl DipoleTable {
         if !best.0.is_finite() {
             return None;
         }
-        let extinction = best.1;
-        let layers = components(extinction)
+        self.with_extinction(reflectance, best.1)
+    }
+
+    /// The dipole of a pixel-channel with total diffuse reflectance `reflectance` and a given
+    /// reduced extinction (e.g. fitted on a neighbour: the profile's shape, its own amplitude).
+    /// `None` without light.
+    pub fn with_extinction(&self, reflectance: f64, extinction: f64) -> Option<DipoleFit> {
+        if reflectance.is_nan() || reflectance <= 0.0 || extinction.is_nan() || extinction <= 0.0 {
+            return None;
+        }
+        let albedo = albedo_for_reflectance(reflectance, self.eta);
+        let weights = self.nearest(albedo);
+        let total: f64 = weights.iter().sum();
+        if total <= 0.0 {
+            return None;
+        }
+        let layers = WIDTHS
             .iter()
+            .zip(weights)
+            .filter(|(_, w)| **w > 0.0)
             .enumerate()
-            .map(|(j, c)| SplatLayer {
+            .map(|(j, (&s, &w))| SplatLayer {
                 index: j as u16,
-                weight: (c.weight * reflectance) as f32,
-                sigma_mm: c.sigma as f32,
+                weight: (w / total * reflectance) as f32,
+                sigma_mm: (s / extinction) as f32,
                 depth_mm: 0.0,
             })
             .collect();

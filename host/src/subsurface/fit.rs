@@ -80,7 +80,7 @@ impl Default for FitOptions {
 }
 
 /// What the fit did.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FitStats {
     pub depth_spacing_mm: f64,
     /// Pixel-channel fits run, and skipped for lack of light.
@@ -389,12 +389,15 @@ fn tile_pixel(
 }
 
 /// The dipole baseline over the surface: one isotropic dipole per pixel and channel, fitted to the
-/// same profiles (see [`super::dipole`]). Pixels without light get no layers.
+/// same profiles (see [`super::dipole`]). With `block > 1` the reduced extinction (the profile's
+/// shape) is fitted at one pixel per `block x block` tile, as [`fit_model`] does, and every pixel
+/// of the tile keeps its own reflectance (amplitude). Pixels without light get no layers.
 pub fn fit_dipole_model(
     surface: &Surface,
     geometries: &[Vec<Option<PixelGeometry>>],
     sweeps: &[SlitSweep],
     eta: f64,
+    block: usize,
 ) -> Result<LayerModel, FitError> {
     if geometries.len() != sweeps.len() {
         return Err(FitError::ProjectorCount {
@@ -403,29 +406,49 @@ pub fn fit_dipole_model(
         });
     }
     let table = super::dipole::DipoleTable::new(eta);
-    let n = surface.len();
-    let fits: Vec<[Vec<SplatLayer>; 3]> = (0..n)
+    let (w, h) = (surface.width, surface.height);
+    let block = block.max(1);
+    let (bw, bh) = (w.div_ceil(block), h.div_ceil(block));
+    let lit = |i: usize| surface.mask[i] && geometries.iter().any(|g| g[i].is_some());
+    // Extinction per tile and channel, fitted at the tile's pixel.
+    let extinctions: Vec<[Option<f64>; 3]> = (0..bw * bh)
         .into_par_iter()
-        .map(|i| {
-            let mut out: [Vec<SplatLayer>; 3] = Default::default();
-            if !surface.mask[i] {
+        .map(|t| {
+            let mut out = [None; 3];
+            let Some(i) = tile_pixel(t % bw, t / bw, block, w, h, &lit) else {
                 return out;
-            }
-            for (c, layers) in out.iter_mut().enumerate() {
+            };
+            for (c, o) in out.iter_mut().enumerate() {
                 let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
                 if profiles.is_empty() {
                     continue;
                 }
-                if let Some(fit) = table.fit(&profiles, weight_scale(&profiles, &ew)) {
+                *o = table
+                    .fit(&profiles, weight_scale(&profiles, &ew))
+                    .map(|f| f.extinction);
+            }
+            out
+        })
+        .collect();
+    let fits: Vec<[Vec<SplatLayer>; 3]> = (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            let mut out: [Vec<SplatLayer>; 3] = Default::default();
+            if !lit(i) {
+                return out;
+            }
+            let tile = (i / w / block) * bw + (i % w) / block;
+            for (c, layers) in out.iter_mut().enumerate() {
+                let Some(ext) = extinctions[tile][c] else {
+                    continue;
+                };
+                let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
+                if let Some(fit) = table.with_extinction(weight_scale(&profiles, &ew), ext) {
                     *layers = fit.layers;
                 }
             }
             out
         })
         .collect();
-    Ok(LayerModel::from_fn(
-        surface.width,
-        surface.height,
-        |i, c| fits[i][c].clone(),
-    ))
+    Ok(LayerModel::from_fn(w, h, |i, c| fits[i][c].clone()))
 }

@@ -8,9 +8,11 @@ pub mod em_free;
 pub mod em_layered;
 pub mod fit;
 pub mod mixture;
+pub mod model_file;
 pub mod profiles;
 pub mod relight;
 pub mod render;
+pub mod slit_global;
 pub mod surface;
 
 #[cfg(test)]

@@ -41,11 +41,28 @@ pub enum ProfileError {
     },
 }
 
+/// How a projector's irradiance falls off around it.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Falloff {
+    /// Isotropic point source: `cos(theta_i) (r_ref / r)^2`, `r_ref` =
+    /// [`IRRADIANCE_REFERENCE_MM`].
+    #[default]
+    Isotropic,
+    /// A projector's flat pixel grid (as the normals stage and the virtual booth): intensity
+    /// `scale / cos^3(alpha)` at angle `alpha` off the optical `axis` (unit, pointing out of the
+    /// lens), so `cos(theta_i) scale / (r^2 cos^3(alpha))`. `scale` = the squared distance to the
+    /// subject's nominal centre makes every projector give 1 there: they are assumed equally
+    /// bright after photometric calibration.
+    Projector { axis: [f64; 3], scale: f64 },
+}
+
 /// One projector as the profile stage sees it.
 #[derive(Debug, Clone, Copy)]
 pub struct ProjectorView<'a> {
     /// Optical centre (world, mm).
     pub centre: Vector3<f64>,
+    pub falloff: Falloff,
     /// Projector coordinates of each camera pixel's surface point; `None` where unlit/undecoded.
     pub coords: &'a [Option<(f32, f32)>],
 }
@@ -57,18 +74,34 @@ pub struct SlitFrame<'a> {
     pub global: &'a [[f32; 3]],
 }
 
-/// Irradiance (model units) of a light at `centre` on a surface point.
-pub fn irradiance(point: &Vector3<f64>, normal: &Vector3<f64>, centre: &Vector3<f64>) -> f64 {
+/// Irradiance (model units) of a light at `centre` on a surface point; 0 when the point faces
+/// away or lies behind the projector.
+pub fn irradiance(
+    point: &Vector3<f64>,
+    normal: &Vector3<f64>,
+    centre: &Vector3<f64>,
+    falloff: &Falloff,
+) -> f64 {
     let to_light = centre - point;
     let r2 = to_light.norm_squared();
     if r2 <= 0.0 {
         return 0.0;
     }
-    let cos = (to_light / r2.sqrt()).dot(normal);
+    let dir = to_light / r2.sqrt();
+    let cos = dir.dot(normal);
     if cos <= 0.0 {
-        0.0
-    } else {
-        cos * IRRADIANCE_REFERENCE_MM * IRRADIANCE_REFERENCE_MM / r2
+        return 0.0;
+    }
+    match *falloff {
+        Falloff::Isotropic => cos * IRRADIANCE_REFERENCE_MM * IRRADIANCE_REFERENCE_MM / r2,
+        Falloff::Projector { axis, scale } => {
+            let cos_axis = -dir.dot(&Vector3::from(axis));
+            if cos_axis <= 1e-6 {
+                0.0
+            } else {
+                cos * scale / (r2 * cos_axis.powi(3))
+            }
+        }
     }
 }
 
@@ -158,7 +191,7 @@ pub fn pixel_geometry(
             let jac = coord_jacobian(view, surface, i)?;
             let (p, n) = (&surface.points[i], &surface.normals[i]);
             let shift = shift_per_depth(p, n, &view.centre, &surface.camera_centre, eta, view_ray)?;
-            let e = irradiance(p, n, &view.centre);
+            let e = irradiance(p, n, &view.centre, &view.falloff);
             if e <= 0.0 {
                 return None;
             }
@@ -286,6 +319,7 @@ mod tests {
             .collect();
         let view = ProjectorView {
             centre: Vector3::new(-998.0, 1.0, 1000.0),
+            falloff: Falloff::Isotropic,
             coords: &coords,
         };
         let geo = pixel_geometry(&surface, &view, 1.4, ViewRay::Refracted).unwrap();

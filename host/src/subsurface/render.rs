@@ -96,13 +96,39 @@ impl LayerModel {
         self.layers.len()
     }
 
-    /// The homogeneous model (paper Fig. 11d): every pixel of `mask` gets, per channel and layer
-    /// index, the mean weight over the masked pixels and the weight-averaged sigma and depth.
-    pub fn homogeneous(&self, mask: &[bool]) -> Self {
+    /// Builds the model from its compressed rows (as [`LayerModel::parts`] returns them);
+    /// `None` when the offsets do not describe `width x height x 3` rows of `layers`.
+    pub fn from_parts(
+        width: usize,
+        height: usize,
+        offsets: Vec<u32>,
+        layers: Vec<SplatLayer>,
+    ) -> Option<Self> {
+        let rows_ok = offsets.len() == width * height * 3 + 1
+            && offsets.first() == Some(&0)
+            && offsets.last().map(|&l| l as usize) == Some(layers.len())
+            && offsets.windows(2).all(|w| w[0] <= w[1]);
+        rows_ok.then_some(Self {
+            width,
+            height,
+            offsets,
+            layers,
+        })
+    }
+
+    /// The compressed rows: offsets (`width x height x 3 + 1`) and the layers they index.
+    pub fn parts(&self) -> (&[u32], &[SplatLayer]) {
+        (&self.offsets, &self.layers)
+    }
+
+    /// The homogeneous model (paper Fig. 11d): every pixel of `apply_to` gets, per channel and
+    /// layer index, the mean weight over the pixels of `average_over` and the weight-averaged
+    /// sigma and depth.
+    pub fn homogeneous(&self, average_over: &[bool], apply_to: &[bool]) -> Self {
         let mut acc: Vec<std::collections::BTreeMap<u16, (f64, f64, f64)>> =
             vec![Default::default(); 3];
         let mut count = 0usize;
-        for (i, _) in mask.iter().enumerate().filter(|m| *m.1) {
+        for (i, _) in average_over.iter().enumerate().filter(|m| *m.1) {
             count += 1;
             for (c, acc) in acc.iter_mut().enumerate() {
                 for l in self.layers(i, c) {
@@ -129,7 +155,11 @@ impl LayerModel {
             })
             .collect();
         Self::from_fn(self.width, self.height, |i, c| {
-            if mask[i] { mean[c].clone() } else { Vec::new() }
+            if apply_to.get(i).copied().unwrap_or(false) {
+                mean[c].clone()
+            } else {
+                Vec::new()
+            }
         })
     }
 }
@@ -433,7 +463,7 @@ mod tests {
         // Total re-emitted flux = w * E * dA, radiance integrates back over the area.
         let flux: f64 = out.iter().map(|p| f64::from(p[0]) * 0.04).sum();
         assert!((flux - 0.1 * 0.04).abs() < 1e-6, "{flux}");
-        let homog = model.homogeneous(&vec![true; w * h]);
+        let homog = model.homogeneous(&vec![true; w * h], &vec![true; w * h]);
         assert!((homog.layers(5, 0)[0].weight - 0.15).abs() < 1e-6);
         assert!((homog.layers(6, 2)[0].weight - 0.35).abs() < 1e-6);
     }

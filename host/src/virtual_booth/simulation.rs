@@ -310,7 +310,13 @@ pub fn simulate_scan(
         &writer,
         &truth_dir,
         progress,
-        |p| matches!(p, Pattern::White | Pattern::HighFrequency { .. }),
+        // Slits: the first shift of each axis, the reference of the slit profiles' global part.
+        |p| {
+            matches!(
+                p,
+                Pattern::White | Pattern::HighFrequency { .. } | Pattern::Slit { offset: 0, .. }
+            )
+        },
     )?;
     let contact: Vec<Rgb32FImage> = frames;
     truth_writer::write_contact_sheet(

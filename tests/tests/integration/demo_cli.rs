@@ -47,6 +47,8 @@ fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
     let mem = number(&report, "peak_memory_mb");
     assert!(mem > 1.0 && mem < 64_000.0, "{mem}");
     assert_eq!(report["calibration"]["source"], "truth");
+    let html = std::fs::read_to_string(out.join("report.html")).expect("report.html written");
+    assert!(html.contains("Pipeline against the truth") && html.contains("data:image/png;base64,"));
     // The report on disk is the one printed.
     let on_disk: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("demo.json")).unwrap()).unwrap();

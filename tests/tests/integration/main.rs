@@ -2,6 +2,7 @@ mod booth_cli;
 mod calibrate_cli;
 mod decode_cli;
 mod demo_cli;
+mod fit_cli;
 mod mc_cli;
 mod mc_validation;
 mod normals_cli;

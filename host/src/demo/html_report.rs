@@ -1,0 +1,276 @@
+//! The demonstration's HTML report (`OUT/report.html`): the paper's Figs. 9-11 for the scene,
+//! the metrics and timings, previews of the pipeline stages and the full JSON report.
+
+use std::path::Path;
+
+use serde_json::Value;
+
+use crate::report::figures::{RelitImages, comparison_panels, scanline_plot};
+use crate::report::html::{HtmlReport, HtmlReportError, Panel, png_bytes};
+use crate::report::plot::PlotError;
+
+/// Errors of the report.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DemoReportError {
+    /// An image or the document could not be produced.
+    #[error(transparent)]
+    Html(#[from] HtmlReportError),
+    /// A plot could not be drawn.
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+}
+
+/// The held-out relighting images the figures show.
+#[derive(Debug, Clone)]
+pub struct RelightFigures {
+    /// Per pattern (white first when present).
+    pub images: Vec<RelitImages>,
+    /// Compared pixels.
+    pub mask: Vec<bool>,
+}
+
+fn fmt(v: &Value, decimals: usize) -> String {
+    match v.as_f64() {
+        Some(x) if x.is_finite() => format!("{x:.decimals$}"),
+        _ => "-".into(),
+    }
+}
+
+fn lookup<'a>(report: &'a Value, path: &str) -> &'a Value {
+    path.split('.').fold(report, |v, k| &v[k])
+}
+
+fn metric_rows(report: &Value) -> Vec<Vec<String>> {
+    let renderers = ["mlsss", "homogeneous", "dipole", "direct_only"];
+    renderers
+        .iter()
+        .map(|r| {
+            vec![
+                (*r).to_owned(),
+                fmt(lookup(report, &format!("relight.psnr_db.{r}")), 2),
+                fmt(lookup(report, &format!("relight.rmse.{r}")), 5),
+                fmt(lookup(report, &format!("relight.global_rel_rmse.{r}")), 4),
+            ]
+        })
+        .collect()
+}
+
+fn pipeline_rows(report: &Value) -> Vec<Vec<String>> {
+    [
+        ("decode exact fraction", "decode.exact_fraction", 4),
+        ("depth RMSE (mm)", "depth_rmse_mm", 3),
+        (
+            "normals mean angular error (deg)",
+            "normals.mean_angular_error_deg",
+            2,
+        ),
+        (
+            "separation global relative RMSE",
+            "separation.global_rel_rmse",
+            3,
+        ),
+        (
+            "calibration: max focal error (%)",
+            "calibration.errors.max_focal_rel_pct",
+            3,
+        ),
+        (
+            "calibration: max principal point error (px)",
+            "calibration.errors.max_principal_point_px",
+            2,
+        ),
+        (
+            "calibration: max projector centre error (mm)",
+            "calibration.errors.max_projector_centre_mm",
+            2,
+        ),
+        (
+            "calibration: stereo RMS (px)",
+            "calibration.stereo_rms_px",
+            3,
+        ),
+        ("peak memory (MB)", "peak_memory_mb", 0),
+    ]
+    .iter()
+    .map(|(name, path, d)| vec![(*name).to_owned(), fmt(lookup(report, path), *d)])
+    .collect()
+}
+
+fn timing_rows(report: &Value) -> Vec<Vec<String>> {
+    report["timing_s"]
+        .as_object()
+        .map(|m| m.iter().map(|(k, v)| vec![k.clone(), fmt(v, 2)]).collect())
+        .unwrap_or_default()
+}
+
+/// Writes the report to `path`. `processed` is the pipeline's output folder (stage previews are
+/// embedded when present).
+pub fn write_report(
+    path: &Path,
+    report: &Value,
+    relight: Option<&RelightFigures>,
+    processed: &Path,
+) -> Result<(), DemoReportError> {
+    let mut html = HtmlReport::new("MLSSS demo: held-out relighting of a simulated capture");
+    let d = &report["demo"];
+    html.paragraph(&format!(
+        "Booth {}, camera {}, subject {}, skin {}, seed {}; projector {} held out of the fit and \
+         relit from the model fitted on the other projectors; calibration: {}.",
+        d["booth"].as_str().unwrap_or("?"),
+        d["camera"],
+        d["subject"].as_str().unwrap_or("?"),
+        d["skin"].as_str().unwrap_or("?"),
+        d["seed"],
+        d["holdout_projector"],
+        report["calibration"]["source"].as_str().unwrap_or("?"),
+    ));
+    html.heading("Held-out relighting");
+    html.paragraph(
+        "PSNR and RMSE: total render (direct + subsurface) against the recorded frames of the \
+         held-out projector minus the other projectors' stray black light, pooled over the \
+         evaluated patterns (peak 1.0 = camera saturation). Global relative RMSE: the rendered \
+         subsurface part alone against the simulator's true global image.",
+    );
+    html.table(
+        &["renderer", "PSNR (dB)", "RMSE", "global relative RMSE"],
+        metric_rows(report),
+    );
+    let margins = &report["relight"]["margins"];
+    if margins.is_object() {
+        html.paragraph(&format!(
+            "Margins: MLSSS minus the best baseline {} dB; MLSSS minus homogeneous {} dB; global \
+             error ratio homogeneous / MLSSS {}, dipole / MLSSS {}.",
+            fmt(&margins["psnr_db_mlsss_minus_best_baseline"], 2),
+            fmt(&margins["psnr_db_mlsss_minus_homogeneous"], 2),
+            fmt(&margins["global_rel_rmse_homogeneous_over_mlsss"], 3),
+            fmt(&margins["global_rel_rmse_dipole_over_mlsss"], 3),
+        ));
+    }
+    if let Some(fig) = relight {
+        if let Some(code) = fig.images.iter().find(|i| i.pattern != "white") {
+            html.heading("Fig. 9: recorded vs rendered under a code pattern");
+            html.figure(
+                "The held-out projector's Gray-code pattern: recorded, then each renderer (same \
+                 exposure).",
+                comparison_panels(code, &fig.mask)?,
+            );
+        }
+        html.heading("Fig. 10: forehead scanline");
+        let mut panels = Vec::new();
+        for images in &fig.images {
+            if let Some(plot) = scanline_plot(images, &fig.mask, 0)? {
+                let label = format!("R channel, held-out projector, {}", images.pattern);
+                panels.push(Panel::png(&label, png_bytes(&plot.render()?, &label)?));
+            }
+        }
+        for (file, label) in [
+            (
+                "fit/fig10.svg",
+                "fit stage: R along the scanline, measured vs synthesised",
+            ),
+            (
+                "fit/pixel_profiles.svg",
+                "fit stage: profiles of three scanline pixels",
+            ),
+            (
+                "profiles/scanline.svg",
+                "profiles stage: measured global light on the scanline",
+            ),
+        ] {
+            panels.extend(Panel::from_file(label, &processed.join(file)));
+        }
+        html.figure(
+            "R channel along a forehead row (a quarter down the subject).",
+            panels,
+        );
+        if let Some(white) = fig.images.iter().find(|i| i.pattern == "white") {
+            html.heading("Fig. 11: white light, inhomogeneous vs homogeneous vs recorded");
+            html.figure(
+                "The held-out projector's white frame: recorded, then each renderer.",
+                comparison_panels(white, &fig.mask)?,
+            );
+        }
+    } else {
+        html.paragraph("No relighting in this run (no fitted model).");
+    }
+    html.heading("Pipeline against the truth");
+    html.table(&["quantity", "value"], pipeline_rows(report));
+    let previews: Vec<Panel> = [
+        (
+            "separate/separation.png",
+            "direct / global separation (rows: projectors)",
+        ),
+        ("normals/normals.png", "normals"),
+        ("geometry/shaded.png", "geometry"),
+    ]
+    .iter()
+    .filter_map(|(f, l)| Panel::from_file(l, &processed.join(f)))
+    .collect();
+    if !previews.is_empty() {
+        html.figure("Stage previews.", previews);
+    }
+    html.heading("Timings (s)");
+    html.table(&["step", "seconds"], timing_rows(report));
+    html.heading("Full report (JSON)");
+    html.preformatted(&serde_json::to_string_pretty(report).unwrap_or_default());
+    html.save(path)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn the_report_holds_metrics_figures_and_previews() {
+        let dir = tempfile::tempdir().unwrap();
+        let processed = dir.path().join("processed");
+        std::fs::create_dir_all(processed.join("normals")).unwrap();
+        image::RgbImage::new(4, 4)
+            .save(processed.join("normals/normals.png"))
+            .unwrap();
+        let report = json!({
+            "demo": { "booth": "quick", "camera": [4, 4], "subject": "head", "skin": "light",
+                      "seed": 1, "holdout_projector": 3 },
+            "calibration": { "source": "truth" },
+            "relight": { "psnr_db": { "mlsss": 31.25, "homogeneous": 29.5 },
+                         "rmse": { "mlsss": 0.0274 },
+                         "margins": { "psnr_db_mlsss_minus_best_baseline": 1.75 } },
+            "depth_rmse_mm": 0.25,
+            "timing_s": { "simulate": 3.5, "total": 9.0 },
+        });
+        let mask = vec![true; 16];
+        let img = |v: f32| vec![[v, v * 0.5, v * 0.25]; 16];
+        let images = |pattern: &str| RelitImages {
+            pattern: pattern.into(),
+            width: 4,
+            height: 4,
+            reference: img(0.5),
+            renders: vec![
+                ("mlsss".into(), img(0.45)),
+                ("homogeneous".into(), img(0.3)),
+            ],
+        };
+        let fig = RelightFigures {
+            images: vec![images("white"), images("gray-x-3")],
+            mask,
+        };
+        let path = dir.path().join("report.html");
+        write_report(&path, &report, Some(&fig), &processed).unwrap();
+        let html = std::fs::read_to_string(&path).unwrap();
+        assert!(html.contains("<td>mlsss</td><td>31.25</td><td>0.02740</td><td>-</td>"));
+        assert!(html.contains("Fig. 9") && html.contains("Fig. 10") && html.contains("Fig. 11"));
+        assert!(html.contains("recorded (gray-x-3)") && html.contains("homogeneous (white)"));
+        assert!(html.contains("MLSSS minus the best baseline 1.75 dB"));
+        assert!(html.contains("<td>depth RMSE (mm)</td><td>0.250</td>"));
+        assert!(html.contains("alt=\"normals\""));
+        // 3 + 3 comparison panels, 2 scanline plots, 1 preview.
+        assert_eq!(html.matches("data:image/png;base64,").count(), 9);
+        // Without relighting the report still renders and says so.
+        write_report(&path, &report, None, &processed).unwrap();
+        let html = std::fs::read_to_string(&path).unwrap();
+        assert!(html.contains("No relighting in this run"));
+    }
+}

@@ -1,0 +1,661 @@
+//! The fitted model as one file (`OUT/fit/model.mlsss`), and rendering a projector's pattern from
+//! it: everything `mlsss render`, `mlsss eval` and the demo need, with no other artefact.
+//!
+//! File layout: 8-byte magic [`MAGIC`], `u32` LE format version, then a gzip stream holding a
+//! `u32` LE header length, the UTF-8 JSON [`ModelHeader`], and little-endian binary sections in
+//! this order (`n` = width x height camera pixels, row-major, pixel `i = y * width + x`):
+//! points `n x 3 f32` (world mm), normals `n x 3 f32`, mask `n u8`, direct albedo `n x 3 f32`,
+//! white albedo `n x 3 f32`,
+//! visibility `projectors x n u8`, the layer model (offsets `n x 3 + 1 u32`, layer count `u32`,
+//! layers `u16 index, f32 weight, f32 sigma_mm, f32 depth_mm`), a `u8` flag and, when set, the
+//! dipole baseline in the same layout. Binary because the layer model of a full-size capture is
+//! tens of millions of numbers; gzip because most pixels are background or share few layers.
+//!
+//! Conventions: as [`super::surface`] and [`super::profiles`]; radiance in the frames' linear
+//! units. A render holds projector `k`'s light only (its black level included, the stray light of
+//! the other projectors' black level not).
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::fit::{EmVariant, FitStats};
+use super::profiles::{Falloff, ProjectorView};
+use super::relight::{Relit, relight};
+use super::render::{LayerModel, RenderError, RenderOptions, SplatLayer};
+use super::surface::{Surface, ViewRay};
+use crate::booth::PatternSpec;
+use crate::calib::Calibration;
+use crate::capture::Pattern;
+
+/// First bytes of a model file.
+pub const MAGIC: &[u8; 8] = b"MLSSSMDL";
+/// Version of the layout written by this code.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Errors reading, writing or rendering a model file.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ModelFileError {
+    /// The file could not be read or written.
+    #[error("model file {path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The file is not a model file (wrong magic) or is of another version.
+    #[error(
+        "{path} is not an mlsss model file of format version {FORMAT_VERSION} ({reason}); \
+         write one with `mlsss process CAPTURE --calib ... --until fit`"
+    )]
+    NotAModel { path: PathBuf, reason: String },
+    /// The file ends early or its sections disagree with the header.
+    #[error("model file {path} is corrupt: {reason}")]
+    Corrupt { path: PathBuf, reason: String },
+    /// The model has no such projector.
+    #[error("projector {requested} is not in the model (it has {count} projectors: 0..{count})")]
+    NoSuchProjector { requested: usize, count: usize },
+    /// The dipole baseline was asked for but the model was saved without it.
+    #[error("the model has no dipole baseline (fitted with dipole disabled)")]
+    NoDipole,
+    /// The in-memory model is inconsistent (sizes of its parts).
+    #[error("inconsistent model: {0}")]
+    Inconsistent(String),
+    /// The renderer refused its input.
+    #[error(transparent)]
+    Render(#[from] RenderError),
+}
+
+/// One projector as a light of the model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ProjectorLight {
+    /// Optical centre, world mm.
+    pub centre: [f64; 3],
+    pub falloff: Falloff,
+    /// Fraction of white the projector emits for level 0.
+    pub black_level: f32,
+    /// Blur of its pattern edges seen by a camera pixel (projector px, standard deviation).
+    pub blur_px: f32,
+}
+
+/// Metadata of a model (the JSON header of the file).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelHeader {
+    pub format_version: u32,
+    pub width: usize,
+    pub height: usize,
+    pub em: EmVariant,
+    /// Components requested per fit (the paper: 20).
+    pub components: usize,
+    /// Layer spacing D (mm), subject-wide.
+    pub depth_spacing_mm: f64,
+    pub eta: f64,
+    pub view_ray: ViewRay,
+    pub training_projectors: Vec<usize>,
+    pub holdout: Option<usize>,
+    /// Every projector of the capture as a light, index = projector number.
+    pub projectors: Vec<ProjectorLight>,
+    /// The calibration the model was built with (projections for rendering).
+    pub calibration: Calibration,
+    /// The booth's pattern geometry (slit width and period, stripes) the capture used.
+    pub patterns: PatternSpec,
+    pub camera_centre: [f64; 3],
+    pub stats: FitStats,
+}
+
+/// Which model renders the subsurface light.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Baseline {
+    /// The fitted multi-layer model, per pixel.
+    Mlsss,
+    /// Its layers averaged over the skin (paper Fig. 11d).
+    Homogeneous,
+    /// A per-pixel isotropic dipole (Jensen 2001).
+    Dipole,
+    /// No subsurface light at all.
+    Direct,
+}
+
+/// A fitted model and what rendering needs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SubsurfaceModel {
+    pub header: ModelHeader,
+    pub surface: Surface,
+    /// Direct radiance per unit irradiance, RGB per pixel: the part of the light the layer model
+    /// does not hold (zero when the profiles kept all light, `DirectPart::None`).
+    pub albedo: Vec<[f32; 3]>,
+    /// All light (direct + subsurface) per unit irradiance under white, RGB per pixel: the
+    /// direct-only baseline re-emits it where it entered (no subsurface transport).
+    pub white_albedo: Vec<[f32; 3]>,
+    /// Per projector: pixels it lights (decoded, not shadowed).
+    pub visibility: Vec<Vec<bool>>,
+    pub layers: LayerModel,
+    pub dipole: Option<LayerModel>,
+}
+
+impl SubsurfaceModel {
+    /// Checks that the parts agree in size.
+    pub fn check(&self) -> Result<(), ModelFileError> {
+        let n = self.header.width * self.header.height;
+        let bad = |what: &str| Err(ModelFileError::Inconsistent(what.to_owned()));
+        if self.surface.width != self.header.width || self.surface.height != self.header.height {
+            return bad("surface size differs from the header");
+        }
+        if self.surface.points.len() != n
+            || self.surface.normals.len() != n
+            || self.surface.mask.len() != n
+            || self.albedo.len() != n
+            || self.white_albedo.len() != n
+        {
+            return bad("per-pixel arrays differ from width x height");
+        }
+        if self.visibility.len() != self.header.projectors.len()
+            || self.visibility.iter().any(|v| v.len() != n)
+        {
+            return bad("visibility maps differ from the projectors or the image size");
+        }
+        for m in std::iter::once(&self.layers).chain(self.dipole.as_ref()) {
+            if m.width != self.header.width || m.height != self.header.height {
+                return bad("a layer model differs from the image size");
+            }
+        }
+        Ok(())
+    }
+
+    /// The homogeneous baseline: layers averaged over the pixels that have a fit, applied to the
+    /// whole surface.
+    pub fn homogeneous(&self) -> LayerModel {
+        let fitted: Vec<bool> = (0..self.surface.len())
+            .map(|i| (0..3).any(|c| !self.layers.layers(i, c).is_empty()))
+            .collect();
+        self.layers.homogeneous(&fitted, &self.surface.mask)
+    }
+
+    /// Projector `k`'s coordinates of every visible surface pixel, projected through the
+    /// calibration (distortion included).
+    pub fn projector_coords(&self, k: usize) -> Result<Vec<Option<(f32, f32)>>, ModelFileError> {
+        let count = self.header.projectors.len();
+        let (Some(device), Some(visible)) = (
+            self.header.calibration.projectors.get(k),
+            self.visibility.get(k),
+        ) else {
+            return Err(ModelFileError::NoSuchProjector {
+                requested: k,
+                count,
+            });
+        };
+        let device = &device.device;
+        Ok(self
+            .surface
+            .points
+            .iter()
+            .zip(visible)
+            .zip(&self.surface.mask)
+            .map(|((p, &vis), &on)| {
+                if !(vis && on) {
+                    return None;
+                }
+                device
+                    .project(&Point3::from(*p))
+                    .map(|q| (q.x as f32, q.y as f32))
+            })
+            .collect())
+    }
+
+    /// Writes the model file.
+    pub fn save(&self, path: &Path) -> Result<(), ModelFileError> {
+        self.check()?;
+        let io = |source| ModelFileError::Io {
+            path: path.to_owned(),
+            source,
+        };
+        let file = std::fs::File::create(path).map_err(io)?;
+        let mut out = std::io::BufWriter::new(file);
+        out.write_all(MAGIC).map_err(io)?;
+        out.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io)?;
+        let mut gz = flate2::write::GzEncoder::new(out, flate2::Compression::fast());
+        let header = serde_json::to_vec(&self.header)
+            .map_err(|e| ModelFileError::Inconsistent(e.to_string()))?;
+        let mut buf = Vec::with_capacity(header.len() + 64 * self.surface.len());
+        put_u32(&mut buf, header.len() as u32);
+        buf.extend_from_slice(&header);
+        for p in &self.surface.points {
+            put_f32s(&mut buf, &[p.x as f32, p.y as f32, p.z as f32]);
+        }
+        for n in &self.surface.normals {
+            put_f32s(&mut buf, &[n.x as f32, n.y as f32, n.z as f32]);
+        }
+        buf.extend(self.surface.mask.iter().map(|&m| u8::from(m)));
+        for a in self.albedo.iter().chain(&self.white_albedo) {
+            put_f32s(&mut buf, a);
+        }
+        for v in &self.visibility {
+            buf.extend(v.iter().map(|&m| u8::from(m)));
+        }
+        put_layers(&mut buf, &self.layers);
+        match &self.dipole {
+            Some(d) => {
+                buf.push(1);
+                put_layers(&mut buf, d);
+            }
+            None => buf.push(0),
+        }
+        gz.write_all(&buf).map_err(io)?;
+        gz.finish().map_err(io)?.flush().map_err(io)
+    }
+
+    /// Reads a model file.
+    pub fn load(path: &Path) -> Result<Self, ModelFileError> {
+        let io = |source| ModelFileError::Io {
+            path: path.to_owned(),
+            source,
+        };
+        let not_a_model = |reason: &str| ModelFileError::NotAModel {
+            path: path.to_owned(),
+            reason: reason.to_owned(),
+        };
+        let mut file = std::io::BufReader::new(std::fs::File::open(path).map_err(io)?);
+        let mut magic = [0u8; 12];
+        file.read_exact(&mut magic)
+            .map_err(|_| not_a_model("shorter than its 12-byte preamble"))?;
+        if &magic[..8] != MAGIC {
+            return Err(not_a_model("wrong magic bytes"));
+        }
+        let version = u32::from_le_bytes([magic[8], magic[9], magic[10], magic[11]]);
+        if version != FORMAT_VERSION {
+            return Err(not_a_model(&format!("it has version {version}")));
+        }
+        let mut bytes = Vec::new();
+        flate2::read::GzDecoder::new(file)
+            .read_to_end(&mut bytes)
+            .map_err(io)?;
+        let mut r = Reader {
+            bytes: &bytes,
+            at: 0,
+            path,
+        };
+        let header_len = r.u32()? as usize;
+        let header: ModelHeader =
+            serde_json::from_slice(r.take(header_len)?).map_err(|e| ModelFileError::Corrupt {
+                path: path.to_owned(),
+                reason: format!("header: {e}"),
+            })?;
+        let n = header
+            .width
+            .checked_mul(header.height)
+            .ok_or_else(|| r.corrupt("image size overflows"))?;
+        let points = r.vectors(n)?;
+        let normals = r.vectors(n)?;
+        let mask = r.flags(n)?;
+        let mut rgb = || {
+            (0..n)
+                .map(|_| Ok([r.f32()?, r.f32()?, r.f32()?]))
+                .collect::<Result<Vec<_>, ModelFileError>>()
+        };
+        let albedo = rgb()?;
+        let white_albedo = rgb()?;
+        let visibility = (0..header.projectors.len())
+            .map(|_| r.flags(n))
+            .collect::<Result<Vec<_>, _>>()?;
+        let layers = r.layers(header.width, header.height)?;
+        let dipole = match r.take(1)?[0] {
+            0 => None,
+            _ => Some(r.layers(header.width, header.height)?),
+        };
+        if r.at != bytes.len() {
+            return Err(r.corrupt("trailing bytes after the last section"));
+        }
+        let surface = Surface {
+            width: header.width,
+            height: header.height,
+            points,
+            normals,
+            mask,
+            camera_centre: Vector3::from(header.camera_centre),
+        };
+        let model = Self {
+            header,
+            surface,
+            albedo,
+            white_albedo,
+            visibility,
+            layers,
+            dipole,
+        };
+        model.check().map_err(|e| r.corrupt(&e.to_string()))?;
+        Ok(model)
+    }
+}
+
+fn put_u32(buf: &mut Vec<u8>, v: u32) {
+    buf.extend_from_slice(&v.to_le_bytes());
+}
+
+fn put_f32s(buf: &mut Vec<u8>, vs: &[f32]) {
+    for v in vs {
+        buf.extend_from_slice(&v.to_le_bytes());
+    }
+}
+
+fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) {
+    let (offsets, layers) = model.parts();
+    for &o in offsets {
+        put_u32(buf, o);
+    }
+    put_u32(buf, layers.len() as u32);
+    for l in layers {
+        buf.extend_from_slice(&l.index.to_le_bytes());
+        put_f32s(buf, &[l.weight, l.sigma_mm, l.depth_mm]);
+    }
+}
+
+/// Cursor over the decompressed sections.
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+    path: &'a Path,
+}
+
+impl<'a> Reader<'a> {
+    fn corrupt(&self, reason: &str) -> ModelFileError {
+        ModelFileError::Corrupt {
+            path: self.path.to_owned(),
+            reason: reason.to_owned(),
+        }
+    }
+
+    fn take(&mut self, len: usize) -> Result<&'a [u8], ModelFileError> {
+        let end = self
+            .at
+            .checked_add(len)
+            .filter(|&e| e <= self.bytes.len())
+            .ok_or_else(|| self.corrupt("ends before its last section"))?;
+        let out = &self.bytes[self.at..end];
+        self.at = end;
+        Ok(out)
+    }
+
+    fn u32(&mut self) -> Result<u32, ModelFileError> {
+        let b = self.take(4)?;
+        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+
+    fn f32(&mut self) -> Result<f32, ModelFileError> {
+        let b = self.take(4)?;
+        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(self.corrupt("a non-finite number"))
+        }
+    }
+
+    fn vectors(&mut self, n: usize) -> Result<Vec<Vector3<f64>>, ModelFileError> {
+        (0..n)
+            .map(|_| {
+                Ok(Vector3::new(
+                    f64::from(self.f32()?),
+                    f64::from(self.f32()?),
+                    f64::from(self.f32()?),
+                ))
+            })
+            .collect()
+    }
+
+    fn flags(&mut self, n: usize) -> Result<Vec<bool>, ModelFileError> {
+        Ok(self.take(n)?.iter().map(|&b| b != 0).collect())
+    }
+
+    fn layers(&mut self, width: usize, height: usize) -> Result<LayerModel, ModelFileError> {
+        let rows = width * height * 3 + 1;
+        let offsets = (0..rows)
+            .map(|_| self.u32())
+            .collect::<Result<Vec<_>, _>>()?;
+        let count = self.u32()? as usize;
+        if count > self.bytes.len() / 14 {
+            return Err(self.corrupt("layer count larger than the file"));
+        }
+        let layers = (0..count)
+            .map(|_| {
+                let b = self.take(2)?;
+                Ok(SplatLayer {
+                    index: u16::from_le_bytes([b[0], b[1]]),
+                    weight: self.f32()?,
+                    sigma_mm: self.f32()?,
+                    depth_mm: self.f32()?,
+                })
+            })
+            .collect::<Result<Vec<_>, ModelFileError>>()?;
+        LayerModel::from_parts(width, height, offsets, layers)
+            .ok_or_else(|| self.corrupt("layer offsets do not index the layers"))
+    }
+}
+
+/// Renders projector `k` showing `pattern` with the chosen model: the direct part from the
+/// albedo, the subsurface part from the layers. [`Baseline::Direct`] has no subsurface part: all
+/// light (the white albedo) is re-emitted where it enters. Pure function of the model: no files.
+pub fn render_projector(
+    model: &SubsurfaceModel,
+    k: usize,
+    pattern: &Pattern,
+    baseline: Baseline,
+    opts: &RenderOptions,
+) -> Result<Relit, ModelFileError> {
+    let light = model
+        .header
+        .projectors
+        .get(k)
+        .ok_or(ModelFileError::NoSuchProjector {
+            requested: k,
+            count: model.header.projectors.len(),
+        })?;
+    let coords = model.projector_coords(k)?;
+    let view = ProjectorView {
+        centre: Vector3::from(light.centre),
+        falloff: light.falloff,
+        coords: &coords,
+    };
+    let homogeneous;
+    let empty;
+    let (layers, albedo) = match baseline {
+        Baseline::Mlsss => (&model.layers, &model.albedo),
+        Baseline::Homogeneous => {
+            homogeneous = model.homogeneous();
+            (&homogeneous, &model.albedo)
+        }
+        Baseline::Dipole => (
+            model.dipole.as_ref().ok_or(ModelFileError::NoDipole)?,
+            &model.albedo,
+        ),
+        Baseline::Direct => {
+            empty = LayerModel::from_fn(model.header.width, model.header.height, |_, _| Vec::new());
+            (&empty, &model.white_albedo)
+        }
+    };
+    Ok(relight(
+        &model.surface,
+        &view,
+        pattern,
+        light.black_level,
+        light.blur_px,
+        layers,
+        albedo,
+        model.header.eta,
+        model.header.view_ray,
+        opts,
+    )?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::booth::Booth;
+    use crate::capture::Axis;
+
+    /// A small model of the plane z = 0 seen by the quick booth's calibration.
+    fn plane_model() -> SubsurfaceModel {
+        let booth = Booth::builtin(true);
+        let calibration = Calibration::from_booth(&booth);
+        let cam = booth.camera_calibration();
+        let (w, h) = (24usize, 16usize);
+        // A patch of the camera image around its centre, scaled down to w x h.
+        let points: Vec<Vector3<f64>> = (0..w * h)
+            .map(|i| {
+                let x = cam.width as f64 / 2.0 + ((i % w) as f64 - w as f64 / 2.0);
+                let y = cam.height as f64 / 2.0 + ((i / w) as f64 - h as f64 / 2.0);
+                let (o, d) = cam.ray(x, y);
+                (o + d * (-o.z / d.z)).coords
+            })
+            .collect();
+        let projectors: Vec<ProjectorLight> = calibration
+            .projectors
+            .iter()
+            .map(|p| ProjectorLight {
+                centre: p.device.extrinsics.centre().coords.into(),
+                falloff: Falloff::Projector {
+                    axis: p
+                        .device
+                        .extrinsics
+                        .device_to_world_dir(&Vector3::z())
+                        .into(),
+                    scale: p.device.extrinsics.centre().coords.norm_squared(),
+                },
+                black_level: 0.01,
+                blur_px: 0.5,
+            })
+            .collect();
+        let layers = LayerModel::from_fn(w, h, |i, c| {
+            vec![SplatLayer {
+                index: 1,
+                weight: 0.1 + 0.01 * c as f32 + 1e-4 * i as f32,
+                sigma_mm: 0.5,
+                depth_mm: 0.2,
+            }]
+        });
+        SubsurfaceModel {
+            header: ModelHeader {
+                format_version: FORMAT_VERSION,
+                width: w,
+                height: h,
+                em: EmVariant::Layered,
+                components: 20,
+                depth_spacing_mm: 0.2,
+                eta: 1.4,
+                view_ray: ViewRay::Refracted,
+                training_projectors: vec![0, 1, 2],
+                holdout: Some(3),
+                projectors: projectors.clone(),
+                camera_centre: cam.extrinsics.centre().coords.into(),
+                patterns: booth.patterns.clone(),
+                calibration,
+                stats: FitStats::default(),
+            },
+            surface: Surface {
+                width: w,
+                height: h,
+                points,
+                // The camera looks along +z from z = -500: the skin faces -z.
+                normals: vec![-Vector3::z(); w * h],
+                mask: (0..w * h).map(|i| i % 7 != 3).collect(),
+                camera_centre: cam.extrinsics.centre().coords,
+            },
+            albedo: (0..w * h)
+                .map(|i| [0.3, 0.2, 0.1 + 1e-3 * i as f32])
+                .collect(),
+            white_albedo: vec![[0.5, 0.4, 0.3]; w * h],
+            visibility: vec![vec![true; w * h]; projectors.len()],
+            layers,
+            dipole: None,
+        }
+    }
+
+    #[test]
+    fn a_model_survives_the_file_bit_for_bit_and_bad_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("model.mlsss");
+        let mut model = plane_model();
+        model.surface.points = model
+            .surface
+            .points
+            .iter()
+            .map(|p| p.map(|v| f64::from(v as f32)))
+            .collect();
+        model.dipole = Some(model.layers.clone());
+        model.save(&path).unwrap();
+        let back = SubsurfaceModel::load(&path).unwrap();
+        // Binary sections are exact; the JSON header's floats may differ in the last digit.
+        assert_eq!(back.surface, model.surface);
+        assert_eq!(back.layers, model.layers);
+        assert_eq!(back.dipole, model.dipole);
+        assert_eq!(back.albedo, model.albedo);
+        assert_eq!(back.white_albedo, model.white_albedo);
+        assert_eq!(back.visibility, model.visibility);
+        assert_eq!(back.header.patterns, model.header.patterns);
+        assert_eq!(back.header.holdout, Some(3));
+        let (a, b) = (&back.header.projectors[2], &model.header.projectors[2]);
+        assert!((a.centre[0] - b.centre[0]).abs() < 1e-9 && a.black_level == b.black_level);
+
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+        assert!(SubsurfaceModel::load(&path).is_err());
+        std::fs::write(&path, b"MLSSSMDL\x09\0\0\0").unwrap();
+        let err = SubsurfaceModel::load(&path).unwrap_err().to_string();
+        assert!(err.contains("version 9"), "{err}");
+        std::fs::write(&path, b"not a model at all").unwrap();
+        assert!(matches!(
+            SubsurfaceModel::load(&path),
+            Err(ModelFileError::NotAModel { .. })
+        ));
+    }
+
+    #[test]
+    fn renders_white_and_slits_with_every_baseline() {
+        let model = plane_model();
+        let opts = RenderOptions::default();
+        let white = render_projector(&model, 0, &Pattern::White, Baseline::Mlsss, &opts).unwrap();
+        let direct = render_projector(&model, 0, &Pattern::White, Baseline::Direct, &opts).unwrap();
+        assert!(direct.global.iter().all(|g| *g == [0.0; 3]));
+        // Direct only re-emits the white albedo locally: ratio to the model's direct part.
+        let j = 5 * 24 + 5;
+        assert!((direct.direct[j][0] / white.direct[j][0] - 0.5 / 0.3).abs() < 1e-4);
+        let i = 8 * 24 + 12;
+        assert!(model.surface.mask[i]);
+        assert!(white.global[i][0] > 0.0 && white.direct[i][0] > 0.0);
+        // Under white light with a uniform model, global / direct = weight / albedo, up to the
+        // small per-pixel weight ramp and the border.
+        let ratio = white.global[i][0] / white.direct[i][0];
+        assert!((ratio - 0.1 / 0.3).abs() < 0.05, "{ratio}");
+        let homog =
+            render_projector(&model, 0, &Pattern::White, Baseline::Homogeneous, &opts).unwrap();
+        assert!((homog.global[i][0] - white.global[i][0]).abs() < 0.02 * white.global[i][0]);
+        // A slit through the patch's centre pixel.
+        let u = model.projector_coords(1).unwrap()[i].unwrap().0.round() as u32;
+        let slit = Pattern::Slit {
+            axis: Axis::X,
+            width: 3,
+            period: 30,
+            offset: (u + 29) % 30,
+        };
+        let s = render_projector(&model, 1, &slit, Baseline::Mlsss, &opts).unwrap();
+        let (lo, hi) = s
+            .total()
+            .iter()
+            .zip(&model.surface.mask)
+            .filter(|(_, m)| **m)
+            .fold((f32::MAX, 0.0f32), |(lo, hi), (v, _)| {
+                (lo.min(v[0]), hi.max(v[0]))
+            });
+        assert!(hi > 3.0 * lo, "slits must show: {lo} .. {hi}");
+        assert!(matches!(
+            render_projector(&model, 0, &Pattern::White, Baseline::Dipole, &opts),
+            Err(ModelFileError::NoDipole)
+        ));
+        assert!(matches!(
+            render_projector(&model, 9, &Pattern::White, Baseline::Mlsss, &opts),
+            Err(ModelFileError::NoSuchProjector { .. })
+        ));
+    }
+}
