@@ -111,7 +111,6 @@ pub const CALIBRATION_POSES: usize = 6;
 
 /// Chessboard calibration captures (`poses` poses, all 4 projectors) of the `--quick` booth
 /// shrunk 2x, made once per test binary run; returns the folder holding `pose00`, `pose01`, ...
-
 pub fn calibration_captures(poses: usize) -> PathBuf {
     static CAPTURES: OnceLock<Mutex<Vec<(usize, PathBuf)>>> = OnceLock::new();
     let captures = CAPTURES.get_or_init(|| Mutex::new(Vec::new()));
