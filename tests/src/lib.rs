@@ -105,6 +105,10 @@ pub fn quick_capture(subject: &str, seed: u64) -> PathBuf {
     out
 }
 
+/// Chessboard poses in the shared calibration set: tests that need fewer use the first ones (the
+/// poses depend only on the seed and the pose index).
+pub const CALIBRATION_POSES: usize = 6;
+
 /// Chessboard calibration captures (`poses` poses, all 4 projectors) of the `--quick` booth
 /// shrunk 2x, made once per test binary run; returns the folder holding `pose00`, `pose01`, ...
 pub fn calibration_captures(poses: usize) -> PathBuf {

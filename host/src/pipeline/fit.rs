@@ -557,7 +557,7 @@ fn write_figures(
     });
     let fig10 = LinePlot {
         title: format!(
-            "Fig. 10: global light of projector {k}{} under slit {} along row {row}",
+            "Fig. 10: projector {k}{}, {}, row {row}",
             if model.header.holdout == Some(k) {
                 " (held out)"
             } else {
@@ -608,10 +608,7 @@ fn write_figures(
         });
     }
     let profiles_plot = LinePlot {
-        title: format!(
-            "Slit profiles (R, projector {}, along x): samples and fitted model",
-            training[0]
-        ),
+        title: format!("Profiles (R, projector {}, x): samples, model", training[0]),
         x_label: "signed distance to the slit centre on the surface (mm)".into(),
         y_label: "global radiance (camera units)".into(),
         series: profile_series,

@@ -1,11 +1,13 @@
-//! A minimal line plot for stage figures (e.g. the paper's Fig. 10 scanline), written both as SVG
-//! (axes, labels, legend) and as PNG (the same curves rasterised, no text; the colours are the
-//! legend's). No plotting dependency: the figures are simple and must build offline.
+//! A line plot for stage figures (e.g. the paper's Fig. 10 scanline), written as SVG (axes,
+//! labels, legend, dashed truth curves; the HTML report embeds it) and as PNG through
+//! [`crate::report::plot`]. No plotting dependency: the figures are simple and build offline.
 //!
 //! Conventions: data coordinates are mapped linearly onto the plot area; y grows upwards.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+
+use crate::report::plot::{Plot, PlotError, Series as PlotSeries, Style};
 
 /// Errors writing a plot.
 #[derive(Debug, thiserror::Error)]
@@ -17,12 +19,9 @@ pub enum LinePlotError {
         path: PathBuf,
         source: std::io::Error,
     },
-    /// The PNG could not be written.
-    #[error("{path}: {source}")]
-    Png {
-        path: PathBuf,
-        source: image::ImageError,
-    },
+    /// The PNG could not be drawn or written.
+    #[error(transparent)]
+    Png(#[from] PlotError),
 }
 
 /// How a series is drawn.
@@ -203,52 +202,26 @@ impl LinePlot {
         s
     }
 
-    /// The curves rasterised (white background, black axes, no text).
-    pub fn png(&self) -> image::RgbImage {
-        let mut img = image::RgbImage::from_pixel(WIDTH, HEIGHT, image::Rgb([255, 255, 255]));
-        let map = self.mapper();
-        let (l, r, t, b) = MARGIN;
-        let (right, bottom) = (f64::from(WIDTH) - r, f64::from(HEIGHT) - b);
-        draw_segment(&mut img, (l, t), (l, bottom), [0, 0, 0], false);
-        draw_segment(&mut img, (l, bottom), (right, bottom), [0, 0, 0], false);
-        for series in &self.series {
-            let pts: Vec<(f64, f64)> = series
-                .points
-                .iter()
-                .filter(|p| p.0.is_finite() && p.1.is_finite())
-                .map(|&(x, y)| map(x, y))
-                .collect();
-            match series.mark {
-                Mark::Dots => {
-                    for &(x, y) in &pts {
-                        for dy in -2i32..=2 {
-                            for dx in -2i32..=2 {
-                                if dx * dx + dy * dy <= 5 {
-                                    put(
-                                        &mut img,
-                                        x + f64::from(dx),
-                                        y + f64::from(dy),
-                                        series.colour,
-                                    );
-                                }
-                            }
-                        }
-                    }
-                }
-                Mark::Line | Mark::Dashed => {
-                    for pair in pts.windows(2) {
-                        draw_segment(
-                            &mut img,
-                            pair[0],
-                            pair[1],
-                            series.colour,
-                            series.mark == Mark::Dashed,
-                        );
-                    }
-                }
-            }
-        }
-        img
+    /// The same plot as a PNG, drawn by [`crate::report::plot`] (its font and axes; dashed
+    /// curves become solid lines).
+    pub fn raster(&self) -> Plot {
+        let mut plot = Plot::new(&self.title, &self.x_label, &self.y_label);
+        plot.width = WIDTH;
+        plot.height = HEIGHT;
+        plot.series = self
+            .series
+            .iter()
+            .map(|s| PlotSeries {
+                label: s.label.clone(),
+                points: s.points.clone(),
+                color: s.colour,
+                style: match s.mark {
+                    Mark::Line | Mark::Dashed => Style::Line,
+                    Mark::Dots => Style::Points,
+                },
+            })
+            .collect();
+        plot
     }
 
     /// Writes `<stem>.svg` and `<stem>.png`.
@@ -256,38 +229,11 @@ impl LinePlot {
         let svg = stem.with_extension("svg");
         std::fs::write(&svg, self.svg())
             .map_err(|source| LinePlotError::Io { path: svg, source })?;
-        let png = stem.with_extension("png");
-        self.png()
-            .save(&png)
-            .map_err(|source| LinePlotError::Png { path: png, source })
-    }
-}
-
-fn put(img: &mut image::RgbImage, x: f64, y: f64, colour: [u8; 3]) {
-    let (xi, yi) = (x.round(), y.round());
-    if xi >= 0.0 && yi >= 0.0 && xi < f64::from(img.width()) && yi < f64::from(img.height()) {
-        img.put_pixel(xi as u32, yi as u32, image::Rgb(colour));
-    }
-}
-
-/// A 2-px wide segment, dashed every 6 px when asked.
-fn draw_segment(
-    img: &mut image::RgbImage,
-    a: (f64, f64),
-    b: (f64, f64),
-    colour: [u8; 3],
-    dashed: bool,
-) {
-    let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
-    let steps = (len * 2.0).ceil().max(1.0) as usize;
-    for k in 0..=steps {
-        let f = k as f64 / steps as f64;
-        if dashed && ((f * len) / 6.0) as usize % 2 == 1 {
-            continue;
+        match self.raster().save_png(&stem.with_extension("png")) {
+            // Nothing to draw (e.g. no lit pixel on the scanline): the SVG says so, no PNG.
+            Err(PlotError::NoData(_)) => Ok(()),
+            other => other.map_err(LinePlotError::Png),
         }
-        let (x, y) = (a.0 + (b.0 - a.0) * f, a.1 + (b.1 - a.1) * f);
-        put(img, x, y, colour);
-        put(img, x, y + 1.0, colour);
     }
 }
 
@@ -335,7 +281,7 @@ mod tests {
         let svg = plot.svg();
         assert!(svg.contains("rising") && svg.contains("t &lt;1&gt;"));
         assert_eq!(svg.matches("<circle").count(), 1, "NaN points are dropped");
-        let img = plot.png();
+        let img = plot.raster().render().unwrap();
         let count = |c: [u8; 3]| img.pixels().filter(|p| p.0 == c).count();
         assert!(count([200, 0, 0]) > 100 && count([0, 0, 200]) > 5);
     }

@@ -44,12 +44,15 @@ impl CameraModel {
     /// are approximated by a Gaussian of the same variance (exact enough above ~20 electrons,
     /// and read noise dominates below).
     pub fn add_noise<R: Rng>(&self, values: &mut [f32], rng: &mut R) {
-        for v in values {
-            let electrons = (*v as f64).max(0.0) * self.full_well_e;
-            let sigma = (electrons / (self.full_well_e * self.full_well_e)
-                + self.read_noise.powi(2))
-            .sqrt();
-            *v = (*v as f64 + sigma * standard_normal(rng)) as f32;
+        // Box-Muller gives two independent deviates per draw: use both.
+        let mut pairs = values.chunks_exact_mut(2);
+        for pair in &mut pairs {
+            let (z0, z1) = standard_normal_pair(rng);
+            pair[0] = (pair[0] as f64 + self.noise_sigma(pair[0] as f64) * z0) as f32;
+            pair[1] = (pair[1] as f64 + self.noise_sigma(pair[1] as f64) * z1) as f32;
+        }
+        for v in pairs.into_remainder() {
+            *v = (*v as f64 + self.noise_sigma(*v as f64) * standard_normal(rng)) as f32;
         }
     }
 
@@ -61,9 +64,21 @@ impl CameraModel {
 
 /// A standard normal deviate (Box-Muller).
 pub fn standard_normal<R: Rng>(rng: &mut R) -> f64 {
-    let u1: f64 = rng.r#gen::<f64>().max(1e-300);
-    let u2: f64 = rng.r#gen();
-    (-2.0 * u1.ln()).sqrt() * (2.0 * PI * u2).cos()
+    standard_normal_pair(rng).0
+}
+
+/// Two independent standard normal deviates: Marsaglia's polar form of Box-Muller (a point
+/// uniform in the unit disc instead of an angle: no trigonometry, 21 % of draws rejected).
+pub fn standard_normal_pair<R: Rng>(rng: &mut R) -> (f64, f64) {
+    loop {
+        let u = 2.0 * rng.r#gen::<f64>() - 1.0;
+        let v = 2.0 * rng.r#gen::<f64>() - 1.0;
+        let s = u * u + v * v;
+        if s > 0.0 && s < 1.0 {
+            let scale = (-2.0 * s.ln() / s).sqrt();
+            return (u * scale, v * scale);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -93,5 +108,14 @@ mod tests {
             var.sqrt(),
             expected
         );
+        // Neighbouring values share a Box-Muller draw: they must still be uncorrelated
+        // (|r| < 4 / sqrt(n) for independent samples).
+        let lag1 = values
+            .chunks_exact(2)
+            .map(|p| (p[0] as f64 - mean) * (p[1] as f64 - mean))
+            .sum::<f64>()
+            / (n / 2.0)
+            / var;
+        assert!(lag1.abs() < 4.0 / (n / 2.0).sqrt(), "correlation {lag1}");
     }
 }

@@ -191,8 +191,8 @@ fn board_for_pose(booth: &Booth, pose: usize, seed: u64) -> Chessboard {
     Chessboard::posed(
         [9, 7],
         square,
-        sx * rng.gen_range(10.0..25.0),
-        sy * rng.gen_range(10.0..25.0),
+        sx * rng.gen_range(20.0..35.0),
+        sy * rng.gen_range(20.0..35.0),
         rng.gen_range(-10.0..10.0),
         [
             rng.gen_range(-0.04..0.04) * field_mm,

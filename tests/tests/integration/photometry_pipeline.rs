@@ -2,7 +2,7 @@
 //! photometric stereo against the simulator's truth) and `mlsss response` (projector gamma and
 //! black level against the true calibration).
 
-use mlsss_tests::{calibration_captures, mlsss, quick_capture, run_json};
+use mlsss_tests::{CALIBRATION_POSES, calibration_captures, mlsss, quick_capture, run_json};
 
 #[test]
 fn process_until_normals_reports_separation_and_normal_errors_on_a_head() {
@@ -32,7 +32,7 @@ fn process_until_normals_reports_separation_and_normal_errors_on_a_head() {
 
 #[test]
 fn response_recovers_gamma_and_black_level_of_the_virtual_booth() {
-    let root = calibration_captures(2);
+    let root = calibration_captures(CALIBRATION_POSES);
     let truth: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(root.join("pose00/truth/calibration.json")).unwrap(),
     )

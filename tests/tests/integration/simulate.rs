@@ -10,7 +10,7 @@ use mlsss::virtual_booth::camera::GAIN;
 use mlsss::virtual_booth::response_cache::material_medium;
 use mlsss::virtual_booth::skin_optics::{BASE, SKIN_INDEX, SkinPreset};
 use mlsss::virtual_booth::surface_reflection::DiffuseExit;
-use mlsss_tests::{calibration_captures, quick_capture, scratch_dir, simulate};
+use mlsss_tests::{CALIBRATION_POSES, calibration_captures, quick_capture, scratch_dir, simulate};
 use nalgebra::Point3;
 
 #[test]
@@ -198,8 +198,8 @@ fn same_seed_gives_the_same_frames_and_the_second_run_uses_the_cache() {
 
 #[test]
 fn calibration_poses_are_captures_with_the_board_in_view() {
-    let root = calibration_captures(2);
-    for pose in 0..2 {
+    let root = calibration_captures(CALIBRATION_POSES);
+    for pose in 0..CALIBRATION_POSES {
         let dir = root.join(format!("pose{pose:02}"));
         let cap = Capture::open(&dir).unwrap();
         assert_eq!(
