@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
+
+use super::stage_bar::Bar;
 use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::demo::{CalibrationMode, DemoOptions, DemoProgress, run_demo};
 use mlsss::virtual_booth::{Progress, SkinPreset, SubjectKind};
@@ -65,21 +67,6 @@ pub struct Args {
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
-}
-
-/// Progress on stderr: one bar, relabelled per step.
-struct Bar(ProgressBar);
-
-impl Progress for Bar {
-    fn stage(&self, name: &str, total: u64) {
-        self.0.set_length(total);
-        self.0.set_position(0);
-        self.0.set_message(name.to_owned());
-    }
-
-    fn advance(&self, n: u64) {
-        self.0.inc(n);
-    }
 }
 
 impl DemoProgress for Bar {

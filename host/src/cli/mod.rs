@@ -17,3 +17,4 @@ pub mod response;
 pub mod rig;
 pub mod simulate;
 pub mod size_arg;
+pub mod stage_bar;

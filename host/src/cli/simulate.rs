@@ -5,11 +5,13 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
+
+use super::stage_bar::Bar;
 use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::booth::Booth;
 use mlsss::virtual_booth::{
-    Progress, ResponseCache, SimulationOptions, SkinPreset, SubjectKind, scaled_booth,
-    simulate_calibration, simulate_scan,
+    ResponseCache, SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_calibration,
+    simulate_scan,
 };
 
 #[derive(Debug, clap::Args)]
@@ -60,21 +62,6 @@ pub struct Args {
     /// Print one JSON object (the report) on stdout.
     #[arg(long)]
     json: bool,
-}
-
-/// Shows the simulator's stages as an indicatif bar on stderr.
-struct Bar(ProgressBar);
-
-impl Progress for Bar {
-    fn stage(&self, name: &str, total: u64) {
-        self.0.set_length(total);
-        self.0.set_position(0);
-        self.0.set_message(name.to_owned());
-    }
-
-    fn advance(&self, n: u64) {
-        self.0.inc(n);
-    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
