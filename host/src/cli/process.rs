@@ -52,6 +52,11 @@ pub struct Args {
     /// renders the same).
     #[arg(long)]
     no_heldout_check: bool,
+    /// Fit stage: keep each pixel's own fitted layers instead of the spatial prior (shapes pooled
+    /// over neighbouring tiles, amplitudes shrunk toward the subject's mean, both as far as
+    /// cross-validation on the training projectors says; `subsurface::spatial_prior`).
+    #[arg(long)]
+    no_spatial_prior: bool,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -94,6 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         tolerance: args.tolerance,
         max_iterations: args.max_iterations,
         heldout_check: !args.no_heldout_check,
+        spatial_prior: !args.no_spatial_prior,
         ..FitParams::default()
     };
     pipeline.set_params("fit", serde_json::to_value(&fit)?);
