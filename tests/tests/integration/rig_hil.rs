@@ -12,7 +12,7 @@ use std::time::Duration;
 use mlsss::booth::Booth;
 use mlsss::capture::{Capture, FramePlan};
 use mlsss::rig::RigError;
-use mlsss::rig::acquire::{CaptureTarget, acquire, checked_pattern};
+use mlsss::rig::acquire::{Acquired, CaptureTarget, acquire, checked_pattern};
 use mlsss::rig::backend::{CameraBackend, Exposure, PatternCamera, VirtualProjectors};
 use mlsss::rig::link::{ControllerLink, LinkFaults};
 use mlsss::rig::qemu::{self, DEFAULT_ICOUNT_SHIFT, QemuGuard};
@@ -98,6 +98,31 @@ fn run(schedule: &RigSchedule, faults: &HostFaults, link_faults: LinkFaults) -> 
     session
         .run(schedule, &mut hooks, faults)
         .expect("the run completes")
+}
+
+/// Captures `schedule` through the virtual projectors and a camera that records the pattern.
+fn acquire_with_virtual_devices(
+    session: &mut Session<Box<dyn SerialPort>>,
+    schedule: &RigSchedule,
+    booth: &Booth,
+    plan: &FramePlan,
+    out: &std::path::Path,
+    faults: &HostFaults,
+) -> Result<Acquired, RigError> {
+    acquire(
+        session,
+        schedule,
+        CaptureTarget {
+            booth,
+            plan,
+            out,
+            source: serde_json::json!("hil test"),
+        },
+        &mut VirtualProjectors::new(),
+        Box::new(PatternCamera::new(booth)),
+        faults,
+        &mut |_| {},
+    )
 }
 
 /// Trigger log as comparable tuples.
@@ -283,21 +308,9 @@ fn late_ack_of_frame_100_is_reported_retried_and_captured_correctly() {
         late_ack_frames: vec![100],
         disconnect: None,
     };
-    let acquired = acquire(
-        &mut session,
-        &schedule,
-        CaptureTarget {
-            booth: &booth,
-            plan: &plan,
-            out: &out,
-            source: serde_json::json!("hil test"),
-        },
-        &mut VirtualProjectors::new(),
-        Box::new(PatternCamera::new(&booth)),
-        &faults,
-        &mut |_| {},
-    )
-    .expect("capture written");
+    let acquired =
+        acquire_with_virtual_devices(&mut session, &schedule, &booth, &plan, &out, &faults)
+            .expect("capture written");
     let log = &acquired.log;
     assert!(acquired.complete);
     assert_complete_and_labelled(log);
@@ -387,21 +400,9 @@ fn disconnect_then_abort_keeps_every_frame_already_captured() {
             then: ReconnectAction::Abort,
         }),
     };
-    let acquired = acquire(
-        &mut session,
-        &schedule,
-        CaptureTarget {
-            booth: &booth,
-            plan: &plan,
-            out: &out,
-            source: serde_json::json!("hil test"),
-        },
-        &mut VirtualProjectors::new(),
-        Box::new(PatternCamera::new(&booth)),
-        &faults,
-        &mut |_| {},
-    )
-    .expect("capture of the frames before the abort written");
+    let acquired =
+        acquire_with_virtual_devices(&mut session, &schedule, &booth, &plan, &out, &faults)
+            .expect("capture of the frames before the abort written");
     assert!(!acquired.complete);
     assert_eq!(acquired.log.done.outcome, RunOutcome::AbortedByHost);
     assert_eq!(acquired.frames_written, 8);
