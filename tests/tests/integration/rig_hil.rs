@@ -385,6 +385,58 @@ fn disconnect_mid_run_pauses_and_the_host_resumes() {
     assert!(log.triggers[&11].timestamp_us < status.timestamp_us);
 }
 
+/// Hooks that stall once, without heartbeat or ack, when `frame` is first shown.
+struct StallingHooks {
+    checking: CheckingHooks,
+    frame: u16,
+    stall: Duration,
+    stalled: bool,
+}
+
+impl RunHooks for StallingHooks {
+    fn show(&mut self, request: &PatternRequest) -> Result<(), RigError> {
+        if request.frame == self.frame && !self.stalled {
+            self.stalled = true;
+            std::thread::sleep(self.stall);
+        }
+        self.checking.show(request)
+    }
+
+    fn triggered(&mut self, trigger: &Triggered) -> Result<(), RigError> {
+        self.checking.triggered(trigger)
+    }
+}
+
+/// Regression: on a loaded machine the host was slow to answer, the controller paused for host
+/// silence, and the host, which never meant to leave, ignored the pause and waited forever.
+#[test]
+fn a_host_too_slow_to_answer_resumes_the_paused_run() {
+    let _one = one_at_a_time();
+    let (_, _, schedule) = silence_schedule(true, 8);
+    let (_qemu, mut session) = boot();
+    let mut hooks = StallingHooks {
+        checking: CheckingHooks {
+            schedule: schedule.clone(),
+            shown: vec![],
+        },
+        frame: 2,
+        stall: Duration::from_secs(2),
+        stalled: false,
+    };
+    let log = session
+        .run(&schedule, &mut hooks, &HostFaults::default())
+        .expect("the run completes");
+    assert!(
+        log.late
+            .iter()
+            .any(|late| late.frame == 2 && late.reason == LateReason::HostSilent),
+        "the controller paused for the stall: {:?}",
+        log.late
+    );
+    assert_eq!(log.done.outcome, RunOutcome::Completed);
+    assert_complete_and_labelled(&log);
+}
+
 #[test]
 fn disconnect_then_abort_keeps_every_frame_already_captured() {
     let _one = one_at_a_time();
