@@ -41,6 +41,11 @@ pub struct Args {
     /// coarser).
     #[arg(long, default_value_t = 1)]
     block: usize,
+    /// Fit stage: keep each pixel's own fitted layers instead of the spatial prior (shapes pooled
+    /// over neighbouring tiles, amplitudes shrunk toward the subject's mean, both as far as
+    /// cross-validation on the training projectors says; `subsurface::spatial_prior`).
+    #[arg(long)]
+    no_spatial_prior: bool,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -80,6 +85,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         components: args.components,
         block: args.block,
+        spatial_prior: !args.no_spatial_prior,
         ..FitParams::default()
     };
     pipeline.set_params("fit", serde_json::to_value(&fit)?);

@@ -46,6 +46,7 @@ use crate::subsurface::model_file::{
 use crate::subsurface::profiles::{PixelGeometry, ProfileError, SlitSweep};
 use crate::subsurface::relight::{direct_albedo, pattern_irradiance};
 use crate::subsurface::render::{LayerModel, RenderOptions, SplatLayer};
+use crate::subsurface::spatial_prior::regularise_in_place;
 
 /// The fit stage.
 pub const STAGE: Stage = Stage {
@@ -82,6 +83,8 @@ pub struct FitParams {
     pub depth_spacing_mm: Option<f64>,
     /// Also fit the per-pixel dipole baseline.
     pub dipole: bool,
+    /// Regularise the per-pixel layers with the spatial prior (`subsurface::spatial_prior`).
+    pub spatial_prior: bool,
 }
 
 impl Default for FitParams {
@@ -95,6 +98,7 @@ impl Default for FitParams {
             block: 1,
             depth_spacing_mm: None,
             dipole: true,
+            spatial_prior: true,
         }
     }
 }
@@ -121,6 +125,9 @@ pub enum FitStageError {
     /// A plot could not be written.
     #[error(transparent)]
     Plot(#[from] LinePlotError),
+    /// The spatial prior failed.
+    #[error(transparent)]
+    Prior(#[from] crate::subsurface::spatial_prior::SpatialPriorError),
     /// The holdout names no projector of the capture.
     #[error("--holdout {holdout}: the capture has projectors 0..{count}")]
     BadHoldout { holdout: usize, count: usize },
@@ -204,7 +211,17 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         ..FitOptions::default()
     };
     let surface = &inputs.surface;
-    let fit = fit_model(surface, &geometries, &sweeps, &opts)?;
+    let mut fit = fit_model(surface, &geometries, &sweeps, &opts)?;
+    let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
+    let prior = regularise_in_place(
+        params.spatial_prior,
+        &mut fit.model,
+        surface,
+        &geometries,
+        &sweeps,
+        block,
+        spacing,
+    )?;
     let fitted: Vec<bool> = (0..surface.len())
         .map(|i| (0..3).any(|c| !fit.model.layers(i, c).is_empty()))
         .collect();
@@ -247,6 +264,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         "training_projectors": training,
         "model_file": path.display().to_string(),
         "model_bytes": model_bytes,
+        "spatial_prior": prior,
     });
     if let (Some(h), Some(t)) = (params.holdout, ctx.truth_dir()) {
         report["heldout_global_rel_rmse"] = heldout_errors(&model, h, &t)?;

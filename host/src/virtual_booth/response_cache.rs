@@ -13,6 +13,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::VirtualBoothError;
@@ -43,6 +44,7 @@ pub struct CacheStats {
     pub misses: usize,
     /// Photons traced for the misses.
     pub photons_traced: u64,
+    /// Wall-clock seconds of the Monte Carlo (0 when everything was cached).
     pub mc_seconds: f64,
 }
 
@@ -90,6 +92,11 @@ impl ResponseCache {
 
     /// Responses of `materials` at every angle of `settings`, from the cache or Monte Carlo.
     /// `on_step` is called once per (material, angle) with whether it was cached.
+    ///
+    /// The missing responses are computed as parallel jobs, one per (material, angle, channel),
+    /// each itself split into the Monte Carlo's fixed photon batches: every core stays busy to
+    /// the end (a single response of a few batches would leave cores idle), and the result is
+    /// the same as computing the responses one after the other.
     pub fn response_set(
         &self,
         materials: &[Material],
@@ -97,15 +104,66 @@ impl ResponseCache {
         on_step: &(dyn Fn(bool) + Sync),
     ) -> Result<(ResponseSet, CacheStats), VirtualBoothError> {
         let mut stats = CacheStats::default();
-        let mut grids = Vec::with_capacity(materials.len());
-        for material in materials {
-            let mut per_angle = Vec::with_capacity(settings.angles_deg.len());
-            for &angle in &settings.angles_deg {
-                let (grid, hit) = self.response(material, angle, settings, &mut stats)?;
-                on_step(hit);
-                per_angle.push(grid);
-            }
-            grids.push(per_angle);
+        let start = std::time::Instant::now();
+        let keys: Vec<(usize, f64)> = (0..materials.len())
+            .flat_map(|m| settings.angles_deg.iter().map(move |&a| (m, a)))
+            .collect();
+        let looked_up: Vec<Lookup> = keys
+            .iter()
+            .map(|&(m, angle)| self.look_up(&materials[m], angle, settings))
+            .collect::<Result<_, _>>()?;
+        let jobs: Vec<(usize, usize)> = looked_up
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| l.grid.is_none())
+            .flat_map(|(i, _)| (0..3).map(move |c| (i, c)))
+            .collect();
+        let computed: Vec<Vec<f64>> = jobs
+            .par_iter()
+            .map(|&(i, c)| {
+                let (m, angle) = keys[i];
+                let values = channel_response(&materials[m], c, angle, settings);
+                if c == 2 {
+                    on_step(false);
+                }
+                values
+            })
+            .collect::<Result<_, _>>()?;
+        let mut channels = jobs.iter().zip(computed);
+        let mut grids = vec![Vec::with_capacity(settings.angles_deg.len()); materials.len()];
+        for (&(m, _), lookup) in keys.iter().zip(looked_up) {
+            let grid = match lookup.grid {
+                Some(grid) => {
+                    stats.hits += 1;
+                    on_step(true);
+                    grid
+                }
+                None => {
+                    let mut values = vec![[0.0f32; 3]; settings.cells * settings.cells];
+                    for _ in 0..3 {
+                        let (&(_, c), response) = channels.next().ok_or(
+                            VirtualBoothError::Internal("a Monte Carlo job result is missing"),
+                        )?;
+                        for (v, r) in values.iter_mut().zip(&response) {
+                            v[c] = *r as f32;
+                        }
+                    }
+                    symmetrise_in_y(&mut values, settings.cells);
+                    stats.misses += 1;
+                    stats.photons_traced += 3 * settings.photons;
+                    let grid = ResponseGrid {
+                        cell_mm: settings.cell_mm,
+                        cells: settings.cells,
+                        values,
+                    };
+                    write_cached(&lookup.path, &lookup.key_json, &grid)?;
+                    grid
+                }
+            };
+            grids[m].push(grid);
+        }
+        if stats.misses > 0 {
+            stats.mc_seconds = start.elapsed().as_secs_f64();
         }
         Ok((
             ResponseSet {
@@ -116,13 +174,13 @@ impl ResponseCache {
         ))
     }
 
-    fn response(
+    /// The cache file of one (material, angle) and its grid when already cached.
+    fn look_up(
         &self,
         material: &Material,
         angle: f64,
         settings: &McSettings,
-        stats: &mut CacheStats,
-    ) -> Result<(ResponseGrid, bool), VirtualBoothError> {
+    ) -> Result<Lookup, VirtualBoothError> {
         let key = CacheKey {
             format: CACHE_FORMAT.into(),
             media: (0..3).map(|c| material_medium(material, c)).collect(),
@@ -137,43 +195,44 @@ impl ResponseCache {
             "{}.bin",
             blake3::hash(key_json.as_bytes()).to_hex()
         ));
-        if let Some(grid) = read_cached(&path, &key_json, settings)? {
-            stats.hits += 1;
-            return Ok((grid, true));
-        }
-        let start = std::time::Instant::now();
-        let mut values = vec![[0.0f32; 3]; settings.cells * settings.cells];
-        for (c, medium) in key.media.iter().enumerate() {
-            let cfg = McConfig {
-                photons: settings.photons,
-                seed: settings.seed.wrapping_add(c as u64),
-                incidence_deg: angle,
-                grid: Some(GridSpec {
-                    cell_mm: settings.cell_mm,
-                    cells: settings.cells,
-                }),
-                radial: None,
-            };
-            let result = mc::run(medium, &cfg)?;
-            let response = result.response.ok_or(VirtualBoothError::Internal(
-                "Monte Carlo run returned no exit grid although one was requested",
-            ))?;
-            for (v, r) in values.iter_mut().zip(&response.values) {
-                v[c] = *r as f32;
-            }
-        }
-        symmetrise_in_y(&mut values, settings.cells);
-        stats.misses += 1;
-        stats.photons_traced += 3 * settings.photons;
-        stats.mc_seconds += start.elapsed().as_secs_f64();
-        let grid = ResponseGrid {
+        let grid = read_cached(&path, &key_json, settings)?;
+        Ok(Lookup {
+            path,
+            key_json,
+            grid,
+        })
+    }
+}
+
+/// Where one (material, angle) response lives in the cache, and its grid when present.
+struct Lookup {
+    path: PathBuf,
+    key_json: String,
+    grid: Option<ResponseGrid>,
+}
+
+/// The Monte Carlo exit grid of `material` at channel `c` and incidence `angle` (degrees).
+fn channel_response(
+    material: &Material,
+    c: usize,
+    angle: f64,
+    settings: &McSettings,
+) -> Result<Vec<f64>, VirtualBoothError> {
+    let cfg = McConfig {
+        photons: settings.photons,
+        seed: settings.seed.wrapping_add(c as u64),
+        incidence_deg: angle,
+        grid: Some(GridSpec {
             cell_mm: settings.cell_mm,
             cells: settings.cells,
-            values,
-        };
-        write_cached(&path, &key_json, &grid)?;
-        Ok((grid, false))
-    }
+        }),
+        radial: None,
+    };
+    let result = mc::run(&material_medium(material, c), &cfg)?;
+    let response = result.response.ok_or(VirtualBoothError::Internal(
+        "Monte Carlo run returned no exit grid although one was requested",
+    ))?;
+    Ok(response.values)
 }
 
 /// The layered medium of `material` at channel `c`, in air, semi-infinite below.
@@ -301,6 +360,44 @@ mod tests {
         other.photons += 1;
         let (_, stats3) = cache.response_set(materials, &other, &|_| {}).unwrap();
         assert_eq!(stats3.misses, 2);
+    }
+
+    /// The responses computed as parallel (material, angle, channel) jobs are, cell for cell,
+    /// those of one Monte Carlo run per channel done one after the other.
+    #[test]
+    fn parallel_jobs_give_the_sequential_runs_in_their_places() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = ResponseCache::new(dir.path());
+        let materials = &SkinPreset::Light.materials()[1..3];
+        let settings = settings();
+        let (set, stats) = cache.response_set(materials, &settings, &|_| {}).unwrap();
+        assert_eq!((stats.hits, stats.misses), (0, 4));
+        for (m, material) in materials.iter().enumerate() {
+            for (a, &angle) in settings.angles_deg.iter().enumerate() {
+                let mut expected = vec![[0.0f32; 3]; settings.cells * settings.cells];
+                for c in 0..3 {
+                    let cfg = McConfig {
+                        photons: settings.photons,
+                        seed: settings.seed + c as u64,
+                        incidence_deg: angle,
+                        grid: Some(GridSpec {
+                            cell_mm: settings.cell_mm,
+                            cells: settings.cells,
+                        }),
+                        radial: None,
+                    };
+                    let run = mc::run(&material_medium(material, c), &cfg).unwrap();
+                    for (e, v) in expected.iter_mut().zip(&run.response.unwrap().values) {
+                        e[c] = *v as f32;
+                    }
+                }
+                symmetrise_in_y(&mut expected, settings.cells);
+                assert!(
+                    set.grids[m][a].values == expected,
+                    "material {m}, angle {angle}"
+                );
+            }
+        }
     }
 
     #[test]

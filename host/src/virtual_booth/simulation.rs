@@ -32,7 +32,9 @@ use super::surface_reflection::SKIN_ROUGHNESS;
 use super::truth_writer;
 use crate::booth::Booth;
 use crate::capture::folder::CaptureKind;
-use crate::capture::{CaptureManifest, CaptureWriter, FramePlan, Pattern, TriggerRecord};
+use crate::capture::{
+    CaptureManifest, CaptureWriter, FramePlan, FrameSpec, Pattern, TriggerRecord,
+};
 
 /// Receives progress (the CLI shows it as a bar).
 pub trait Progress: Sync {
@@ -230,6 +232,18 @@ pub fn simulate_scan(
     out: &Path,
     progress: &dyn Progress,
 ) -> Result<SimulationReport, VirtualBoothError> {
+    simulate_scan_holding(booth, opts, out, progress, HOLD_BUDGET_BYTES)
+}
+
+/// [`simulate_scan`] holding at most `hold_budget` bytes of noise-free frames (see
+/// [`render_frames`]); the capture does not depend on it.
+fn simulate_scan_holding(
+    booth: &Booth,
+    opts: &SimulationOptions,
+    out: &Path,
+    progress: &dyn Progress,
+    hold_budget: usize,
+) -> Result<SimulationReport, VirtualBoothError> {
     let start = Instant::now();
     if opts.subject == SubjectKind::Chessboard {
         return Err(VirtualBoothError::InvalidOption {
@@ -310,6 +324,7 @@ pub fn simulate_scan(
         &writer,
         &truth_dir,
         progress,
+        hold_budget,
         // Slits: the first shift of each axis, the reference of the slit profiles' global part.
         |p| {
             matches!(
@@ -401,6 +416,7 @@ pub fn simulate_calibration(
             &writer,
             &truth_dir,
             progress,
+            HOLD_BUDGET_BYTES,
             |p| matches!(p, Pattern::White),
         )?;
         if let Some(first) = frames.into_iter().next() {
@@ -419,13 +435,132 @@ pub fn simulate_calibration(
     })
 }
 
-/// Frames rendered per batch: bounded so the per-batch buffers stay under ~256 MB.
+/// Budget for the buffers of one render batch (flux, direct, exitance and the frames built from
+/// them: about [`BATCH_BYTES_PER_PIXEL_FRAME`] per pixel and frame). Every batch gathers the
+/// subsurface pairs once, so larger batches are faster; 1 GB keeps a full-size capture (1379 x
+/// 1029) at ~22 frames per batch on a machine shared by several jobs.
+const BATCH_BUDGET_BYTES: usize = 1 << 30;
+/// Peak bytes per pixel and frame of a render batch: flux 4, direct 4 and exitance 12 while the
+/// operator runs, then the frames (direct 4 + global 12) built from them.
+const BATCH_BYTES_PER_PIXEL_FRAME: usize = 32;
+/// Budget for noise-free frames held until every projector's white is known (12 bytes per
+/// pixel and frame). Holding frames lets each projector's white come from its own frame batch
+/// instead of a separate render (one pair gathering less per projector); a quick capture holds
+/// three projectors' frames in ~340 MB, a full-size one holds none and pre-renders the whites.
+const HOLD_BUDGET_BYTES: usize = 1 << 30;
+
+/// Frames rendered per batch: bounded so the per-batch buffers stay under the budget.
 fn batch_size(pixels: usize, frames: usize) -> usize {
-    (256_000_000 / (pixels * 20).max(1)).clamp(1, frames.max(1))
+    (BATCH_BUDGET_BYTES / (pixels * BATCH_BYTES_PER_PIXEL_FRAME).max(1)).clamp(1, frames.max(1))
+}
+
+/// How many leading projectors' frames are held (their stray light needs the whites of
+/// projectors rendered after them): as many as fit in `budget` bytes, at most all but the last
+/// projector.
+fn held_projectors(frames_per_projector: &[usize], pixels: usize, budget: usize) -> usize {
+    let frame_bytes = pixels * 12;
+    let mut held = 0;
+    let mut bytes = 0;
+    for &frames in frames_per_projector
+        .iter()
+        .take(frames_per_projector.len().saturating_sub(1))
+    {
+        bytes += frames * frame_bytes;
+        if bytes > budget {
+            break;
+        }
+        held += 1;
+    }
+    held
+}
+
+/// Noise-free camera values (direct + global, RGB) of every pixel of a frame.
+fn frame_totals(frame: &FrameRadiance) -> Vec<[f32; 3]> {
+    (0..frame.direct.len()).map(|i| frame.total(i)).collect()
+}
+
+/// The light the black level of every projector but `k` adds to `k`'s frames; `whites[j]` is
+/// projector `j`'s noise-free white (needed for every `j != k`).
+fn stray_light(
+    scene: &Scene,
+    whites: &[Option<Vec<[f32; 3]>>],
+    k: usize,
+    pixels: usize,
+) -> Result<Vec<[f32; 3]>, VirtualBoothError> {
+    let mut stray = vec![[0.0f32; 3]; pixels];
+    for (j, white) in whites.iter().enumerate().filter(|(j, _)| *j != k) {
+        let white = white.as_ref().ok_or(VirtualBoothError::Internal(
+            "a projector's white is needed for stray light before it was rendered",
+        ))?;
+        let b = scene.projectors[j].black_level as f32;
+        for (s, t) in stray.iter_mut().zip(white) {
+            for c in 0..3 {
+                s[c] += b * t[c];
+            }
+        }
+    }
+    Ok(stray)
+}
+
+/// Adds stray light and camera noise to a frame's noise-free values and writes it.
+struct FrameFinisher<'a> {
+    scene: &'a Scene,
+    seed: u64,
+    writer: &'a CaptureWriter,
+    progress: &'a dyn Progress,
+    sheet_patterns: Vec<u32>,
+    sheet: Mutex<Vec<(usize, Rgb32FImage)>>,
+}
+
+impl FrameFinisher<'_> {
+    fn finish(
+        &self,
+        spec: &FrameSpec,
+        totals: &[[f32; 3]],
+        stray: &[[f32; 3]],
+    ) -> Result<(), VirtualBoothError> {
+        let geo = &self.scene.geometry;
+        let mut values: Vec<f32> = totals
+            .iter()
+            .zip(stray)
+            .flat_map(|(t, s)| [t[0] + s[0], t[1] + s[1], t[2] + s[2]])
+            .collect();
+        let mut rng = Pcg64::seed_from_u64(self.seed ^ (0x5eed_0000 + spec.index as u64) << 8);
+        self.scene.camera.add_noise(&mut values, &mut rng);
+        let img = Rgb32FImage::from_raw(geo.width, geo.height, values)
+            .ok_or(VirtualBoothError::Internal("frame buffer size mismatch"))?;
+        self.writer.write_frame(spec.index, &img)?;
+        if let Some(pos) = self.sheet_patterns.iter().position(|&i| i == spec.index) {
+            let clamped = Rgb32FImage::from_fn(img.width(), img.height(), |x, y| {
+                image::Rgb(img.get_pixel(x, y).0.map(|v| v.clamp(0.0, 1.0)))
+            });
+            self.sheet
+                .lock()
+                .map_err(|_| VirtualBoothError::Internal("contact sheet lock poisoned"))?
+                .push((pos, clamped));
+        }
+        self.progress.advance(1);
+        Ok(())
+    }
+
+    fn into_sheet(self) -> Result<Vec<Rgb32FImage>, VirtualBoothError> {
+        let mut tiles = self
+            .sheet
+            .into_inner()
+            .map_err(|_| VirtualBoothError::Internal("contact sheet lock poisoned"))?;
+        tiles.sort_by_key(|(pos, _)| *pos);
+        Ok(tiles.into_iter().map(|(_, img)| img).collect())
+    }
 }
 
 /// Renders every frame of `plan`, writes it (with noise) and the truth of the patterns selected
 /// by `truth_for`; returns a few frames for the contact sheet.
+///
+/// Every frame of projector `k` carries the stray light of the other projectors' black level,
+/// i.e. their whites. Projectors are rendered in order, each in batches of frames; each white is
+/// taken from its projector's own batch, so the frames of the first projectors are held
+/// (noise-free) until the last white is known. Whites of projectors whose frames cannot be held
+/// (memory budget) are rendered alone beforehand.
 #[allow(clippy::too_many_arguments)]
 fn render_frames(
     scene: &Scene,
@@ -435,104 +570,109 @@ fn render_frames(
     writer: &CaptureWriter,
     truth_dir: &Path,
     progress: &dyn Progress,
+    hold_budget: usize,
     truth_for: impl Fn(&Pattern) -> bool + Sync,
 ) -> Result<Vec<Rgb32FImage>, VirtualBoothError> {
     let geo = &scene.geometry;
     let dims = (geo.width, geo.height);
     let n = geo.pixels();
     let count = scene.projectors.len();
-    // Pass 1: white under every projector (truth, and the stray light of the black projectors).
-    progress.stage("white frames", count as u64);
-    let mut whites = Vec::with_capacity(count);
-    for k in 0..count {
+    let specs: Vec<Vec<FrameSpec>> = (0..count)
+        .map(|k| plan.for_projector(k as u8).copied().collect())
+        .collect();
+    let shows_white = |k: usize| specs[k].iter().any(|f| f.pattern == Pattern::White);
+    let held = if opts.stray_black {
+        held_projectors(
+            &specs.iter().map(Vec::len).collect::<Vec<_>>(),
+            n,
+            hold_budget,
+        )
+    } else {
+        0
+    };
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
+    if opts.stray_black {
+        let alone: Vec<usize> = (0..count)
+            .filter(|&k| k > held || !shows_white(k))
+            .collect();
+        progress.stage("white frames", alone.len() as u64);
+        for &k in &alone {
+            let view = ProjectorView::new(scene, k, kernel);
+            let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
+            whites[k] = Some(
+                white
+                    .first()
+                    .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
+            );
+            progress.advance(1);
+        }
+    }
+
+    progress.stage("frames", plan.len() as u64);
+    let finisher = FrameFinisher {
+        scene,
+        seed: opts.seed,
+        writer,
+        progress,
+        sheet_patterns: contact_sheet_frames(plan),
+        sheet: Mutex::new(Vec::new()),
+    };
+    let no_stray = vec![[0.0f32; 3]; n];
+    let mut strays: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
+    let mut held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)> = Vec::new();
+    for (k, specs) in specs.iter().enumerate() {
         let view = ProjectorView::new(scene, k, kernel);
         truth_writer::write_projector_coords(truth_dir, &view, dims)?;
-        let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
-        whites.push(
-            white
-                .into_iter()
-                .next()
-                .unwrap_or_else(|| FrameRadiance::zeros(n)),
-        );
-        progress.advance(1);
-    }
-    let stray: Vec<Vec<[f32; 3]>> = (0..count)
-        .map(|k| {
-            (0..n)
-                .map(|i| {
-                    let mut s = [0.0f32; 3];
-                    if opts.stray_black {
-                        for (j, white) in whites.iter().enumerate().filter(|(j, _)| *j != k) {
-                            let b = scene.projectors[j].black_level as f32;
-                            let t = white.total(i);
-                            for c in 0..3 {
-                                s[c] += b * t[c];
-                            }
-                        }
-                    }
-                    s
-                })
-                .collect()
-        })
-        .collect();
-    for (k, s) in stray.iter().enumerate() {
-        truth_writer::write_stray(truth_dir, k, s, dims)?;
-    }
-    drop(whites);
-
-    // Pass 2: every frame.
-    progress.stage("frames", plan.len() as u64);
-    let sheet = Mutex::new(Vec::new());
-    let sheet_patterns = contact_sheet_frames(plan);
-    for (k, stray) in stray.iter().enumerate() {
-        let view = ProjectorView::new(scene, k, kernel);
-        let specs: Vec<_> = plan.for_projector(k as u8).copied().collect();
+        let hold = k < held;
+        if opts.stray_black && !hold {
+            strays[k] = Some(stray_light(scene, &whites, k, n)?);
+        }
         for batch in specs.chunks(batch_size(n, specs.len())) {
             let emissions: Vec<_> = batch
                 .iter()
                 .map(|f| scene.projectors[k].emission(&f.pattern))
                 .collect();
             let rendered = view.render(&emissions);
-            batch.par_iter().zip(rendered.par_iter()).try_for_each(
-                |(spec, frame)| -> Result<(), VirtualBoothError> {
+            let totals: Vec<Vec<[f32; 3]>> = batch
+                .par_iter()
+                .zip(rendered.par_iter())
+                .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
                     if truth_for(&spec.pattern) {
                         truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
                     }
-                    let mut values: Vec<f32> = (0..n)
-                        .flat_map(|i| {
-                            let t = frame.total(i);
-                            let s = stray[i];
-                            [t[0] + s[0], t[1] + s[1], t[2] + s[2]]
-                        })
-                        .collect();
-                    let mut rng =
-                        Pcg64::seed_from_u64(opts.seed ^ (0x5eed_0000 + spec.index as u64) << 8);
-                    scene.camera.add_noise(&mut values, &mut rng);
-                    let img = Rgb32FImage::from_raw(geo.width, geo.height, values)
-                        .ok_or(VirtualBoothError::Internal("frame buffer size mismatch"))?;
-                    writer.write_frame(spec.index, &img)?;
-                    if let Some(pos) = sheet_patterns.iter().position(|&i| i == spec.index) {
-                        let clamped = Rgb32FImage::from_fn(img.width(), img.height(), |x, y| {
-                            image::Rgb(img.get_pixel(x, y).0.map(|v| v.clamp(0.0, 1.0)))
-                        });
-                        sheet
-                            .lock()
-                            .map_err(|_| {
-                                VirtualBoothError::Internal("contact sheet lock poisoned")
-                            })?
-                            .push((pos, clamped));
-                    }
-                    progress.advance(1);
-                    Ok(())
-                },
-            )?;
+                    Ok(frame_totals(frame))
+                })
+                .collect::<Result<_, _>>()?;
+            drop(rendered);
+            if whites[k].is_none()
+                && let Some(i) = batch.iter().position(|f| f.pattern == Pattern::White)
+            {
+                whites[k] = Some(totals[i].clone());
+            }
+            if hold {
+                held_frames.extend(batch.iter().zip(totals).map(|(s, t)| (k, *s, t)));
+                continue;
+            }
+            let stray = strays[k].as_deref().unwrap_or(&no_stray);
+            batch
+                .par_iter()
+                .zip(totals.par_iter())
+                .try_for_each(|(spec, t)| finisher.finish(spec, t, stray))?;
         }
     }
-    let mut tiles = sheet
-        .into_inner()
-        .map_err(|_| VirtualBoothError::Internal("contact sheet lock poisoned"))?;
-    tiles.sort_by_key(|(pos, _)| *pos);
-    Ok(tiles.into_iter().map(|(_, img)| img).collect())
+    if opts.stray_black {
+        for (k, stray) in strays.iter_mut().enumerate().take(held) {
+            *stray = Some(stray_light(scene, &whites, k, n)?);
+        }
+    }
+    held_frames.par_iter().try_for_each(|(k, spec, t)| {
+        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(&no_stray))
+    })?;
+    drop(held_frames);
+    for (k, stray) in strays.iter().enumerate() {
+        truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
+    }
+    finisher.into_sheet()
 }
 
 /// Frames shown on the contact sheet: every projector's white, then projector 0 under a
@@ -605,4 +745,47 @@ fn write_optics(
         ],
     });
     truth_writer::write_json(&crate::capture::truth::optics(dir), &value)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::capture::Capture;
+
+    #[test]
+    fn held_projectors_fit_the_budget_and_never_include_the_last() {
+        let frames = [10, 10, 10, 10];
+        assert_eq!(held_projectors(&frames, 100, 0), 0);
+        assert_eq!(held_projectors(&frames, 100, 12_000), 1);
+        assert_eq!(held_projectors(&frames, 100, 23_999), 1);
+        assert_eq!(held_projectors(&frames, 100, 1 << 30), 3);
+        assert_eq!(held_projectors(&[], 100, 1 << 30), 0);
+    }
+
+    /// Whites taken from the projectors' own frame batches (frames held until every white is
+    /// known) give exactly the capture of whites rendered alone beforehand (nothing held).
+    #[test]
+    fn holding_frames_gives_the_same_capture_as_rendering_whites_alone() {
+        let booth = scaled_booth(&Booth::builtin(true), 8);
+        let cache = tempfile::tempdir().unwrap();
+        let mut opts =
+            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, 3);
+        opts.mc.photons = 300;
+        opts.mc.angles_deg = vec![0.0, 60.0];
+        opts.cache = ResponseCache::new(cache.path());
+        let out = tempfile::tempdir().unwrap();
+        let capture = |name: &str, budget: usize| {
+            let dir = out.path().join(name);
+            simulate_scan_holding(&booth, &opts, &dir, &NoProgress, budget).unwrap();
+            Capture::open(&dir).unwrap()
+        };
+        let held = capture("held", 1 << 30);
+        let alone = capture("alone", 0);
+        let frames = held.manifest.plan.len();
+        assert!(frames > 100);
+        for i in 0..frames as u32 {
+            let (a, b) = (held.read_frame(i).unwrap(), alone.read_frame(i).unwrap());
+            assert!(a == b, "frame {i} differs");
+        }
+    }
 }

@@ -186,17 +186,19 @@ impl BandTable {
 
 /// Every (material, angle) table of one level interleaved texel by texel, so that one pair of
 /// cells costs one index computation and four contiguous texel reads whatever the material mix.
+/// Each table's texel is padded to four lanes (R, G, B, 0): a tap then mixes one 4-wide vector
+/// per corner (one SIMD multiply-add) instead of three scalar ones.
 #[derive(Debug, Clone)]
 struct PackedTables {
     spacing: f32,
     half: usize,
     side: usize,
-    /// Floats per texel: 3 channels x materials x angles, ordered `[material][angle][channel]`.
+    /// Tables per texel: materials x angles, ordered `[material][angle]`.
     stride: usize,
-    values: Vec<f32>,
+    values: Vec<[f32; 4]>,
 }
 
-/// One (material, angle) table of a cell's mix: offset of its channels in a texel, and weight.
+/// One (material, angle) table of a cell's mix: its index in a texel, and weight.
 #[derive(Debug, Clone, Copy, Default)]
 struct Tap {
     offset: u32,
@@ -222,7 +224,7 @@ fn mix_taps(
             continue;
         }
         let (w_lo, w_hi) = (wm * (1.0 - angle_t), wm * angle_t);
-        let offset = |a: usize| (3 * (m * angles + a)) as u32;
+        let offset = |a: usize| (m * angles + a) as u32;
         taps[count] = Tap {
             offset: offset(a0),
             weight: w_lo,
@@ -255,15 +257,15 @@ impl PackedTables {
         let reach = band.r_max().min(response_reach_mm) + FILTER_REACH_CELLS * cell_size_mm;
         let half = (reach / spacing).ceil() as usize;
         let side = 2 * half + 1;
-        let stride = 3 * grids.len() * angles;
-        let mut values = vec![0.0f32; side * side * stride];
+        let stride = grids.len() * angles;
+        let mut values = vec![[0.0f32; 4]; side * side * stride];
         for (m, per_angle) in grids.iter().enumerate() {
             for (a, grid) in per_angle.iter().take(angles).enumerate() {
                 let table = BandTable::build(grid, band, cell_size_mm, spacing, half);
                 debug_assert!(table.half == half && table.spacing == spacing);
-                let offset = 3 * (m * angles + a);
+                let offset = m * angles + a;
                 for (i, v) in table.values.iter().enumerate() {
-                    values[i * stride + offset..i * stride + offset + 3].copy_from_slice(v);
+                    values[i * stride + offset] = [v[0], v[1], v[2], 0.0];
                 }
             }
         }
@@ -296,12 +298,11 @@ impl PackedTables {
             base + self.side * self.stride,
             base + (self.side + 1) * self.stride,
         ];
-        let mut mix = [[0.0f32; 3]; 4];
+        let mut mix = [[0.0f32; 4]; 4];
         for (m, &corner) in mix.iter_mut().zip(&corners) {
             for tap in taps {
-                let at = corner + tap.offset as usize;
-                let texel = &self.values[at..at + 3];
-                for c in 0..3 {
+                let texel = self.values[corner + tap.offset as usize];
+                for c in 0..4 {
                     m[c] += tap.weight * texel[c];
                 }
             }
