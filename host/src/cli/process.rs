@@ -57,6 +57,11 @@ pub struct Args {
     /// cross-validation on the training projectors says; `subsurface::spatial_prior`).
     #[arg(long)]
     no_spatial_prior: bool,
+    /// Fit stage: keep the normals stage's normals instead of correcting them by the shading
+    /// regression of the training projectors' subsurface amplitudes (strength chosen by
+    /// leave-one-projector-out cross-validation; `subsurface::shading_regression`).
+    #[arg(long)]
+    no_normal_refinement: bool,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -100,6 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         max_iterations: args.max_iterations,
         heldout_check: !args.no_heldout_check,
         spatial_prior: !args.no_spatial_prior,
+        refine_normals: !args.no_normal_refinement,
         ..FitParams::default()
     };
     pipeline.set_params("fit", serde_json::to_value(&fit)?);

@@ -29,6 +29,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -43,9 +44,10 @@ use crate::subsurface::model_file::{
     Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, SubsurfaceModel,
     render_projector,
 };
-use crate::subsurface::profiles::{PixelGeometry, ProfileError, SlitSweep};
+use crate::subsurface::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use crate::subsurface::relight::{direct_albedo, pattern_irradiance};
 use crate::subsurface::render::{LayerModel, RenderOptions, SplatLayer};
+use crate::subsurface::shading_regression::refine_normals;
 use crate::subsurface::spatial_prior::regularise_in_place;
 
 /// The fit stage.
@@ -91,6 +93,9 @@ pub struct FitParams {
     pub heldout_check: bool,
     /// Regularise the per-pixel layers with the spatial prior (`subsurface::spatial_prior`).
     pub spatial_prior: bool,
+    /// Correct the normals by the shading regression of the training projectors' amplitudes
+    /// (`subsurface::shading_regression`) before fitting.
+    pub refine_normals: bool,
 }
 
 impl Default for FitParams {
@@ -106,6 +111,7 @@ impl Default for FitParams {
             dipole: true,
             heldout_check: true,
             spatial_prior: true,
+            refine_normals: true,
         }
     }
 }
@@ -135,6 +141,9 @@ pub enum FitStageError {
     /// The spatial prior failed.
     #[error(transparent)]
     Prior(#[from] crate::subsurface::spatial_prior::SpatialPriorError),
+    /// The shading regression failed.
+    #[error(transparent)]
+    Shading(#[from] crate::subsurface::shading_regression::ShadingError),
     /// The holdout names no projector of the capture.
     #[error("--holdout {holdout}: the capture has projectors 0..{count}")]
     BadHoldout { holdout: usize, count: usize },
@@ -186,7 +195,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     let candidates: Vec<usize> = (0..captured)
         .filter(|&k| Some(k) != params.holdout)
         .collect();
-    let inputs = ProfileInputs::load(ctx, &record.params, &candidates)?;
+    let mut inputs = ProfileInputs::load(ctx, &record.params, &candidates)?;
     let training: Vec<usize> = candidates
         .into_iter()
         .filter(|&k| inputs.projectors[k].geometry.iter().any(Option::is_some))
@@ -197,7 +206,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     let load_s = t0.elapsed().as_secs_f64();
 
     let t1 = Instant::now();
-    let geometries: Vec<Vec<Option<PixelGeometry>>> = training
+    let mut geometries: Vec<Vec<Option<PixelGeometry>>> = training
         .iter()
         .map(|&k| inputs.projectors[k].geometry.clone())
         .collect();
@@ -205,6 +214,30 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         .iter()
         .map(|&k| inputs.projectors[k].sweep())
         .collect::<Result<_, _>>()?;
+    let shading = if params.refine_normals {
+        let centres: Vec<Vector3<f64>> = training
+            .iter()
+            .map(|&k| inputs.projectors[k].centre)
+            .collect();
+        let (refined, report) = refine_normals(&inputs.surface, &geometries, &sweeps, &centres)?;
+        // Everything downstream (fit, prior, dipole, albedo, the model file) sees the corrected
+        // normals, so every renderer and baseline gets the same geometry.
+        inputs.surface = refined;
+        geometries = training
+            .iter()
+            .map(|&k| {
+                pixel_geometry(
+                    &inputs.surface,
+                    &inputs.projectors[k].view(),
+                    inputs.params.eta,
+                    inputs.params.view_ray,
+                )
+            })
+            .collect::<Result<_, _>>()?;
+        Some(report)
+    } else {
+        None
+    };
     let opts = FitOptions {
         em: EmConfig {
             components: params.components,
@@ -272,6 +305,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         "model_file": path.display().to_string(),
         "model_bytes": model_bytes,
         "spatial_prior": prior,
+        "shading": shading,
     });
     if let (Some(h), Some(t), true) = (params.holdout, ctx.truth_dir(), params.heldout_check) {
         report["heldout_global_rel_rmse"] = heldout_errors(&model, h, &t)?;

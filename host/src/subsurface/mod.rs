@@ -12,6 +12,7 @@ pub mod model_file;
 pub mod profiles;
 pub mod relight;
 pub mod render;
+pub mod shading_regression;
 pub mod slit_global;
 pub mod spatial_prior;
 pub mod surface;

@@ -21,8 +21,12 @@
 //!   subject's mean `m`. Each training projector `p` gives its own estimate `a_p = F_p / (E_p W_p)`
 //!   (flux of its two profiles over irradiance times slit width); their spread within a pixel is
 //!   the noise variance `s2`, the spread of pixel means beyond what that noise explains is the true
-//!   variation `t2`. A pixel seen by `n` projectors keeps the fraction `t2 / (t2 + s2 / n)` of its
-//!   deviation from `m` (the posterior mean under Gaussian prior and noise), in relative units.
+//!   variation `t2`. A pixel seen by `n` projectors keeps the fraction `n / (n + kappa)` of its
+//!   deviation from `m` (the posterior mean under a Gaussian prior, in relative units). `kappa`
+//!   is chosen by leave-one-projector-out prediction of each projector's estimate from the
+//!   pixel's others ([`loo_kappa`]); the moment estimate `kappa = s2 / t2` (reported as well)
+//!   assumes the projectors' errors independent, and on the quick head with the estimated
+//!   calibration they are not: it kept 80-95 % of the deviations where prediction says ~50 %.
 //!
 //! Pixels without layers stay without layers; the output has the input's size.
 
@@ -118,6 +122,11 @@ pub struct ChannelPrior {
     pub noise_variance: f64,
     /// Relative variance of the true amplitudes (`t2`).
     pub signal_variance: f64,
+    /// Amplitude prior strength chosen by leave-one-projector-out prediction (a pixel seen by
+    /// `n` projectors keeps `n / (n + kappa)`; `None`: too few projectors, the moment estimate
+    /// `t2 / (t2 + s2 / n)` is used), and its mean squared relative prediction error.
+    pub amplitude_kappa: Option<f64>,
+    pub amplitude_cv_mse: Option<f64>,
     /// Mean fraction of each pixel's deviation kept (1 = no shrinkage).
     pub mean_keep_fraction: f64,
 }
@@ -482,12 +491,67 @@ struct AmplitudeStats {
     noise: f64,
     /// Relative variance of the true amplitudes.
     signal: f64,
+    /// Prior strength chosen by leave-one-projector-out prediction (see [`loo_kappa`]), and its
+    /// mean squared error per left-out estimate.
+    kappa: Option<f64>,
+    cv_mse: Option<f64>,
+}
+
+/// Prior strengths tried by [`loo_kappa`] (0: each pixel keeps its own amplitude).
+const KAPPAS: [f64; 16] = [
+    0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 8.0, 13.0, 20.0, 50.0,
+];
+
+/// The amplitude prior strength `kappa` (a pixel seen by `n` projectors keeps `n / (n + kappa)`
+/// of its relative deviation from the subject mean) that best predicts each training projector's
+/// estimate from the pixel's other projectors, and that mean squared error. Unlike the moment
+/// estimate it needs no assumption that the projectors' errors are independent: errors that
+/// depend on the light direction (irradiance model, normals) do not carry over to a new
+/// projector, and this choice sees that.
+fn loo_kappa(per_pixel: &[Vec<f64>], mean: f64) -> Option<(f64, f64)> {
+    if mean <= 0.0 {
+        return None;
+    }
+    let rel: Vec<(Vec<f64>, f64)> = per_pixel
+        .iter()
+        .filter(|e| e.len() >= 2)
+        .map(|e| {
+            let r: Vec<f64> = e.iter().map(|a| a / mean - 1.0).collect();
+            let total = r.iter().sum();
+            (r, total)
+        })
+        .collect();
+    let mut best: Option<(f64, f64)> = None;
+    for &kappa in &KAPPAS {
+        let (mut sum, mut count) = (0.0, 0usize);
+        for (r, total) in &rel {
+            let others = (r.len() - 1) as f64;
+            for d in r {
+                // keep * mean of the others = sum of the others / (others + kappa).
+                let predicted = (total - d) / (others + kappa);
+                sum += (d - predicted).powi(2);
+                count += 1;
+            }
+        }
+        if count == 0 {
+            return None;
+        }
+        let mse = sum / count as f64;
+        if best.is_none_or(|b| mse < b.1) {
+            best = Some((kappa, mse));
+        }
+    }
+    best
 }
 
 impl AmplitudeStats {
-    /// Fraction of a pixel's deviation kept when `n` projectors measured it.
+    /// Fraction of a pixel's deviation kept when `n` projectors measured it: `n / (n + kappa)`
+    /// with the cross-validated prior strength, else the moment estimate `t2 / (t2 + s2 / n)`.
     fn keep(&self, n: usize) -> f64 {
         let n = n.max(1) as f64;
+        if let Some(kappa) = self.kappa {
+            return n / (n + kappa);
+        }
         let denom = self.signal + self.noise / n;
         if denom > 0.0 {
             self.signal / denom
@@ -504,6 +568,8 @@ fn amplitude_stats(per_pixel: &[Vec<f64>], mean: f64) -> AmplitudeStats {
         mean,
         noise: 0.0,
         signal: 0.0,
+        kappa: None,
+        cv_mse: None,
     };
     if mean <= 0.0 {
         return none;
@@ -649,7 +715,12 @@ pub fn regularise(
             with.iter().sum::<f64>() / with.len() as f64
         };
         let lists: Vec<Vec<f64>> = per_projector.iter().map(|p| p[c].clone()).collect();
-        amplitude_stats(&lists, mean)
+        let mut st = amplitude_stats(&lists, mean);
+        if let Some((kappa, mse)) = loo_kappa(&lists, mean) {
+            st.kappa = Some(kappa);
+            st.cv_mse = Some(mse);
+        }
+        st
     });
 
     // Shapes of every tile under the chosen neighbourhoods.
@@ -693,6 +764,8 @@ pub fn regularise(
             amplitude_mean: stats[c].mean,
             noise_variance: stats[c].noise,
             signal_variance: stats[c].signal,
+            amplitude_kappa: stats[c].kappa,
+            amplitude_cv_mse: stats[c].cv_mse,
             mean_keep_fraction: if keep_count[c] > 0 {
                 keep_sum[c] / keep_count[c] as f64
             } else {
@@ -779,6 +852,79 @@ mod tests {
         // One estimate per pixel: no noise estimate, nothing shrunk.
         let single: Vec<Vec<f64>> = lists.iter().map(|l| vec![l[0]]).collect();
         assert_eq!(amplitude_stats(&single, mean).keep(1), 1.0);
+    }
+
+    #[test]
+    fn loo_kappa_predicts_a_new_projector_better_when_errors_depend_on_the_light() {
+        // Relative amplitude deviations t ~ N(0, 0.04); each projector p adds an error g . u_p
+        // that depends on its light direction (g random per pixel, the first-order effect of a
+        // normal error) plus independent noise. Three training lights, a fourth never seen.
+        let mut rng = Pcg64::seed_from_u64(11);
+        let mut normal = |sd: f64| {
+            let (u, v): (f64, f64) = (rng.r#gen::<f64>().max(1e-12), rng.r#gen());
+            sd * (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let lights = [(-0.6, -0.45), (0.6, -0.45), (-0.6, 0.45), (0.6, 0.45)];
+        let mean = 0.3;
+        let mut training = Vec::new();
+        let mut unseen = Vec::new();
+        for _ in 0..20_000 {
+            let t = normal(0.2);
+            let g = (normal(0.25), normal(0.25));
+            let est: Vec<f64> = lights
+                .iter()
+                .map(|(ux, uy)| mean * (1.0 + t + g.0 * ux + g.1 * uy + normal(0.03)))
+                .collect();
+            unseen.push(est[3] / mean - 1.0);
+            training.push(est[..3].to_vec());
+        }
+        let st = amplitude_stats(&training, mean);
+        let (kappa, _) = loo_kappa(&training, mean).unwrap();
+        let moment = AmplitudeStats { kappa: None, ..st };
+        let chosen = AmplitudeStats {
+            kappa: Some(kappa),
+            ..st
+        };
+        let error = |s: &AmplitudeStats| -> f64 {
+            training
+                .iter()
+                .zip(&unseen)
+                .map(|(e, u)| {
+                    let own = e.iter().sum::<f64>() / (3.0 * mean) - 1.0;
+                    (u - s.keep(3) * own).powi(2)
+                })
+                .sum::<f64>()
+        };
+        // The best keep fraction for the unseen light, by least squares against it.
+        let (mut num, mut den) = (0.0, 0.0);
+        for (e, u) in training.iter().zip(&unseen) {
+            let own = e.iter().sum::<f64>() / (3.0 * mean) - 1.0;
+            num += u * own;
+            den += own * own;
+        }
+        let ideal = num / den;
+        assert!(
+            (chosen.keep(3) - ideal).abs() < (moment.keep(3) - ideal).abs(),
+            "kappa {kappa}: keep {} vs ideal {ideal} (moments keep {})",
+            chosen.keep(3),
+            moment.keep(3)
+        );
+        assert!(
+            error(&chosen) < error(&moment),
+            "{} vs {}",
+            error(&chosen),
+            error(&moment)
+        );
+        // Independent noise only: both choices agree with the true posterior keep fraction.
+        let plain: Vec<Vec<f64>> = (0..20_000)
+            .map(|_| {
+                let t = normal(0.2);
+                (0..3).map(|_| mean * (1.0 + t + normal(0.1))).collect()
+            })
+            .collect();
+        let (kappa, _) = loo_kappa(&plain, mean).unwrap();
+        let want = 0.04 / (0.04 + 0.01 / 3.0);
+        assert!((3.0 / (3.0 + kappa) - want).abs() < 0.03, "kappa {kappa}");
     }
 
     /// Boxed Gaussian mass of a 1 mm slit at distance `s` (mm), with the comb's neighbours, for

@@ -1,0 +1,532 @@
+//! Shading regression: the part of the per-projector subsurface amplitudes that depends on the
+//! light direction, explained by a first-order error of the surface normal and removed by
+//! correcting the normal.
+//!
+//! Why: each training projector `p` gives its own amplitude estimate of a pixel,
+//! `a_p = F_p / (E_p W_p)` (profile flux over modelled irradiance times slit width). The modelled
+//! irradiance `E_p ~ n . l_p` uses the estimated normal `n`; a normal error `delta` (tangent to the
+//! surface) makes `ln(E_true / E_model) ~ delta . u_p` with `u_p = l_t / (n . l)` (tangential part
+//! of the unit direction to the light over its normal part). On the quick head with the estimated
+//! calibration (normals 4.7 deg mean error) this light-dependent error is as large as the skin's
+//! true amplitude variation, and it does not transfer: averaged over three projectors it predicts
+//! the held-out projector's error with the wrong sign (the held-out projector sits opposite the
+//! training ones' mean direction). So the per-pixel amplitudes lost to the homogeneous model.
+//!
+//! Model, per pixel, over the training projectors `p` that light it and the channels `c`:
+//!
+//! ```text
+//!     y_pc = ln a_pc = alpha_c + delta . u_p + noise
+//! ```
+//!
+//! `alpha_c` (the light-independent log amplitude) and `delta` (2-D, in a tangent basis of the
+//! pixel) are the posterior mode under the priors `alpha_c ~ N(mu_c, s2 / kappa)` and
+//! `delta ~ N(0, s2 / lambda)` (ridge). `lambda` and `kappa` are chosen on a grid by
+//! leave-one-projector-out cross-validation on the training projectors alone: fit on all but one
+//! projector, predict the left-out projector's `y`, sum the squared errors over pixels. The
+//! held-out projector and the truth are never used. The corrected normal is
+//! `normalize(n + delta_1 e_1 + delta_2 e_2)` (to first order `ln(n' . l / n . l) = delta . u`).
+//!
+//! Conventions: light directions from the surface point to the projector centre (world frame,
+//! mm); `(e_1, e_2)` is [`tangent_basis`] of the pixel's normal.
+
+use nalgebra::{Matrix5, Vector2, Vector3, Vector5};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::mixture::Profile;
+use super::profiles::{PixelGeometry, SlitSweep};
+use super::surface::Surface;
+
+/// Errors of the shading regression.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[non_exhaustive]
+pub enum ShadingError {
+    /// The per-projector inputs disagree in number.
+    #[error("{geometries} projector geometries, {sweeps} slit sweeps, {centres} projector centres")]
+    ProjectorCount {
+        geometries: usize,
+        sweeps: usize,
+        centres: usize,
+    },
+    /// A per-pixel input does not have the surface's size.
+    #[error("{what} has {got} pixels, the surface {want}")]
+    SizeMismatch {
+        what: &'static str,
+        got: usize,
+        want: usize,
+    },
+}
+
+/// One projector's observation of a pixel: its light-direction term and the log amplitude per
+/// channel (`None` where that channel's profiles carry no light).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observation {
+    pub u: Vector2<f64>,
+    pub y: [Option<f64>; 3],
+}
+
+/// The fitted parameters of one pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelShading {
+    /// Light-independent log amplitude per channel.
+    pub alpha: [f64; 3],
+    /// Tangential normal correction in the pixel's tangent basis.
+    pub delta: Vector2<f64>,
+}
+
+/// Ridge strengths tried by the cross-validation; the largest is "no correction".
+const LAMBDAS: [f64; 9] = [0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 1e9];
+/// Amplitude prior strengths tried (0: each pixel's own amplitude).
+const KAPPAS: [f64; 6] = [0.0, 0.1, 0.3, 1.0, 3.0, 10.0];
+/// Observations whose log amplitude is further than this from the channel's mean are left out
+/// (shadow edges, grazing light: factors beyond e^1.5 ~ 4.5 are not skin).
+const OUTLIER_LOG: f64 = 1.5;
+/// Largest tangential correction kept (about 27 degrees).
+const MAX_DELTA: f64 = 0.5;
+/// At most this many pixels score the cross-validation (evenly spaced).
+const CV_PIXELS: usize = 20_000;
+
+/// Regression strengths and what the cross-validation saw.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ShadingReport {
+    /// Chosen ridge on the normal correction (`1e9`: no correction).
+    pub lambda: f64,
+    /// Chosen amplitude prior strength.
+    pub kappa: f64,
+    /// Mean squared leave-one-projector-out error of `y` (per observation) at the choice, with no
+    /// correction and no amplitude prior (`lambda = 1e9, kappa = 0`, the per-pixel mean), and with
+    /// the subject mean alone.
+    pub cv_mse: f64,
+    pub cv_mse_no_correction: f64,
+    pub cv_mse_subject_mean: f64,
+    /// Pixels scored by the cross-validation and pixels corrected.
+    pub cv_pixels: usize,
+    pub corrected_pixels: usize,
+    /// Mean and 95th percentile of the normal correction (degrees).
+    pub mean_correction_deg: f64,
+    pub p95_correction_deg: f64,
+}
+
+/// An orthonormal basis of the plane perpendicular to `n` (unit).
+pub fn tangent_basis(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let helper = if n.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let e1 = n.cross(&helper).normalize();
+    (e1, n.cross(&e1))
+}
+
+/// `u = l_t / (n . l)` in the basis of [`tangent_basis`]; `None` when the light is behind.
+pub fn light_term(
+    point: &Vector3<f64>,
+    normal: &Vector3<f64>,
+    centre: &Vector3<f64>,
+) -> Option<Vector2<f64>> {
+    let l = (centre - point).try_normalize(1e-12)?;
+    let c = l.dot(normal);
+    if c <= 1e-3 {
+        return None;
+    }
+    let (e1, e2) = tangent_basis(normal);
+    Some(Vector2::new(l.dot(&e1) / c, l.dot(&e2) / c))
+}
+
+/// The normal rotated by the tangential correction `delta` (basis of [`tangent_basis`]).
+pub fn corrected_normal(normal: &Vector3<f64>, delta: &Vector2<f64>) -> Vector3<f64> {
+    let (e1, e2) = tangent_basis(normal);
+    (normal + e1 * delta.x + e2 * delta.y).normalize()
+}
+
+/// Posterior mode of one pixel from `obs` (leaving out observation `skip`), with channel means
+/// `mu`; `None` when no observation is left.
+fn solve_pixel(
+    obs: &[Observation],
+    skip: Option<usize>,
+    mu: &[f64; 3],
+    lambda: f64,
+    kappa: f64,
+) -> Option<PixelShading> {
+    let mut a = Matrix5::<f64>::zeros();
+    let mut b = Vector5::<f64>::zeros();
+    let mut any = false;
+    for (j, o) in obs.iter().enumerate() {
+        if Some(j) == skip {
+            continue;
+        }
+        for (c, y) in o.y.iter().enumerate() {
+            let Some(y) = *y else { continue };
+            any = true;
+            let row = Vector5::new(
+                f64::from(u8::from(c == 0)),
+                f64::from(u8::from(c == 1)),
+                f64::from(u8::from(c == 2)),
+                o.u.x,
+                o.u.y,
+            );
+            a += row * row.transpose();
+            b += row * y;
+        }
+    }
+    if !any {
+        return None;
+    }
+    // A tiny amplitude prior keeps channels without an observation at the subject mean.
+    let k = kappa.max(1e-9);
+    for c in 0..3 {
+        a[(c, c)] += k;
+        b[c] += k * mu[c];
+    }
+    a[(3, 3)] += lambda;
+    a[(4, 4)] += lambda;
+    let x = a.cholesky()?.solve(&b);
+    let delta = Vector2::new(x[3], x[4]);
+    let norm = delta.norm();
+    let delta = if norm > MAX_DELTA {
+        delta * (MAX_DELTA / norm)
+    } else {
+        delta
+    };
+    Some(PixelShading {
+        alpha: [x[0], x[1], x[2]],
+        delta,
+    })
+}
+
+/// Squared prediction errors and count of the observation `left` from the others.
+fn left_out_error(
+    obs: &[Observation],
+    left: usize,
+    mu: &[f64; 3],
+    lambda: f64,
+    kappa: f64,
+) -> (f64, usize) {
+    let Some(fit) = solve_pixel(obs, Some(left), mu, lambda, kappa) else {
+        return (0.0, 0);
+    };
+    let o = &obs[left];
+    let shade = fit.delta.dot(&o.u);
+    o.y.iter()
+        .enumerate()
+        .filter_map(|(c, y)| y.map(|y| (y - fit.alpha[c] - shade).powi(2)))
+        .fold((0.0, 0), |(s, n), e| (s + e, n + 1))
+}
+
+/// Channel means of the observations.
+fn channel_means(pixels: &[Vec<Observation>]) -> [f64; 3] {
+    let mut sum = [0.0; 3];
+    let mut count = [0usize; 3];
+    for o in pixels.iter().flatten() {
+        for c in 0..3 {
+            if let Some(y) = o.y[c] {
+                sum[c] += y;
+                count[c] += 1;
+            }
+        }
+    }
+    std::array::from_fn(|c| {
+        if count[c] > 0 {
+            sum[c] / count[c] as f64
+        } else {
+            0.0
+        }
+    })
+}
+
+/// Leave-one-projector-out mean squared error per observation for every `(lambda, kappa)`, over
+/// the pixels with at least two observations (at most [`CV_PIXELS`] of them, evenly spaced).
+fn cross_validate(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> (Vec<(f64, f64, f64)>, usize) {
+    let scorable: Vec<&Vec<Observation>> = pixels.iter().filter(|o| o.len() >= 2).collect();
+    let step = scorable.len().div_ceil(CV_PIXELS).max(1);
+    let chosen: Vec<&Vec<Observation>> = scorable.into_iter().step_by(step).collect();
+    let grid: Vec<(f64, f64)> = LAMBDAS
+        .iter()
+        .flat_map(|&l| KAPPAS.iter().map(move |&k| (l, k)))
+        .collect();
+    let table = grid
+        .par_iter()
+        .map(|&(lambda, kappa)| {
+            let (mut sum, mut n) = (0.0, 0usize);
+            for obs in &chosen {
+                for left in 0..obs.len() {
+                    let (s, m) = left_out_error(obs, left, mu, lambda, kappa);
+                    sum += s;
+                    n += m;
+                }
+            }
+            (
+                lambda,
+                kappa,
+                if n > 0 { sum / n as f64 } else { f64::INFINITY },
+            )
+        })
+        .collect();
+    (table, chosen.len())
+}
+
+/// Subject-mean-only error: every observation predicted by its channel mean.
+fn subject_mean_error(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> f64 {
+    let (mut sum, mut n) = (0.0, 0usize);
+    for o in pixels.iter().filter(|o| o.len() >= 2).flatten() {
+        for c in 0..3 {
+            if let Some(y) = o.y[c] {
+                sum += (y - mu[c]).powi(2);
+                n += 1;
+            }
+        }
+    }
+    if n > 0 { sum / n as f64 } else { f64::INFINITY }
+}
+
+/// Drops observations of a channel that are outliers against its mean.
+fn without_outliers(pixels: &mut [Vec<Observation>], mu: &[f64; 3]) {
+    for obs in pixels.iter_mut() {
+        for o in obs.iter_mut() {
+            for c in 0..3 {
+                if o.y[c].is_some_and(|y| (y - mu[c]).abs() > OUTLIER_LOG) {
+                    o.y[c] = None;
+                }
+            }
+        }
+        obs.retain(|o| o.y.iter().any(Option::is_some));
+    }
+}
+
+/// Fits every pixel (`None` without observations) with the strengths chosen by
+/// leave-one-projector-out cross-validation.
+pub fn fit_shading(pixels: &[Vec<Observation>]) -> (Vec<Option<PixelShading>>, ShadingReport) {
+    let mut clean = pixels.to_vec();
+    let mu0 = channel_means(&clean);
+    without_outliers(&mut clean, &mu0);
+    let mu = channel_means(&clean);
+    let (table, cv_pixels) = cross_validate(&clean, &mu);
+    let (lambda, kappa, cv_mse) = table
+        .iter()
+        .copied()
+        .min_by(|a, b| a.2.total_cmp(&b.2))
+        .unwrap_or((LAMBDAS[LAMBDAS.len() - 1], 0.0, f64::INFINITY));
+    let no_correction = table
+        .iter()
+        .find(|t| t.0 == LAMBDAS[LAMBDAS.len() - 1] && t.1 == 0.0)
+        .map_or(f64::INFINITY, |t| t.2);
+    let fits: Vec<Option<PixelShading>> = clean
+        .par_iter()
+        .map(|obs| solve_pixel(obs, None, &mu, lambda, kappa))
+        .collect();
+    let mut angles: Vec<f64> = fits
+        .iter()
+        .flatten()
+        .map(|f| f.delta.norm().atan().to_degrees())
+        .collect();
+    angles.sort_by(f64::total_cmp);
+    let report = ShadingReport {
+        lambda,
+        kappa,
+        cv_mse,
+        cv_mse_no_correction: no_correction,
+        cv_mse_subject_mean: subject_mean_error(&clean, &mu),
+        cv_pixels,
+        corrected_pixels: angles.len(),
+        mean_correction_deg: if angles.is_empty() {
+            0.0
+        } else {
+            angles.iter().sum::<f64>() / angles.len() as f64
+        },
+        p95_correction_deg: angles
+            .get((angles.len() as f64 * 0.95) as usize)
+            .or(angles.last())
+            .copied()
+            .unwrap_or(0.0),
+    };
+    (fits, report)
+}
+
+/// The observations of every surface pixel from the training projectors' slit profiles.
+pub fn observations(
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    centres: &[Vector3<f64>],
+) -> Result<Vec<Vec<Observation>>, ShadingError> {
+    if geometries.len() != sweeps.len() || centres.len() != sweeps.len() {
+        return Err(ShadingError::ProjectorCount {
+            geometries: geometries.len(),
+            sweeps: sweeps.len(),
+            centres: centres.len(),
+        });
+    }
+    if let Some(g) = geometries.iter().find(|g| g.len() != surface.len()) {
+        return Err(ShadingError::SizeMismatch {
+            what: "projector geometry",
+            got: g.len(),
+            want: surface.len(),
+        });
+    }
+    Ok((0..surface.len())
+        .into_par_iter()
+        .map(|i| {
+            if !surface.mask[i] {
+                return Vec::new();
+            }
+            geometries
+                .iter()
+                .zip(sweeps)
+                .zip(centres)
+                .filter_map(|((geo, sweep), centre)| {
+                    let g = geo[i]?;
+                    let u = light_term(&surface.points[i], &surface.normals[i], centre)?;
+                    let y: [Option<f64>; 3] = std::array::from_fn(|c| {
+                        let profiles: Vec<Profile> =
+                            (0..2).filter_map(|a| sweep.profile(i, c, a, &g)).collect();
+                        let flux: f64 = profiles.iter().map(Profile::flux).sum();
+                        let ew: f64 = profiles.iter().map(|p| g.irradiance * p.slit_width).sum();
+                        (flux > 0.0 && ew > 0.0).then(|| (flux / ew).ln())
+                    });
+                    y.iter()
+                        .any(Option::is_some)
+                        .then_some(Observation { u, y })
+                })
+                .collect()
+        })
+        .collect())
+}
+
+/// The surface with every pixel's normal corrected by the shading regression of its training
+/// observations; the report says what the cross-validation chose.
+pub fn refine_normals(
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    centres: &[Vector3<f64>],
+) -> Result<(Surface, ShadingReport), ShadingError> {
+    let pixels = observations(surface, geometries, sweeps, centres)?;
+    let (fits, report) = fit_shading(&pixels);
+    let mut refined = surface.clone();
+    for (n, fit) in refined.normals.iter_mut().zip(&fits) {
+        if let Some(f) = fit {
+            *n = corrected_normal(n, &f.delta);
+        }
+    }
+    Ok((refined, report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Four lights at the corners of the booth, as seen from a surface point at the origin with
+    /// normal `n`.
+    fn lights() -> Vec<Vector3<f64>> {
+        vec![
+            Vector3::new(-260.0, -200.0, 420.0),
+            Vector3::new(260.0, -200.0, 420.0),
+            Vector3::new(-260.0, 200.0, 420.0),
+            Vector3::new(260.0, 200.0, 420.0),
+        ]
+    }
+
+    /// Synthetic pixels: true normals tilted from the estimated `+z` by a random error of about
+    /// `error_deg`, true log amplitudes spread by `spread`, observations `ln(a E_true / E_model)`
+    /// plus noise `noise` for the first three lights. Returns the observations, the true tangent
+    /// corrections, and the fourth (held-out) light's true log error `ln(a E_true/E_model)`.
+    #[allow(clippy::type_complexity)]
+    fn synthetic(
+        pixels: usize,
+        error_deg: f64,
+        spread: f64,
+        noise: f64,
+        seed: u64,
+    ) -> (Vec<Vec<Observation>>, Vec<Vector2<f64>>, Vec<[f64; 3]>) {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let n_model = Vector3::z();
+        let p = Vector3::zeros();
+        let mut obs = Vec::new();
+        let mut truth = Vec::new();
+        let mut held = Vec::new();
+        let tan = error_deg.to_radians().tan();
+        for _ in 0..pixels {
+            let d = Vector2::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0)) * tan;
+            let n_true = corrected_normal(&n_model, &d);
+            let alpha: [f64; 3] =
+                std::array::from_fn(|c| -1.0 - 0.3 * c as f64 + spread * rng.gen_range(-1.0..1.0));
+            let mut o = Vec::new();
+            let mut last = [0.0; 3];
+            for (k, centre) in lights().iter().enumerate() {
+                let l = (centre - p).normalize();
+                let shade = (l.dot(&n_true) / l.dot(&n_model)).ln();
+                let y: [f64; 3] =
+                    std::array::from_fn(|c| alpha[c] + shade + noise * rng.gen_range(-1.0..1.0));
+                if k < 3 {
+                    o.push(Observation {
+                        u: light_term(&p, &n_model, centre).unwrap(),
+                        y: y.map(Some),
+                    });
+                } else {
+                    last = y;
+                }
+            }
+            obs.push(o);
+            truth.push(d);
+            held.push(last);
+        }
+        (obs, truth, held)
+    }
+
+    #[test]
+    fn a_normal_error_is_recovered_and_predicts_a_new_light() {
+        // 6 degree normal errors, small noise: the correction must recover the tilt.
+        let (obs, truth, held) = synthetic(3000, 6.0, 0.2, 0.01, 3);
+        let (fits, report) = fit_shading(&obs);
+        assert!(report.lambda < 1.0, "{report:?}");
+        let mut err2 = 0.0;
+        let mut size2 = 0.0;
+        for (f, d) in fits.iter().zip(&truth) {
+            let f = f.unwrap();
+            // First order: the fitted delta matches the tangent of the tilt to a few percent.
+            err2 += (f.delta - d).norm_squared();
+            size2 += d.norm_squared();
+        }
+        let rel = (err2 / size2).sqrt();
+        assert!(rel < 0.1, "relative error of the correction {rel}");
+        // The fourth light, never seen: predicted from alpha + delta . u far better than by the
+        // mean of the three seen lights (which carries the opposite shading error).
+        let u4 = light_term(&Vector3::zeros(), &Vector3::z(), &lights()[3]).unwrap();
+        let (mut e_fit, mut e_mean) = (0.0, 0.0);
+        for ((f, o), y4) in fits.iter().zip(&obs).zip(&held) {
+            let f = f.unwrap();
+            for c in 0..3 {
+                let mean = o.iter().map(|o| o.y[c].unwrap()).sum::<f64>() / 3.0;
+                e_fit += (y4[c] - f.alpha[c] - f.delta.dot(&u4)).powi(2);
+                e_mean += (y4[c] - mean).powi(2);
+            }
+        }
+        assert!(e_fit < 0.1 * e_mean, "fit {e_fit} vs mean {e_mean}");
+    }
+
+    #[test]
+    fn pure_noise_is_not_turned_into_a_normal_correction() {
+        // Correct normals, noisy amplitudes: the cross-validation must not correct much.
+        let (obs, _, _) = synthetic(3000, 0.0, 0.2, 0.1, 5);
+        let (fits, report) = fit_shading(&obs);
+        assert!(report.lambda >= 1.0, "{report:?}");
+        let mean_deg = report.mean_correction_deg;
+        assert!(mean_deg < 1.5, "mean correction {mean_deg} deg");
+        assert_eq!(fits.iter().flatten().count(), 3000);
+        // Without signal in the amplitudes beyond the noise, the amplitude prior pulls in.
+        assert!(report.cv_mse <= report.cv_mse_no_correction + 1e-12);
+    }
+
+    #[test]
+    fn corrected_normal_changes_the_cosine_to_first_order() {
+        let n = Vector3::new(0.1, -0.2, 1.0).normalize();
+        let p = Vector3::new(5.0, 3.0, 0.0);
+        let centre = Vector3::new(-200.0, 150.0, 400.0);
+        let u = light_term(&p, &n, &centre).unwrap();
+        let d = Vector2::new(0.01, -0.02);
+        let l = (centre - p).normalize();
+        let got = (l.dot(&corrected_normal(&n, &d)) / l.dot(&n)).ln();
+        assert!((got - d.dot(&u)).abs() < 1e-3, "{got} vs {}", d.dot(&u));
+    }
+}
