@@ -441,35 +441,25 @@ fn choose_neighbourhoods(
             Ok(out)
         })
         .collect();
-    let mut sums = [
-        vec![0.0; candidates.len()],
-        vec![0.0; candidates.len()],
-        vec![0.0; candidates.len()],
-    ];
-    let mut counts = [0usize; 3];
+    let mut scores: [Vec<Vec<f64>>; 3] = Default::default();
     for tile in per_tile {
-        for (c, scores) in tile?.iter().enumerate() {
-            if let Some(s) = scores {
-                counts[c] += 1;
-                for (acc, v) in sums[c].iter_mut().zip(s) {
-                    *acc += v;
-                }
+        for (c, s) in tile?.into_iter().enumerate() {
+            if let Some(s) = s {
+                scores[c].push(s);
             }
         }
     }
+    let counts = [scores[0].len(), scores[1].len(), scores[2].len()];
     let mut chosen = [Neighbourhood::Radius(0); 3];
     let mut tables: [BTreeMap<String, f64>; 3] = Default::default();
     for c in 0..3 {
         if counts[c] == 0 {
             continue;
         }
-        let means: Vec<f64> = sums[c].iter().map(|s| s / counts[c] as f64).collect();
-        let best = means
-            .iter()
-            .enumerate()
-            .max_by(|a, b| a.1.total_cmp(b.1))
-            .map_or(0, |(k, _)| k);
-        chosen[c] = candidates[best];
+        let means: Vec<f64> = (0..candidates.len())
+            .map(|k| scores[c].iter().map(|s| s[k]).sum::<f64>() / counts[c] as f64)
+            .collect();
+        chosen[c] = candidates[most_pooled_within_one_se(&scores[c], candidates)];
         tables[c] = candidates
             .iter()
             .zip(&means)
@@ -481,6 +471,43 @@ fn choose_neighbourhoods(
         tables,
         counts,
     })
+}
+
+/// Pooling rank of a candidate: the global shape pools most, then larger radii.
+fn pooling(hood: Neighbourhood) -> usize {
+    match hood {
+        Neighbourhood::Global => usize::MAX,
+        Neighbourhood::Radius(r) => r,
+    }
+}
+
+/// The one-standard-error rule of cross-validation (Hastie, Tibshirani & Friedman, *Elements of
+/// Statistical Learning*, 7.10): among the candidates whose mean validation score is within one
+/// standard error of the best one's (the standard error of the per-tile score difference), the
+/// most pooled. Why: the validation pixels are lit by the same projectors as the fitted tiles, so
+/// light-dependent errors shared by neighbours (geometry, irradiance) make local shapes look
+/// slightly better than they transfer to a new light; on the quick head with the estimated
+/// calibration `r3` beat `global` by 0.002 nats per profile on validation and lost by 5 % of
+/// held-out error.
+fn most_pooled_within_one_se(scores: &[Vec<f64>], candidates: &[Neighbourhood]) -> usize {
+    let n = scores.len() as f64;
+    let mean = |k: usize| scores.iter().map(|s| s[k]).sum::<f64>() / n;
+    let best = (0..candidates.len())
+        .max_by(|&a, &b| mean(a).total_cmp(&mean(b)))
+        .unwrap_or(0);
+    let within = |k: usize| {
+        if k == best {
+            return true;
+        }
+        let d: Vec<f64> = scores.iter().map(|s| s[best] - s[k]).collect();
+        let m = d.iter().sum::<f64>() / n;
+        let var = d.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+        m <= (var / n).sqrt()
+    };
+    (0..candidates.len())
+        .filter(|&k| within(k))
+        .max_by_key(|&k| pooling(candidates[k]))
+        .unwrap_or(best)
 }
 
 /// Variance components of the per-projector amplitude estimates of one channel.
