@@ -116,6 +116,9 @@ pub struct ChannelPrior {
     pub shape: String,
     /// Mean held-out log-likelihood per validation profile set, per candidate label.
     pub cv_log_likelihood: BTreeMap<String, f64>,
+    /// Leave-one-projector-out mean squared error of the validation pixels' log profile width
+    /// per candidate label (the criterion of the choice, with the one-standard-error rule).
+    pub width_loo_mse: BTreeMap<String, f64>,
     /// Subject mean amplitude `m`.
     pub amplitude_mean: f64,
     /// Relative noise variance of one projector's amplitude estimate (`s2`).
@@ -198,7 +201,14 @@ fn layer_code(index: u16, bin: i32) -> u16 {
     index.saturating_mul(SIGMA_BINS).saturating_add(bin)
 }
 
-/// Equal-weight mixture of `shapes`, components of equal layer index merged within log-sigma bins
+/// The layer index layers are merged under: layers at the surface (depth 0, e.g. every layer
+/// when the fitted spacing `D` is 0) are one Gaussian family whatever their index, so they share
+/// index 0; deeper layers keep their index (their depth is `index * D`).
+fn depth_key(l: &SplatLayer) -> u16 {
+    if l.depth_mm == 0.0 { 0 } else { l.index }
+}
+
+/// Equal-weight mixture of `shapes`, components at equal depth ([`depth_key`]) merged within log-sigma bins
 /// (weight summed, variance moment-matched, depth weight-averaged); the merged layers' `index`
 /// is [`layer_code`].
 fn merged_mixture<'a>(shapes: impl Iterator<Item = &'a Shape>, bin_ratio: f64) -> Option<Shape> {
@@ -211,7 +221,7 @@ fn merged_mixture<'a>(shapes: impl Iterator<Item = &'a Shape>, bin_ratio: f64) -
         for l in shape {
             let sigma = f64::from(l.sigma_mm).max(1e-6);
             let bin = (sigma.ln() / log_ratio).round() as i32;
-            let e = bins.entry((l.index, bin)).or_insert((0.0, 0.0, 0.0));
+            let e = bins.entry((depth_key(l), bin)).or_insert((0.0, 0.0, 0.0));
             let w = f64::from(l.weight);
             e.0 += w;
             e.1 += w * sigma * sigma;
@@ -386,6 +396,8 @@ fn hood_shape(
 struct Choice {
     chosen: [Neighbourhood; 3],
     tables: [BTreeMap<String, f64>; 3],
+    /// Leave-one-projector-out mean squared error of the log width per candidate label.
+    width_tables: [BTreeMap<String, f64>; 3],
     counts: [usize; 3],
 }
 
@@ -450,6 +462,8 @@ fn choose_neighbourhoods(
         }
     }
     let counts = [scores[0].len(), scores[1].len(), scores[2].len()];
+    let width = width_loo_scores(inputs, candidates);
+    let mut width_tables: [BTreeMap<String, f64>; 3] = Default::default();
     let mut chosen = [Neighbourhood::Radius(0); 3];
     let mut tables: [BTreeMap<String, f64>; 3] = Default::default();
     for c in 0..3 {
@@ -459,7 +473,21 @@ fn choose_neighbourhoods(
         let means: Vec<f64> = (0..candidates.len())
             .map(|k| scores[c].iter().map(|s| s[k]).sum::<f64>() / counts[c] as f64)
             .collect();
-        chosen[c] = candidates[most_pooled_within_one_se(&scores[c], candidates)];
+        // Chosen by how well neighbours' widths under other lights predict this light's
+        // (leave-one-projector-out); the validation likelihood when that cannot be scored.
+        chosen[c] = if width[c].len() >= 2 {
+            candidates[most_pooled_within_one_se(&width[c], candidates)]
+        } else {
+            candidates[most_pooled_within_one_se(&scores[c], candidates)]
+        };
+        width_tables[c] = candidates
+            .iter()
+            .enumerate()
+            .map(|(k, h)| {
+                let n = width[c].len().max(1) as f64;
+                (h.label(), -width[c].iter().map(|s| s[k]).sum::<f64>() / n)
+            })
+            .collect();
         tables[c] = candidates
             .iter()
             .zip(&means)
@@ -469,8 +497,133 @@ fn choose_neighbourhoods(
     Ok(Choice {
         chosen,
         tables,
+        width_tables,
         counts,
     })
+}
+
+/// Log of the second moment (mm^2) of the profiles of pixel `i`, channel `c`, per training
+/// projector (both axes pooled; `None` where that projector gives the pixel no light): a
+/// one-number summary of the kernel width each light direction measured.
+fn log_widths(inputs: &Inputs, i: usize, c: usize) -> Vec<Option<f64>> {
+    inputs
+        .geometries
+        .iter()
+        .zip(inputs.sweeps)
+        .map(|(geo, sweep)| {
+            let g = geo[i]?;
+            let (mut m0, mut m2) = (0.0, 0.0);
+            for a in 0..2 {
+                if let Some(p) = sweep.profile(i, c, a, &g) {
+                    for s in &p.samples {
+                        let y = s.y.max(0.0);
+                        m0 += y;
+                        m2 += y * s.s * s.s;
+                    }
+                }
+            }
+            (m0 > 0.0 && m2 > 0.0).then(|| (m2 / m0).ln())
+        })
+        .collect()
+}
+
+/// Per tile and channel, the negated squared errors of predicting the validation pixel's log
+/// width under each training projector `p` from the fitted pixels' widths under the OTHER
+/// projectors, averaged over each candidate neighbourhood (leave-one-projector-out). A local
+/// shape is worth keeping only if what neighbours measured under other lights predicts this
+/// light: light-dependent errors (geometry, irradiance) are shared by neighbours under the same
+/// light, which is why the validation likelihood alone favours local shapes too much.
+fn width_loo_scores(inputs: &Inputs, candidates: &[Neighbourhood]) -> [Vec<Vec<f64>>; 3] {
+    let tiles = inputs.tiles.count();
+    let fitted: Vec<[Vec<Option<f64>>; 3]> = (0..tiles)
+        .into_par_iter()
+        .map(|t| match inputs.fitted_pixel(t) {
+            Some(i) => std::array::from_fn(|c| log_widths(inputs, i, c)),
+            None => Default::default(),
+        })
+        .collect();
+    let projectors = inputs.geometries.len();
+    // Global sums and counts per channel and projector.
+    let mut sums = [
+        vec![0.0; projectors],
+        vec![0.0; projectors],
+        vec![0.0; projectors],
+    ];
+    let mut counts = [
+        vec![0usize; projectors],
+        vec![0usize; projectors],
+        vec![0usize; projectors],
+    ];
+    for f in &fitted {
+        for c in 0..3 {
+            for (p, x) in f[c].iter().enumerate() {
+                if let Some(x) = x {
+                    sums[c][p] += x;
+                    counts[c][p] += 1;
+                }
+            }
+        }
+    }
+    let per_tile: Vec<[Option<Vec<f64>>; 3]> = (0..tiles)
+        .into_par_iter()
+        .map(|t| {
+            let mut out: [Option<Vec<f64>>; 3] = Default::default();
+            let Some((v, exclude)) = inputs.validation_pixel(t) else {
+                return out;
+            };
+            for (c, o) in out.iter_mut().enumerate() {
+                let own = log_widths(inputs, v, c);
+                let mut scores = vec![0.0; candidates.len()];
+                let mut scored = false;
+                for (p, x) in own.iter().enumerate() {
+                    let Some(x) = x else { continue };
+                    let mut preds = Vec::with_capacity(candidates.len());
+                    for &hood in candidates {
+                        let (mut s, mut n) = (0.0, 0usize);
+                        match hood {
+                            Neighbourhood::Global => {
+                                for q in (0..projectors).filter(|&q| q != p) {
+                                    s += sums[c][q];
+                                    n += counts[c][q];
+                                }
+                            }
+                            Neighbourhood::Radius(r) => {
+                                for tile in inputs.window(t, r).filter(|&u| Some(u) != exclude) {
+                                    for (q, y) in fitted[tile][c].iter().enumerate() {
+                                        if let (true, Some(y)) = (q != p, y) {
+                                            s += y;
+                                            n += 1;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                        preds.push((n > 0).then(|| s / n as f64));
+                    }
+                    // Score a projector only when every candidate predicts it (a fair comparison).
+                    if preds.iter().all(Option::is_some) {
+                        scored = true;
+                        for (acc, pred) in scores.iter_mut().zip(preds.into_iter().flatten()) {
+                            *acc -= (x - pred).powi(2);
+                        }
+                    }
+                }
+                if scored {
+                    *o = Some(scores);
+                }
+            }
+            out
+        })
+        .collect();
+    let mut out: [Vec<Vec<f64>>; 3] = Default::default();
+    for tile in per_tile {
+        for (c, s) in tile.into_iter().enumerate() {
+            if let Some(s) = s {
+                out[c].push(s);
+            }
+        }
+    }
+    out
 }
 
 /// Pooling rank of a candidate: the global shape pools most, then larger radii.
@@ -709,6 +862,7 @@ pub fn regularise(
     let Choice {
         chosen,
         tables,
+        width_tables,
         counts,
     } = choose_neighbourhoods(&inputs, &shapes, &global, &candidates)?;
 
@@ -788,6 +942,7 @@ pub fn regularise(
         .map(|c| ChannelPrior {
             shape: chosen[c].label(),
             cv_log_likelihood: tables[c].clone(),
+            width_loo_mse: width_tables[c].clone(),
             amplitude_mean: stats[c].mean,
             noise_variance: stats[c].noise,
             signal_variance: stats[c].signal,
@@ -850,9 +1005,22 @@ mod tests {
         let var = (0.5 * 1.0 + 1.0 * 1.05f64.powi(2)) / 1.5;
         assert!((f64::from(narrow.sigma_mm) - var.sqrt()).abs() < 1e-5);
         assert_eq!(f64::from(wide.sigma_mm), 3.0);
-        // Layer codes keep the original index recoverable and differ between bins.
+        // At depth 0 every index is one family: codes share depth index 0 and differ by bin.
         assert_eq!(narrow.index / SIGMA_BINS, 0);
-        assert_eq!(wide.index / SIGMA_BINS, 1);
+        assert_eq!(wide.index / SIGMA_BINS, 0);
+        assert_ne!(narrow.index, wide.index);
+        // Same sigma, different depths: kept apart, each keeping its own index.
+        let deep = |index: u16, depth: f32| SplatLayer {
+            depth_mm: depth,
+            ..layer(index, 0.5, 1.0)
+        };
+        let c = vec![deep(1, 0.1), deep(2, 0.2)];
+        let d = vec![deep(1, 0.1)];
+        let m = merged_mixture([c, d].iter(), 1.25).unwrap();
+        assert_eq!(m.len(), 2, "{m:?}");
+        assert_eq!(m[0].index / SIGMA_BINS, 1);
+        assert_eq!(m[1].index / SIGMA_BINS, 2);
+        assert!((m[0].weight - 0.5).abs() < 1e-6 && (m[1].weight - 0.25).abs() < 1e-6);
         assert!(merged_mixture(std::iter::empty(), 1.25).is_none());
     }
 
