@@ -494,9 +494,9 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
     })?;
     timing.add("render", relight.render_seconds);
     let mut relight_report = relight.report;
-    if let Some(truth_dir) = scan.truth_dir() {
+    if scan.truth_dir().is_some() {
         let found = timing.time("backscatter", || {
-            evaluate_backscatter(&model, opts.holdout, &truth_dir, &opts.render)
+            evaluate_backscatter(&model, opts.holdout, &relight.slits)
         })?;
         if let Some(b) = found {
             b.plot.save_png(&processed.join(BACKSCATTER_PLOT))?;

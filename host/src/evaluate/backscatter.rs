@@ -13,17 +13,15 @@
 //!   each renderer's global part, mean of R, G, B.
 //! - "toward" and "away" sides exclude the slit itself (`|s| <= W / 2`).
 
-use std::path::Path;
-
 use nalgebra::{Matrix2, Vector2, Vector3};
 use serde_json::{Map, Value, json};
 
-use crate::capture::{Axis, Pattern, truth};
-use crate::imageio::{self, ImageIoError};
+use super::holdout::HeldOutSlit;
+use crate::capture::{Axis, Pattern};
+use crate::imageio::ImageIoError;
 use crate::report::plot::{Plot, Style};
-use crate::subsurface::model_file::{Baseline, ModelFileError, SubsurfaceModel, render_projector};
+use crate::subsurface::model_file::{Baseline, ModelFileError, SubsurfaceModel};
 use crate::subsurface::profiles::slit_distance_px;
-use crate::subsurface::render::RenderOptions;
 use crate::subsurface::surface::refracted_tangent;
 
 /// Errors of the back-scatter evaluation.
@@ -106,39 +104,37 @@ fn profile_axis(
     (norm > 1e-9).then(|| (norm, grad / norm))
 }
 
-/// Samples of one slit axis.
+/// Samples of one slit axis from the held-out evaluation's truth and renders of that slit
+/// (`holdout::evaluate_holdout` keeps them); none when the evaluation had no such slit.
 fn axis_samples(
     model: &SubsurfaceModel,
     k: usize,
     axis: Axis,
-    truth_dir: &Path,
-    opts: &RenderOptions,
+    slits: &[HeldOutSlit],
 ) -> Result<Vec<Sample>, BackscatterError> {
-    let spec = &model.header.patterns;
-    let (width, period) = (spec.slit_width_px, spec.slit_period_px);
-    let pattern = Pattern::Slit {
-        axis,
-        width,
-        period,
-        offset: 0,
+    let Some(slit) = slits
+        .iter()
+        .find(|s| matches!(s.pattern, Pattern::Slit { axis: a, offset: 0, .. } if a == axis))
+    else {
+        return Ok(Vec::new());
     };
-    let path = truth::global(truth_dir, k, &pattern);
-    if !path.is_file() {
+    let Pattern::Slit { width, period, .. } = slit.pattern else {
+        return Ok(Vec::new());
+    };
+    let n = model.header.width * model.header.height;
+    if slit.truth.len() != n {
         return Ok(Vec::new());
     }
-    let img = imageio::read_exr_rgb(&path)?;
-    if img.dimensions() != (model.header.width as u32, model.header.height as u32) {
-        return Ok(Vec::new());
-    }
-    let truth: Vec<[f32; 3]> = img.pixels().map(|p| p.0).collect();
-    let mut renders = Vec::new();
-    for (baseline, _) in RENDERERS {
-        match render_projector(model, k, &pattern, baseline, opts) {
-            Ok(r) => renders.push(Some(r.global)),
-            Err(ModelFileError::NoDipole) => renders.push(None),
-            Err(e) => return Err(e.into()),
-        }
-    }
+    let truth = &slit.truth;
+    let renders: Vec<Option<&Vec<[f32; 3]>>> = RENDERERS
+        .iter()
+        .map(|(baseline, _)| {
+            slit.renders
+                .iter()
+                .find(|(b, img)| b == baseline && img.len() == n)
+                .map(|(_, img)| img)
+        })
+        .collect();
     let coords = model.projector_coords(k)?;
     let light = Vector3::from(model.header.projectors[k].centre);
     let which = usize::from(axis == Axis::Y);
@@ -204,11 +200,10 @@ fn side_errors(samples: &[&Sample]) -> Map<String, Value> {
 pub fn evaluate_backscatter(
     model: &SubsurfaceModel,
     k: usize,
-    truth_dir: &Path,
-    opts: &RenderOptions,
+    slits: &[HeldOutSlit],
 ) -> Result<Option<Backscatter>, BackscatterError> {
-    let mut samples = axis_samples(model, k, Axis::X, truth_dir, opts)?;
-    samples.extend(axis_samples(model, k, Axis::Y, truth_dir, opts)?);
+    let mut samples = axis_samples(model, k, Axis::X, slits)?;
+    samples.extend(axis_samples(model, k, Axis::Y, slits)?);
     if samples.is_empty() {
         return Ok(None);
     }

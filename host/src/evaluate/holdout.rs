@@ -75,6 +75,18 @@ pub struct HoldoutResult {
     pub kept: Vec<RelitImages>,
     /// Compared-pixel mask.
     pub mask: Vec<bool>,
+    /// The slit patterns with offset 0 that have a truth image: the truth and every renderer's
+    /// global part, for the back-scatter evaluation (so it neither renders nor reads them again).
+    pub slits: Vec<HeldOutSlit>,
+}
+
+/// One held-out slit pattern's true and rendered global images.
+#[derive(Debug, Clone)]
+pub struct HeldOutSlit {
+    pub pattern: Pattern,
+    pub truth: Vec<[f32; 3]>,
+    /// Global part per renderer (direct-only excluded).
+    pub renders: Vec<(Baseline, Vec<[f32; 3]>)>,
 }
 
 /// The held-out projector's patterns the evaluation renders: white (paper Fig. 11), a middle bit
@@ -220,6 +232,7 @@ pub fn evaluate_holdout(
     let mut global_patterns = Vec::new();
     let mut per_pattern = Vec::new();
     let mut kept = Vec::new();
+    let mut slits = Vec::new();
     let mut kept_gray = false;
     let mut render_seconds = 0.0;
     let metric_err = |what: String| move |source| HoldoutError::Metrics { what, source };
@@ -250,6 +263,8 @@ pub fn evaluate_holdout(
         }
         let mut entry = Map::new();
         let mut renders = Vec::new();
+        let keep_slit = matches!(pattern, Pattern::Slit { offset: 0, .. }) && true_global.is_some();
+        let mut slit_globals = Vec::new();
         for (i, (baseline, name)) in baselines.iter().enumerate() {
             let start = Instant::now();
             let relit: Relit =
@@ -274,10 +289,20 @@ pub fn evaluate_holdout(
                 let g = SquaredErrors::accumulate(&relit.global, tg, &mask)
                     .map_err(metric_err(format!("{name} global under {label}")))?;
                 global[i] = global[i].pooled_with(g);
+                if keep_slit {
+                    slit_globals.push((*baseline, relit.global));
+                }
             }
             renders.push(((*name).to_owned(), rendered));
         }
         per_pattern.push(json!({ "pattern": label, "psnr_db": Value::Object(entry) }));
+        if let (true, Some(truth)) = (keep_slit, true_global) {
+            slits.push(HeldOutSlit {
+                pattern: *pattern,
+                truth,
+                renders: slit_globals,
+            });
+        }
         let first_gray = matches!(pattern, Pattern::Gray { .. }) && !kept_gray;
         if matches!(pattern, Pattern::White) || first_gray {
             kept_gray |= first_gray;
@@ -340,6 +365,7 @@ pub fn evaluate_holdout(
         render_seconds,
         kept,
         mask,
+        slits,
     })
 }
 
