@@ -269,9 +269,9 @@ fn cross_validate(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> (Vec<(f64, f64,
 fn subject_mean_error(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> f64 {
     let (mut sum, mut n) = (0.0, 0usize);
     for o in pixels.iter().filter(|o| o.len() >= 2).flatten() {
-        for c in 0..3 {
-            if let Some(y) = o.y[c] {
-                sum += (y - mu[c]).powi(2);
+        for (y, m) in o.y.iter().zip(mu) {
+            if let Some(y) = y {
+                sum += (y - m).powi(2);
                 n += 1;
             }
         }
@@ -283,9 +283,9 @@ fn subject_mean_error(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> f64 {
 fn without_outliers(pixels: &mut [Vec<Observation>], mu: &[f64; 3]) {
     for obs in pixels.iter_mut() {
         for o in obs.iter_mut() {
-            for c in 0..3 {
-                if o.y[c].is_some_and(|y| (y - mu[c]).abs() > OUTLIER_LOG) {
-                    o.y[c] = None;
+            for (y, m) in o.y.iter_mut().zip(mu) {
+                if y.is_some_and(|y| (y - m).abs() > OUTLIER_LOG) {
+                    *y = None;
                 }
             }
         }
@@ -496,10 +496,10 @@ mod tests {
         let (mut e_fit, mut e_mean) = (0.0, 0.0);
         for ((f, o), y4) in fits.iter().zip(&obs).zip(&held) {
             let f = f.unwrap();
-            for c in 0..3 {
+            for (c, y4) in y4.iter().enumerate() {
                 let mean = o.iter().map(|o| o.y[c].unwrap()).sum::<f64>() / 3.0;
-                e_fit += (y4[c] - f.alpha[c] - f.delta.dot(&u4)).powi(2);
-                e_mean += (y4[c] - mean).powi(2);
+                e_fit += (y4 - f.alpha[c] - f.delta.dot(&u4)).powi(2);
+                e_mean += (y4 - mean).powi(2);
             }
         }
         assert!(e_fit < 0.2 * e_mean, "fit {e_fit} vs mean {e_mean}");
