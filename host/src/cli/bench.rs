@@ -9,9 +9,10 @@ use mlsss::booth::Booth;
 use mlsss::evaluate::quality_sweep::{SweepInputs, plan, run_sweep, summary, write_outputs};
 use mlsss::pipeline::CalibrationSource;
 use mlsss::virtual_booth::{
-    NoProgress, ResponseCache, SimulationOptions, SkinPreset, SubjectKind, scaled_booth,
-    simulate_scan,
+    NoProgress, SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_scan,
 };
+
+use super::monte_carlo_args::MonteCarloArgs;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -33,12 +34,8 @@ pub struct Args {
     /// Seed of the simulated head.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Monte Carlo photons per skin response (default: the simulator's for the booth).
-    #[arg(long)]
-    photons: Option<u64>,
-    /// Monte Carlo response cache folder (default: $MLSSS_CACHE or ~/.cache/mlsss).
-    #[arg(long, value_name = "DIR")]
-    cache: Option<PathBuf>,
+    #[command(flatten)]
+    monte_carlo: MonteCarloArgs,
     /// Output folder: captures (simulated once, reused on later runs), pipeline outputs,
     /// bench.csv, pareto.png.
     #[arg(long, default_value = "out/bench")]
@@ -62,12 +59,7 @@ fn capture_for(args: &Args, factor: u32) -> anyhow::Result<(PathBuf, PathBuf)> {
     }
     let mut opts =
         SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, args.seed);
-    if let Some(p) = args.photons {
-        opts.mc.photons = p;
-    }
-    if let Some(c) = &args.cache {
-        opts.cache = ResponseCache::new(c);
-    }
+    args.monte_carlo.apply(&mut opts);
     eprintln!(
         "simulating a {}x{} capture ...",
         booth.camera.width, booth.camera.height

@@ -2,12 +2,11 @@
 //! against the truth (the project's main command).
 
 use std::path::PathBuf;
-use std::time::Duration;
 
 use anyhow::Context;
 
+use super::monte_carlo_args::MonteCarloArgs;
 use super::stage_bar::Bar;
-use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::demo::{CalibrationMode, DemoOptions, DemoProgress, run_demo};
 use mlsss::virtual_booth::{Progress, SkinPreset, SubjectKind};
 
@@ -55,12 +54,8 @@ pub struct Args {
     /// Fit: EM iteration cap per pixel.
     #[arg(long, default_value_t = 200)]
     max_iterations: usize,
-    /// Monte Carlo photons per skin response (default: the simulator's for the booth).
-    #[arg(long)]
-    photons: Option<u64>,
-    /// Monte Carlo response cache folder (default: $MLSSS_CACHE or ~/.cache/mlsss).
-    #[arg(long, value_name = "DIR")]
-    cache: Option<PathBuf>,
+    #[command(flatten)]
+    monte_carlo: MonteCarloArgs,
     /// Output folder (created; a previous demo's outputs in it are replaced).
     #[arg(long, default_value = "out/demo")]
     out: PathBuf,
@@ -94,19 +89,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.fit.components = args.components;
     opts.fit.block = args.block;
     opts.fit.max_iterations = args.max_iterations;
-    opts.photons = args.photons;
-    opts.cache = args.cache.clone();
-    let bar = ProgressBar::new(1);
-    bar.set_style(
-        ProgressStyle::with_template("{msg:32} [{bar:40}] {pos}/{len} {elapsed_precise}")
-            .context("progress bar template")?
-            .progress_chars("=> "),
-    );
-    bar.enable_steady_tick(Duration::from_millis(200));
-    let progress = Bar(bar.clone());
+    opts.photons = args.monte_carlo.photons;
+    opts.cache = args.monte_carlo.cache.clone();
+    let progress = Bar::on_stderr()?;
     let outcome =
         run_demo(&opts, &progress).with_context(|| format!("demo into {}", args.out.display()))?;
-    bar.finish_and_clear();
+    progress.finish_and_clear();
     if args.json {
         println!("{}", serde_json::to_string(&outcome.report)?);
     } else {

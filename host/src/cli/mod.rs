@@ -9,6 +9,7 @@ pub mod decode;
 pub mod demo;
 pub mod eval;
 pub mod mc;
+pub mod monte_carlo_args;
 pub mod normals;
 pub mod process;
 pub mod ps_scene;

@@ -41,6 +41,22 @@ pub struct Args {
     /// coarser).
     #[arg(long, default_value_t = 1)]
     block: usize,
+    /// Fit stage: stop a fit's EM when one iteration gains less than this in log-likelihood per
+    /// unit weight.
+    #[arg(long, default_value_t = FitParams::default().tolerance)]
+    tolerance: f64,
+    /// Fit stage: EM iteration cap per fit.
+    #[arg(long, default_value_t = FitParams::default().max_iterations)]
+    max_iterations: usize,
+    /// Fit stage: skip the held-out check renders (`heldout_global_rel_rmse`; `mlsss eval`
+    /// renders the same).
+    #[arg(long)]
+    no_heldout_check: bool,
+    /// Fit stage: keep each pixel's own fitted layers instead of the spatial prior (shapes pooled
+    /// over neighbouring tiles, amplitudes shrunk toward the subject's mean, both as far as
+    /// cross-validation on the training projectors says; `subsurface::spatial_prior`).
+    #[arg(long)]
+    no_spatial_prior: bool,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -80,6 +96,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         components: args.components,
         block: args.block,
+        tolerance: args.tolerance,
+        max_iterations: args.max_iterations,
+        heldout_check: !args.no_heldout_check,
+        spatial_prior: !args.no_spatial_prior,
         ..FitParams::default()
     };
     pipeline.set_params("fit", serde_json::to_value(&fit)?);

@@ -2,16 +2,14 @@
 //! with ground truth under `truth/` and a contact sheet PNG.
 
 use std::path::PathBuf;
-use std::time::Duration;
 
 use anyhow::Context;
 
+use super::monte_carlo_args::MonteCarloArgs;
 use super::stage_bar::Bar;
-use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::booth::Booth;
 use mlsss::virtual_booth::{
-    ResponseCache, SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_calibration,
-    simulate_scan,
+    SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_calibration, simulate_scan,
 };
 
 #[derive(Debug, clap::Args)]
@@ -49,13 +47,8 @@ pub struct Args {
     /// Camera sub-samples per pixel along each axis.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
     supersampling: u32,
-    /// Photons per Monte Carlo response (per material, angle and channel); default depends on
-    /// the booth size.
-    #[arg(long)]
-    photons: Option<u64>,
-    /// Directory of the Monte Carlo response cache (default: $MLSSS_CACHE or ~/.cache/mlsss).
-    #[arg(long, value_name = "DIR")]
-    cache: Option<PathBuf>,
+    #[command(flatten)]
+    monte_carlo: MonteCarloArgs,
     /// Output capture folder (must not exist).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
@@ -81,21 +74,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.material_maps = !args.no_maps;
     opts.stray_black = !args.no_stray_black;
     opts.supersampling = args.supersampling;
-    if let Some(p) = args.photons {
-        anyhow::ensure!(p > 0, "--photons must be positive");
-        opts.mc.photons = p;
-    }
-    if let Some(dir) = &args.cache {
-        opts.cache = ResponseCache::new(dir);
-    }
-    let bar = ProgressBar::new(1);
-    bar.set_style(
-        ProgressStyle::with_template("{msg:32} [{bar:40}] {pos}/{len} {elapsed_precise}")
-            .context("progress bar template")?
-            .progress_chars("=> "),
-    );
-    bar.enable_steady_tick(Duration::from_millis(200));
-    let progress = Bar(bar.clone());
+    args.monte_carlo.apply(&mut opts);
+    let progress = Bar::on_stderr()?;
     let report = if args.calibration {
         let poses = args.poses.unwrap_or(1);
         anyhow::ensure!(poses > 0, "--poses must be at least 1");
@@ -104,7 +84,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         simulate_scan(&booth, &opts, &args.out, &progress)
     }
     .with_context(|| format!("simulating into {}", args.out.display()))?;
-    bar.finish_and_clear();
+    progress.finish_and_clear();
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {

@@ -30,6 +30,44 @@ pub struct RelightFigures {
     pub mask: Vec<bool>,
 }
 
+/// The back-scatter figure and its numbers (simulated captures only).
+fn backscatter_section(html: &mut HtmlReport, report: &Value, processed: &Path) {
+    let b = &report["relight"]["backscatter"];
+    if !b.is_object() {
+        return;
+    }
+    html.heading("Back-scatter: light emerging on the side the light came from");
+    let ratio = |name: &str| fmt(&b["asymmetry_toward_over_away"][name], 3);
+    let side = |side: &str, name: &str| fmt(&b[side]["rel_rmse"][name], 3);
+    html.paragraph(&format!(
+        "Held-out slits (both axes, {} pixels): light emerging toward the light per unit \
+         emerging away from it: truth {}, MLSSS {}, homogeneous {}, dipole {}. Relative error \
+         of the subsurface light on the side toward the light: MLSSS {}, homogeneous {}, dipole \
+         {}; on the side away from it: {}, {}, {}.",
+        fmt(&b["pixels"], 0),
+        ratio("truth"),
+        ratio("mlsss"),
+        ratio("homogeneous"),
+        ratio("dipole"),
+        side("toward_light", "mlsss"),
+        side("toward_light", "homogeneous"),
+        side("toward_light", "dipole"),
+        side("away_from_light", "mlsss"),
+        side("away_from_light", "homogeneous"),
+        side("away_from_light", "dipole"),
+    ));
+    let panels: Vec<Panel> = Panel::from_file(
+        "mean profile across the held-out projector's slits",
+        &processed.join(crate::demo::BACKSCATTER_PLOT),
+    )
+    .into_iter()
+    .collect();
+    html.figure(
+        "Mean subsurface light against the signed distance from the slit centre.",
+        panels,
+    );
+}
+
 fn fmt(v: &Value, decimals: usize) -> String {
     match v.as_f64() {
         Some(x) if x.is_finite() => format!("{x:.decimals$}"),
@@ -191,6 +229,7 @@ pub fn write_report(
                 comparison_panels(white, &fig.mask)?,
             );
         }
+        backscatter_section(&mut html, report, processed);
     } else {
         html.paragraph("No relighting in this run (no fitted model).");
     }

@@ -40,6 +40,7 @@ use crate::calibrate::pose_measurement::{
 };
 use crate::calibrate::procam::{BoardSpec, ProcamError, ProcamOptions, calibrate_procam};
 use crate::capture::{Capture, CaptureError, Pattern, truth};
+use crate::evaluate::backscatter::{BackscatterError, evaluate_backscatter};
 use crate::evaluate::calibration_error::{
     CalibrationErrorError, align_world_frame, calibration_errors,
 };
@@ -57,6 +58,8 @@ use crate::virtual_booth::{
 
 /// File name of the report in the output folder.
 pub const REPORT_FILE: &str = "demo.json";
+/// File name of the back-scatter plot in the processed folder.
+pub const BACKSCATTER_PLOT: &str = "backscatter.png";
 /// File name of the HTML report in the output folder.
 pub const HTML_FILE: &str = "report.html";
 
@@ -94,6 +97,12 @@ pub enum DemoError {
     /// The held-out evaluation failed.
     #[error("held-out evaluation failed")]
     Holdout(#[from] HoldoutError),
+    /// The back-scatter evaluation failed.
+    #[error("back-scatter evaluation failed")]
+    Backscatter(#[from] BackscatterError),
+    /// A plot could not be written.
+    #[error("writing a plot failed")]
+    Plot(#[from] crate::report::plot::PlotError),
     /// The HTML report could not be written.
     #[error("writing the HTML report failed")]
     Report(#[from] html_report::DemoReportError),
@@ -178,6 +187,7 @@ pub fn quick_fit_params() -> FitParams {
     FitParams {
         components: 4,
         block: 6,
+        heldout_check: false, // the demo's evaluation renders the held-out projector itself
         ..FitParams::default()
     }
 }
@@ -483,6 +493,16 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
         evaluate_holdout(&scan, &model, opts.holdout, &renderers, &opts.render)
     })?;
     timing.add("render", relight.render_seconds);
+    let mut relight_report = relight.report;
+    if let Some(truth_dir) = scan.truth_dir() {
+        let found = timing.time("backscatter", || {
+            evaluate_backscatter(&model, opts.holdout, &truth_dir, &opts.render)
+        })?;
+        if let Some(b) = found {
+            b.plot.save_png(&processed.join(BACKSCATTER_PLOT))?;
+            relight_report["backscatter"] = b.report;
+        }
+    }
 
     let simulate_total = ["simulate_scan", "simulate_calibration"]
         .iter()
@@ -518,7 +538,7 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
             "total_rel_rmse": report["separate"]["total_rel_rmse"],
         },
         "normals": report["normals"],
-        "relight": relight.report,
+        "relight": relight_report,
         "fit": report["fit"],
         "profiles": report["profiles"],
         "timing_s": Value::Object(timing.0),

@@ -78,6 +78,9 @@ pub enum RigError {
     /// A running controller sent nothing for too long.
     #[error("the controller has been silent for {0:?}")]
     ControllerSilent(Duration),
+    /// A running controller kept talking but the run made no progress for too long.
+    #[error("the run made no progress for {0:?} (controller state stuck): aborted")]
+    RunStalled(Duration),
     /// The event stream ended without a `Done` summary.
     #[error("the run ended without a Done summary")]
     NoDone,

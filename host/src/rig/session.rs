@@ -5,9 +5,9 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use mlsss_shared::message::{
-    ControllerState, DoneSummary, ExposureDone, FrameDropped, FrameLate, FrameRetried, Hello,
-    HelloReply, HostHeartbeat, Nack, PatternRequest, PatternShown, ProjectorTiming, StatusReport,
-    Triggered,
+    ControllerState, DoneSummary, ErrorCode, ExposureDone, FrameDropped, FrameLate, FrameRetried,
+    Hello, HelloReply, HostHeartbeat, LateReason, Nack, PatternRequest, PatternShown,
+    ProjectorTiming, StatusReport, Triggered,
 };
 use mlsss_shared::{ControllerMessage, HostMessage, PROTOCOL_VERSION, SCHEMA_HASH};
 
@@ -19,6 +19,10 @@ use super::schedule::RigSchedule;
 const HEARTBEAT_EVERY: Duration = Duration::from_millis(200);
 /// Wall time without any message from a running controller before the host gives up.
 const CONTROLLER_SILENCE_LIMIT: Duration = Duration::from_secs(10);
+/// Wall time without progress (a request, trigger, exposure, drop or `Done`) while the
+/// controller still talks (heartbeats, statuses) before the host gives up on the run: a slot is
+/// well under a second, so this only trips when the run is stuck, never on a slow one.
+const RUN_STALL_LIMIT: Duration = Duration::from_secs(60);
 /// After `Done`, how long to keep collecting the per-projector timing reports.
 const AFTER_DONE_QUIET: Duration = Duration::from_millis(300);
 /// Attempts of the handshake (the controller may still be booting).
@@ -185,12 +189,16 @@ impl<L: ByteLink> Session<L> {
     ) -> Result<(), RigError> {
         let mut last_sent = Instant::now();
         let mut last_heard = Instant::now();
+        let mut last_progress = Instant::now();
         let mut withheld: Vec<PatternRequest> = vec![];
         let mut disconnect = faults.disconnect;
         loop {
             if last_sent.elapsed() >= HEARTBEAT_EVERY {
                 self.heartbeat()?;
                 last_sent = Instant::now();
+            }
+            if last_progress.elapsed() > RUN_STALL_LIMIT {
+                return Err(RigError::RunStalled(RUN_STALL_LIMIT));
             }
             let Some(message) = self.link.recv(Duration::from_millis(50))? else {
                 if last_heard.elapsed() > CONTROLLER_SILENCE_LIMIT {
@@ -199,6 +207,9 @@ impl<L: ByteLink> Session<L> {
                 continue;
             };
             last_heard = Instant::now();
+            if makes_progress(&message) {
+                last_progress = Instant::now();
+            }
             match message {
                 ControllerMessage::PatternRequest(request) => {
                     run.requests.push(request);
@@ -218,8 +229,13 @@ impl<L: ByteLink> Session<L> {
                 }
                 ControllerMessage::FrameLate(late) => {
                     run.late.push(late);
-                    // A withheld ack is now late: send it (the controller retries the frame).
-                    if let Some(i) = withheld.iter().position(|r| r.frame == late.frame) {
+                    if late.reason == LateReason::HostSilent {
+                        // The controller paused because it did not hear from us in time (this
+                        // host was busy, not away): we are here, so the run goes on.
+                        self.resume_after_host_silence()?;
+                        last_sent = Instant::now();
+                    } else if let Some(i) = withheld.iter().position(|r| r.frame == late.frame) {
+                        // A withheld ack is now late: send it (the controller retries the frame).
                         let request = withheld.swap_remove(i);
                         self.show_and_ack(hooks, &request)?;
                         last_sent = Instant::now();
@@ -252,6 +268,18 @@ impl<L: ByteLink> Session<L> {
                 | ControllerMessage::Heartbeat(_)
                 | ControllerMessage::Status(_) => {}
             }
+        }
+    }
+
+    /// Resumes a run the controller paused for host silence. A refusal as `InvalidState` means
+    /// it is not paused any more (a retransmitted `Resume` after a lost ack): nothing to do.
+    fn resume_after_host_silence(&mut self) -> Result<(), RigError> {
+        match self.link.command(&HostMessage::Resume) {
+            Err(RigError::Refused {
+                error: ErrorCode::InvalidState,
+                ..
+            }) => Ok(()),
+            other => other,
         }
     }
 
@@ -311,6 +339,19 @@ impl<L: ByteLink> Session<L> {
         }
         Ok(())
     }
+}
+
+/// Whether a message shows the run moving (heartbeats and statuses alone do not).
+fn makes_progress(message: &ControllerMessage) -> bool {
+    matches!(
+        message,
+        ControllerMessage::PatternRequest(_)
+            | ControllerMessage::Triggered(_)
+            | ControllerMessage::ExposureDone(_)
+            | ControllerMessage::FrameDropped(_)
+            | ControllerMessage::FrameRetried(_)
+            | ControllerMessage::Done(_)
+    )
 }
 
 /// Handshake: Hello until a HelloReply comes; version and schema must match.

@@ -7,7 +7,7 @@
 //!
 //! Fitting per pixel (Jensen's recipe): `a'` from the measured total diffuse reflectance
 //! (`sum_p F_p / sum_p E_p W_p`, the same quantity that scales the layer weights), then the scale
-//! `s_t'` by maximising the profiles' likelihood over a log grid. Rendering: the profile in units
+//! `s_t'` by maximising the profiles' likelihood (a coarse log grid, then golden-section search). Rendering: the profile in units
 //! of `1/s_t'` is represented once per `a'` as a sum of Gaussians (non-negative least squares on
 //! fixed widths), so the dipole renders through the same splatter as MLSSS, centred (depth 0): the
 //! line integral of a 2-D Gaussian is the 1-D Gaussian of the same sigma, which also makes the
@@ -167,6 +167,58 @@ pub struct DipoleFit {
     pub layers: Vec<SplatLayer>,
 }
 
+/// Range of the reduced extinction `s_t'` searched (1/mm).
+const EXTINCTION_RANGE: (f64, f64) = (0.1, 50.0);
+/// Relative resolution of the extinction search.
+const EXTINCTION_RESOLUTION: f64 = 1.02;
+
+/// Maximum `(f(x), x)` of `f` over `[range.0, range.1]` in log `x`: a log grid of `grid` points
+/// (global: the score may have shallow side maxima), then golden-section search inside the
+/// grid cells around the best point, to a ratio `resolution` between the bracket ends. The
+/// likelihood is smooth and unimodal within one grid cell, so ~`grid + 2 log(cell / res)`
+/// evaluations replace a fine grid.
+fn maximise_in_log(
+    f: impl Fn(f64) -> f64,
+    range: (f64, f64),
+    grid: usize,
+    resolution: f64,
+) -> (f64, f64) {
+    let (lo, hi) = (range.0.ln(), range.1.ln());
+    let step = (hi - lo) / (grid.max(2) - 1) as f64;
+    let xs: Vec<f64> = (0..grid.max(2)).map(|i| lo + step * i as f64).collect();
+    let values: Vec<f64> = xs.iter().map(|&x| f(x.exp())).collect();
+    let best = (0..xs.len())
+        .max_by(|&a, &b| values[a].total_cmp(&values[b]))
+        .unwrap_or(0);
+    let (mut a, mut b) = (xs[best.saturating_sub(1)], xs[(best + 1).min(xs.len() - 1)]);
+    let mut best = (values[best], xs[best]);
+    let ratio = (5f64.sqrt() - 1.0) / 2.0;
+    let mut c = b - ratio * (b - a);
+    let mut d = a + ratio * (b - a);
+    let (mut fc, mut fd) = (f(c.exp()), f(d.exp()));
+    while b - a > resolution.ln() {
+        if fc > fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - ratio * (b - a);
+            fc = f(c.exp());
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + ratio * (b - a);
+            fd = f(d.exp());
+        }
+    }
+    for (v, x) in [(fc, c), (fd, d)] {
+        if v > best.0 {
+            best = (v, x);
+        }
+    }
+    (best.0, best.1.exp())
+}
+
 /// Table of Gaussian representations over the reduced albedo, built once.
 #[derive(Debug, Clone)]
 pub struct DipoleTable {
@@ -229,22 +281,7 @@ impl DipoleTable {
                 .filter_map(|p| em_free::log_likelihood(p, &components(ext), 1).ok())
                 .sum()
         };
-        // Log grid over s_t' from 0.1 to 50 /mm, then one refinement around the best.
-        let grid: Vec<f64> = (0..21).map(|i| 0.1 * 1.36f64.powi(i)).collect();
-        let mut best = (f64::NEG_INFINITY, 1.0);
-        for &ext in &grid {
-            let s = score(ext);
-            if s > best.0 {
-                best = (s, ext);
-            }
-        }
-        for k in -4..=4 {
-            let ext = best.1 * 1.035f64.powi(k);
-            let s = score(ext);
-            if s > best.0 {
-                best = (s, ext);
-            }
-        }
+        let best = maximise_in_log(score, EXTINCTION_RANGE, 8, EXTINCTION_RESOLUTION);
         if !best.0.is_finite() {
             return None;
         }
@@ -326,6 +363,22 @@ mod tests {
                 "r={r}: {approx} vs {exact}"
             );
         }
+    }
+
+    #[test]
+    fn log_search_finds_the_maximum_between_grid_points_and_at_the_range_ends() {
+        for want in [0.1, 0.37, 3.7, 21.0, 50.0] {
+            let f = |x: f64| -(x.ln() - f64::ln(want)).powi(2);
+            let (value, at) = maximise_in_log(f, EXTINCTION_RANGE, 8, 1.02);
+            assert!((at / want - 1.0).abs() < 0.02, "{want}: found {at}");
+            assert!(value <= 0.0 && value > -1e-3);
+        }
+        // A narrow global maximum next to a broad side maximum is found by the grid.
+        let f = |x: f64| {
+            (-(x.ln() - 0.3f64.ln()).powi(2)).exp() + 2.0 * (-(x - 20.0).powi(2) / 8.0).exp()
+        };
+        let (_, at) = maximise_in_log(f, EXTINCTION_RANGE, 8, 1.02);
+        assert!((at / 20.0 - 1.0).abs() < 0.02, "found {at}");
     }
 
     #[test]

@@ -369,7 +369,7 @@ pub fn fit_model(
 }
 
 /// The pixel fitted for tile `(bx, by)`: its centre if lit, else the first lit pixel of the tile.
-fn tile_pixel(
+pub fn tile_pixel(
     bx: usize,
     by: usize,
     block: usize,

@@ -334,8 +334,10 @@ pub(crate) fn e_step<M: MeanModel>(
         .map(|&w| if w > 0.0 { w.ln() } else { f64::NEG_INFINITY })
         .collect();
     let mut total = 0.0;
-    // Scratch: (component, image offset, ln joint, posterior mean, variance).
-    let mut terms: Vec<(usize, f64, f64, f64, f64)> = Vec::with_capacity(k * (2 * wrap + 1));
+    let with_stats = stats.is_some();
+    // Scratch: (component, ln joint, posterior mean, variance); the joint is replaced by its
+    // exponential relative to the largest one, reused for the responsibilities.
+    let mut terms: Vec<(usize, f64, f64, f64)> = Vec::with_capacity(k * (2 * wrap + 1));
     for (p, prof) in data.profiles.iter().enumerate() {
         let weights = &data.weights[p];
         if weights.is_empty() {
@@ -361,23 +363,27 @@ pub(crate) fn e_step<M: MeanModel>(
                     if offset != 0.0 && dist > NEGLIGIBLE_SIGMAS * g.sigma {
                         continue;
                     }
-                    let post = g.posterior(sample.s - offset);
-                    terms.push((
-                        l,
-                        offset,
-                        ln_w[l] + post.ln_density,
-                        post.mean,
-                        post.variance,
-                    ));
+                    // The posterior moments only when the statistics are wanted (a likelihood
+                    // alone needs the density only).
+                    if with_stats {
+                        let post = g.posterior(sample.s - offset);
+                        terms.push((l, ln_weight + post.ln_density, post.mean, post.variance));
+                    } else {
+                        terms.push((l, ln_weight + g.ln_density(sample.s - offset), 0.0, 0.0));
+                    }
                 }
             }
-            let max = terms.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
-            let sum: f64 = terms.iter().map(|t| (t.2 - max).exp()).sum();
-            let ln_f = max + sum.ln();
-            ll += y * ln_f;
+            let max = terms.iter().map(|t| t.1).fold(f64::NEG_INFINITY, f64::max);
+            let mut sum = 0.0;
+            for t in terms.iter_mut() {
+                t.1 = (t.1 - max).exp();
+                sum += t.1;
+            }
+            ll += y * (max + sum.ln());
             if let Some(st) = stats.as_deref_mut() {
-                for &(l, _offset, ln_joint, mean, var) in &terms {
-                    let r = y * (ln_joint - ln_f).exp();
+                let scale = y / sum;
+                for &(l, share, mean, var) in &terms {
+                    let r = scale * share;
                     if r > 0.0 {
                         let i = st.at(p, l);
                         st.n[i] += r;

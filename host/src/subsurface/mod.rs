@@ -13,6 +13,7 @@ pub mod profiles;
 pub mod relight;
 pub mod render;
 pub mod slit_global;
+pub mod spatial_prior;
 pub mod surface;
 
 #[cfg(test)]

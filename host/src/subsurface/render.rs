@@ -6,8 +6,13 @@
 //! layer costs `pixels x layers x kernel area`. Instead each source is forward-warped by its shift
 //! (bilinear) into one of a few images per sigma bin (geometric bins; a source's weight is split
 //! between the two bins around its sigma, linear in log sigma), and each bin image is blurred once
-//! with a separable Gaussian of the bin's sigma. Cost: `bins x pixels x kernel width`, with rows
-//! and columns processed in parallel; layers with negligible weight are skipped.
+//! with a separable Gaussian of the bin's sigma. Wide bins live on a pyramid level: a bin of sigma
+//! `s >= 2 f c` pixels (`f` a power of two, `c` = [`RenderOptions::coarse_sigma_px`]) is splatted
+//! on the image downsampled by `f`, blurred there by `sqrt(s^2 - f^2/3) / f` (the bilinear splat
+//! and read-back each add a tent of variance `f^2/6`) and read back bilinearly, so every bin costs
+//! about `pixels / f^2 x 7 c` instead of `pixels x 7 s`. Bins are blurred in parallel; layers with
+//! negligible weight are skipped. `coarse_sigma_px = inf` is the full-resolution reference (a test
+//! holds the pyramid to it).
 //!
 //! Approximations (documented limits): the Gaussian is isotropic in pixels with the source's
 //! mean pixel size (surface tilt foreshortening of the kernel is ignored; the *shift* is mapped
@@ -175,6 +180,11 @@ pub struct RenderOptions {
     pub sigma_bin_ratio: f64,
     /// Smallest sigma bin (pixels); narrower layers are blurred by this much.
     pub min_sigma_px: f64,
+    /// Pyramid: a bin whose sigma is at least this many pixels times a power of two `f >= 2` is
+    /// splatted, blurred and read back on the image downsampled by the largest such `f` (the
+    /// blur there keeps at least this many coarse pixels of sigma, so the bilinear resampling
+    /// barely shows). `f64::INFINITY` blurs every bin at full resolution (the reference path).
+    pub coarse_sigma_px: f64,
 }
 
 impl Default for RenderOptions {
@@ -184,6 +194,7 @@ impl Default for RenderOptions {
             min_relative_weight: 1e-3,
             sigma_bin_ratio: 1.3,
             min_sigma_px: 0.3,
+            coarse_sigma_px: 4.0,
         }
     }
 }
@@ -199,6 +210,11 @@ impl RenderOptions {
         if self.min_sigma_px.is_nan() || self.min_sigma_px <= 0.0 {
             return Err(RenderError::BadOption("min_sigma_px must be > 0"));
         }
+        if self.coarse_sigma_px.is_nan() || self.coarse_sigma_px < 1.0 {
+            return Err(RenderError::BadOption(
+                "coarse_sigma_px must be >= 1 (or infinite)",
+            ));
+        }
         Ok(())
     }
 
@@ -209,6 +225,35 @@ impl RenderOptions {
     fn bin_sigma(&self, bin: usize) -> f64 {
         self.min_sigma_px * self.sigma_bin_ratio.powi(bin as i32)
     }
+
+    /// Downsampling factor `2^level` of the pyramid level a bin of `sigma_px` is blurred on.
+    fn bin_level(&self, sigma_px: f64) -> u32 {
+        let ratio = sigma_px / self.coarse_sigma_px;
+        if !ratio.is_finite() || ratio < 2.0 {
+            return 0;
+        }
+        // At most 2^12: far beyond any camera's size.
+        (ratio.log2().floor() as u32).min(12)
+    }
+}
+
+/// One sigma bin of one channel: the sources splatted on its pyramid level.
+struct Bin {
+    channel: usize,
+    sigma_px: f64,
+    level: u32,
+    /// Coarse image (`grid.0 x grid.1`) of the level.
+    image: Vec<f32>,
+}
+
+/// Size of the grid of pyramid level `level` for a `w x h` image: coarse sample `j` sits on fine
+/// pixel `j * 2^level`; one extra sample covers the last fine pixel's interpolation.
+fn level_grid(w: usize, h: usize, level: u32) -> (usize, usize) {
+    if level == 0 {
+        return (w, h);
+    }
+    let f = 1usize << level;
+    ((w - 1) / f + 2, (h - 1) / f + 2)
 }
 
 /// Renders the subsurface (global) image, RGB per pixel, of the light whose per-pixel irradiance
@@ -233,10 +278,63 @@ pub fn render_global(
         }
     }
     let (w, h) = (surface.width, surface.height);
-    // bins[c][b]: source image of channel c, sigma bin b (allocated on first use).
-    let mut bins: [Vec<Option<Vec<f32>>>; 3] = Default::default();
-    for i in 0..n {
-        let e = irradiance[i];
+    if n == 0 {
+        return Ok(Vec::new());
+    }
+    let mut bins = splat_sources(surface, irradiance, shift, model, opts);
+    // Each bin is blurred on its own level; bins are independent jobs.
+    bins.par_iter_mut().for_each(|bin| {
+        let (gw, gh) = level_grid(w, h, bin.level);
+        let f = f64::from(1u32 << bin.level);
+        // The bilinear splat and read-back each widen the kernel by a tent of half-width f
+        // (variance f^2/6 per axis): blur the rest.
+        let sigma = if bin.level == 0 {
+            bin.sigma_px
+        } else {
+            (bin.sigma_px * bin.sigma_px - f * f / 3.0).max(0.0).sqrt() / f
+        };
+        gaussian_blur(&mut bin.image, gw, gh, sigma, opts.truncate_sigmas);
+    });
+    // Sum the blurred bins per channel and level, then bring every level back to full resolution.
+    let mut out = vec![[0.0f32; 3]; n];
+    let levels: std::collections::BTreeSet<u32> = bins.iter().map(|b| b.level).collect();
+    for level in levels {
+        let (gw, gh) = level_grid(w, h, level);
+        let mut acc = vec![[0.0f32; 3]; gw * gh];
+        for bin in bins.iter().filter(|b| b.level == level) {
+            for (a, v) in acc.iter_mut().zip(&bin.image) {
+                a[bin.channel] += v;
+            }
+        }
+        add_upsampled(&mut out, w, h, &acc, gw, level);
+    }
+    // Deposited flux per receiving pixel -> radiance: divide by the receiver's area.
+    out.par_iter_mut()
+        .enumerate()
+        .for_each(|(i, o)| match surface.footprint(i) {
+            Some(fp) => {
+                let inv = (1.0 / fp.area()) as f32;
+                o.iter_mut().for_each(|v| *v *= inv);
+            }
+            None => *o = [0.0; 3],
+        });
+    Ok(out)
+}
+
+/// Forward-warps every lit source by each layer's shift into the images of its two sigma bins
+/// (bilinear, on each bin's pyramid level).
+fn splat_sources(
+    surface: &Surface,
+    irradiance: &[f32],
+    shift: &[Option<Vector3<f64>>],
+    model: &LayerModel,
+    opts: &RenderOptions,
+) -> Vec<Bin> {
+    let (w, h) = (surface.width, surface.height);
+    // index[c][b]: position of channel c's bin b in `bins` (allocated on first use).
+    let mut index: [Vec<Option<usize>>; 3] = Default::default();
+    let mut bins: Vec<Bin> = Vec::new();
+    for (i, &e) in irradiance.iter().enumerate() {
         if e.is_nan() || e <= 0.0 {
             continue;
         }
@@ -246,7 +344,7 @@ pub fn render_global(
         let area = fp.area();
         let pixel_mm = area.sqrt();
         let (x, y) = ((i % w) as f64, (i / w) as f64);
-        for (c, bins) in bins.iter_mut().enumerate() {
+        for (c, index) in index.iter_mut().enumerate() {
             let layers = model.layers(i, c);
             let total: f32 = layers.iter().map(|l| l.weight).sum();
             for l in layers {
@@ -264,37 +362,79 @@ pub fn render_global(
                     if share <= 0.0 {
                         continue;
                     }
-                    if bins.len() <= b {
-                        bins.resize(b + 1, None);
+                    if index.len() <= b {
+                        index.resize(b + 1, None);
                     }
-                    let img = bins[b].get_or_insert_with(|| vec![0.0; n]);
-                    splat_bilinear(img, w, h, x + d.x, y + d.y, (amount * share) as f32);
+                    let k = *index[b].get_or_insert_with(|| {
+                        let sigma_px = opts.bin_sigma(b);
+                        let level = opts.bin_level(sigma_px);
+                        let (gw, gh) = level_grid(w, h, level);
+                        bins.push(Bin {
+                            channel: c,
+                            sigma_px,
+                            level,
+                            image: vec![0.0; gw * gh],
+                        });
+                        bins.len() - 1
+                    });
+                    let bin = &mut bins[k];
+                    let f = f64::from(1u32 << bin.level);
+                    let (gw, gh) = level_grid(w, h, bin.level);
+                    splat_bilinear(
+                        &mut bin.image,
+                        gw,
+                        gh,
+                        (x + d.x) / f,
+                        (y + d.y) / f,
+                        (amount * share) as f32,
+                    );
                 }
             }
         }
     }
-    let mut out = vec![[0.0f32; 3]; n];
-    for (c, bins) in bins.iter_mut().enumerate() {
-        for (b, img) in bins.iter_mut().enumerate() {
-            if let Some(img) = img {
-                gaussian_blur(img, w, h, opts.bin_sigma(b), opts.truncate_sigmas);
-                for (o, v) in out.iter_mut().zip(img.iter()) {
-                    o[c] += v;
+    bins
+}
+
+/// Adds the level-`level` flux image `coarse` (`gw` wide), bilinearly interpolated, to the flux
+/// image `out` (`w x h`).
+fn add_upsampled(
+    out: &mut [[f32; 3]],
+    w: usize,
+    h: usize,
+    coarse: &[[f32; 3]],
+    gw: usize,
+    level: u32,
+) {
+    if level == 0 {
+        for (o, v) in out.iter_mut().zip(coarse) {
+            for c in 0..3 {
+                o[c] += v[c];
+            }
+        }
+        return;
+    }
+    let f = 1usize << level;
+    let inv = 1.0 / f as f32;
+    // A coarse sample holds the flux of f x f fine pixels; interpolation spreads it over them.
+    let per_pixel = inv * inv;
+    out.par_chunks_mut(w)
+        .take(h)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let (j, fy) = (y / f, (y % f) as f32 * inv);
+            let (r0, r1) = (
+                &coarse[j * gw..(j + 1) * gw],
+                &coarse[(j + 1) * gw..(j + 2) * gw],
+            );
+            for (x, o) in row.iter_mut().enumerate() {
+                let (k, fx) = (x / f, (x % f) as f32 * inv);
+                for c in 0..3 {
+                    let top = r0[k][c] + fx * (r0[k + 1][c] - r0[k][c]);
+                    let bottom = r1[k][c] + fx * (r1[k + 1][c] - r1[k][c]);
+                    o[c] += per_pixel * (top + fy * (bottom - top));
                 }
             }
-        }
-    }
-    // Deposited flux per receiving pixel -> radiance: divide by the receiver's area.
-    for (i, o) in out.iter_mut().enumerate() {
-        match surface.footprint(i) {
-            Some(fp) => {
-                let inv = (1.0 / fp.area()) as f32;
-                o.iter_mut().for_each(|v| *v *= inv);
-            }
-            None => *o = [0.0; 3],
-        }
-    }
-    Ok(out)
+        });
 }
 
 fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f32) {
@@ -315,6 +455,9 @@ fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f
 
 /// Normalised discrete Gaussian kernel, radius `ceil(truncate * sigma)`.
 fn kernel(sigma: f64, truncate: f64) -> Vec<f32> {
+    if sigma <= 0.0 {
+        return vec![1.0];
+    }
     let r = (truncate * sigma).ceil().max(1.0) as i64;
     let raw: Vec<f64> = (-r..=r)
         .map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp())
@@ -323,42 +466,39 @@ fn kernel(sigma: f64, truncate: f64) -> Vec<f32> {
     raw.iter().map(|v| (v / sum) as f32).collect()
 }
 
-/// In-place separable Gaussian blur with zero borders (light leaving the image is lost).
+/// In-place separable Gaussian blur with zero borders (light leaving the image is lost), on one
+/// thread (the renderer runs bins in parallel). Rows are convolved along the row; columns as
+/// weighted sums of whole rows (contiguous, vectorisable), with no transposes.
 pub fn gaussian_blur(img: &mut [f32], w: usize, h: usize, sigma: f64, truncate: f64) {
     let k = kernel(sigma, truncate);
-    let r = (k.len() / 2) as i64;
-    let convolve_line = |line: &[f32], out: &mut [f32]| {
-        let len = line.len() as i64;
-        for (i, o) in out.iter_mut().enumerate() {
-            let i = i as i64;
-            let lo = (i - r).max(0);
-            let hi = (i + r).min(len - 1);
-            let mut acc = 0.0f32;
-            for j in lo..=hi {
-                acc += line[j as usize] * k[(j - i + r) as usize];
-            }
-            *o = acc;
-        }
-    };
+    if k.len() == 1 {
+        return;
+    }
+    let r = k.len() / 2;
     // Rows.
-    let mut tmp = vec![0.0f32; w * h];
-    tmp.par_chunks_mut(w)
-        .zip(img.par_chunks(w))
-        .for_each(|(out, line)| convolve_line(line, out));
-    // Columns: transpose, convolve rows, transpose back.
-    let mut t = vec![0.0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            t[x * h + y] = tmp[y * w + x];
+    let mut line = vec![0.0f32; w + 2 * r];
+    for row in img.chunks_mut(w) {
+        line[r..r + w].copy_from_slice(row);
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = line[x..x + k.len()]
+                .iter()
+                .zip(&k)
+                .map(|(v, k)| v * k)
+                .sum();
         }
     }
-    let mut t2 = vec![0.0f32; w * h];
-    t2.par_chunks_mut(h)
-        .zip(t.par_chunks(h))
-        .for_each(|(out, line)| convolve_line(line, out));
+    // Columns.
+    let src = img.to_vec();
     for y in 0..h {
-        for x in 0..w {
-            img[y * w + x] = t2[x * h + y];
+        let out = &mut img[y * w..(y + 1) * w];
+        out.iter_mut().for_each(|v| *v = 0.0);
+        let lo = y.saturating_sub(r);
+        let hi = (y + r).min(h - 1);
+        for yy in lo..=hi {
+            let kv = k[yy + r - y];
+            for (o, v) in out.iter_mut().zip(&src[yy * w..(yy + 1) * w]) {
+                *o += kv * v;
+            }
         }
     }
 }
@@ -415,6 +555,7 @@ mod tests {
         let opts = RenderOptions {
             truncate_sigmas: 5.0,
             sigma_bin_ratio: 1.05,
+            coarse_sigma_px: f64::INFINITY,
             ..Default::default()
         };
         let out = render_global(&surface, &irradiance, &shift, &model, &opts).unwrap();
@@ -466,6 +607,75 @@ mod tests {
         let homog = model.homogeneous(&vec![true; w * h], &vec![true; w * h]);
         assert!((homog.layers(5, 0)[0].weight - 0.15).abs() < 1e-6);
         assert!((homog.layers(6, 2)[0].weight - 0.35).abs() < 1e-6);
+    }
+
+    /// Largest absolute difference relative to the reference's peak, and the relative L2 error.
+    fn difference(fast: &[[f32; 3]], reference: &[[f32; 3]]) -> (f64, f64) {
+        let (mut peak, mut worst, mut num, mut den) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        for (a, b) in fast.iter().zip(reference) {
+            for c in 0..3 {
+                let (a, b) = (f64::from(a[c]), f64::from(b[c]));
+                peak = peak.max(b.abs());
+                worst = worst.max((a - b).abs());
+                num += (a - b) * (a - b);
+                den += b * b;
+            }
+        }
+        (worst / peak, (num / den).sqrt())
+    }
+
+    /// Property: on random scenes (sparse point sources, which show the pyramid's sub-pixel
+    /// phase errors worst, and dense striped light), random per-pixel layers with sigmas from a
+    /// fraction of a pixel to 30 pixels and random shifts, the pyramid agrees with the
+    /// full-resolution reference within 0.5 % of the peak at every pixel and 1 % in RMS (measured:
+    /// at most 0.12 % and 0.47 %; with `coarse_sigma_px = 2` the RMS reaches 1.4 %: the sub-cell
+    /// position of a source is lost on a coarse level, which changes its variance by up to
+    /// `f^2/4`, small against the blurred `(2 f c)^2` only when `c` is large enough).
+    #[test]
+    fn pyramid_matches_the_full_resolution_reference() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        for case in 0..4 {
+            let (w, h, pitch) = (72 + 9 * case, 60 + 7 * case, 0.2);
+            let surface = plane(w, h, pitch);
+            let sparse = case % 2 == 0;
+            let irradiance: Vec<f32> = (0..w * h)
+                .map(|i| {
+                    let lit = if sparse {
+                        rng.gen_bool(0.004)
+                    } else {
+                        (i % w) % 9 < 2
+                    };
+                    if lit { rng.gen_range(0.2..1.0) } else { 0.0 }
+                })
+                .collect();
+            let model = LayerModel::from_fn(w, h, |_, _| {
+                (0..rng.gen_range(1..=3))
+                    .map(|k| SplatLayer {
+                        index: k,
+                        weight: rng.gen_range(0.01..1.0),
+                        // log-uniform over 0.05..6 mm = 0.25..30 px
+                        sigma_mm: (0.05f32.ln() + rng.gen_range(0.0..1.0f32) * 120f32.ln()).exp(),
+                        depth_mm: rng.gen_range(0.0..1.5),
+                    })
+                    .collect()
+            });
+            let t = Vector3::new(rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8), 0.0);
+            let shift = vec![Some(t); w * h];
+            let fast_opts = RenderOptions::default();
+            let reference_opts = RenderOptions {
+                coarse_sigma_px: f64::INFINITY,
+                ..RenderOptions::default()
+            };
+            let fast = render_global(&surface, &irradiance, &shift, &model, &fast_opts).unwrap();
+            let reference =
+                render_global(&surface, &irradiance, &shift, &model, &reference_opts).unwrap();
+            let (worst, rms) = difference(&fast, &reference);
+            assert!(
+                worst < 0.005 && rms < 0.01,
+                "case {case}: worst {worst:.5} of the peak, rms {rms:.5}"
+            );
+        }
     }
 
     #[test]

@@ -52,6 +52,20 @@ fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
         let g = number(&report, &format!("relight.global_rel_rmse.{r}"));
         assert!(g > 0.0 && g < 1.0, "{r}: {g}");
     }
+    // Back-scatter: the simulator's skin scatters forward (less light emerges on the side toward
+    // the light than away from it); every renderer scored on both sides.
+    let truth_ratio = number(
+        &report,
+        "relight.backscatter.asymmetry_toward_over_away.truth",
+    );
+    assert!(truth_ratio > 0.5 && truth_ratio < 1.0, "{truth_ratio}");
+    for side in ["toward_light", "away_from_light"] {
+        for r in ["mlsss", "homogeneous", "dipole"] {
+            let e = number(&report, &format!("relight.backscatter.{side}.rel_rmse.{r}"));
+            assert!(e > 0.0 && e < 1.0, "{side} {r}: {e}");
+        }
+    }
+    assert!(out.join("processed").join("backscatter.png").is_file());
     for key in [
         "simulate", "decode", "separate", "normals", "profiles", "fit", "render", "total",
     ] {
@@ -65,6 +79,7 @@ fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
     let html = std::fs::read_to_string(out.join("report.html")).expect("report.html written");
     assert!(html.contains("Pipeline against the truth") && html.contains("data:image/png;base64,"));
     assert!(html.contains("Fig. 9") && html.contains("Fig. 10") && html.contains("Fig. 11"));
+    assert!(html.contains("Back-scatter"));
     // The report on disk is the one printed.
     let on_disk: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("demo.json")).unwrap()).unwrap();

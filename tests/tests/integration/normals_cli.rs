@@ -92,6 +92,24 @@ fn robust_normals_beat_least_squares_on_a_generated_set() {
     assert!(four["flagged"]["too_few_lights"].as_u64().unwrap() > 0);
 }
 
+/// Runs `mlsss normals` on an image set with an explicit lights file.
+fn normals_with_lights_file(
+    images: &std::path::Path,
+    lights: &std::path::Path,
+    out: &std::path::Path,
+) -> std::process::Output {
+    mlsss()
+        .arg("normals")
+        .arg("--images")
+        .arg(images)
+        .arg("--lights")
+        .arg(lights)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
 #[test]
 fn mismatched_lights_file_is_a_clear_error() {
     let tmp = tempfile::tempdir().unwrap();
@@ -104,16 +122,7 @@ fn mismatched_lights_file_is_a_clear_error() {
     assert!(ok.status.success());
     let lights = tmp.path().join("lights.txt");
     std::fs::write(&lights, "0 0 1\n0.5 0 1\n0 0.5 1\n").unwrap();
-    let out = mlsss()
-        .arg("normals")
-        .arg("--images")
-        .arg(&dir)
-        .arg("--lights")
-        .arg(&lights)
-        .arg("--out")
-        .arg(tmp.path().join("n.exr"))
-        .output()
-        .unwrap();
+    let out = normals_with_lights_file(&dir, &lights, &tmp.path().join("n.exr"));
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -124,16 +133,7 @@ fn mismatched_lights_file_is_a_clear_error() {
     );
 
     std::fs::write(&lights, "0 0 1\n0.5 zero 1\n0 0.5 1\n1 1 1\n").unwrap();
-    let out = mlsss()
-        .arg("normals")
-        .arg("--images")
-        .arg(&dir)
-        .arg("--lights")
-        .arg(&lights)
-        .arg("--out")
-        .arg(tmp.path().join("n.exr"))
-        .output()
-        .unwrap();
+    let out = normals_with_lights_file(&dir, &lights, &tmp.path().join("n.exr"));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         !out.status.success() && err.contains("line 2") && err.contains("'zero'"),

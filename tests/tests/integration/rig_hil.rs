@@ -12,7 +12,7 @@ use std::time::Duration;
 use mlsss::booth::Booth;
 use mlsss::capture::{Capture, FramePlan};
 use mlsss::rig::RigError;
-use mlsss::rig::acquire::{CaptureTarget, acquire, checked_pattern};
+use mlsss::rig::acquire::{Acquired, CaptureTarget, acquire, checked_pattern};
 use mlsss::rig::backend::{CameraBackend, Exposure, PatternCamera, VirtualProjectors};
 use mlsss::rig::link::{ControllerLink, LinkFaults};
 use mlsss::rig::qemu::{self, DEFAULT_ICOUNT_SHIFT, QemuGuard};
@@ -98,6 +98,31 @@ fn run(schedule: &RigSchedule, faults: &HostFaults, link_faults: LinkFaults) -> 
     session
         .run(schedule, &mut hooks, faults)
         .expect("the run completes")
+}
+
+/// Captures `schedule` through the virtual projectors and a camera that records the pattern.
+fn acquire_with_virtual_devices(
+    session: &mut Session<Box<dyn SerialPort>>,
+    schedule: &RigSchedule,
+    booth: &Booth,
+    plan: &FramePlan,
+    out: &std::path::Path,
+    faults: &HostFaults,
+) -> Result<Acquired, RigError> {
+    acquire(
+        session,
+        schedule,
+        CaptureTarget {
+            booth,
+            plan,
+            out,
+            source: serde_json::json!("hil test"),
+        },
+        &mut VirtualProjectors::new(),
+        Box::new(PatternCamera::new(booth)),
+        faults,
+        &mut |_| {},
+    )
 }
 
 /// Trigger log as comparable tuples.
@@ -283,21 +308,9 @@ fn late_ack_of_frame_100_is_reported_retried_and_captured_correctly() {
         late_ack_frames: vec![100],
         disconnect: None,
     };
-    let acquired = acquire(
-        &mut session,
-        &schedule,
-        CaptureTarget {
-            booth: &booth,
-            plan: &plan,
-            out: &out,
-            source: serde_json::json!("hil test"),
-        },
-        &mut VirtualProjectors::new(),
-        Box::new(PatternCamera::new(&booth)),
-        &faults,
-        &mut |_| {},
-    )
-    .expect("capture written");
+    let acquired =
+        acquire_with_virtual_devices(&mut session, &schedule, &booth, &plan, &out, &faults)
+            .expect("capture written");
     let log = &acquired.log;
     assert!(acquired.complete);
     assert_complete_and_labelled(log);
@@ -372,6 +385,58 @@ fn disconnect_mid_run_pauses_and_the_host_resumes() {
     assert!(log.triggers[&11].timestamp_us < status.timestamp_us);
 }
 
+/// Hooks that stall once, without heartbeat or ack, when `frame` is first shown.
+struct StallingHooks {
+    checking: CheckingHooks,
+    frame: u16,
+    stall: Duration,
+    stalled: bool,
+}
+
+impl RunHooks for StallingHooks {
+    fn show(&mut self, request: &PatternRequest) -> Result<(), RigError> {
+        if request.frame == self.frame && !self.stalled {
+            self.stalled = true;
+            std::thread::sleep(self.stall);
+        }
+        self.checking.show(request)
+    }
+
+    fn triggered(&mut self, trigger: &Triggered) -> Result<(), RigError> {
+        self.checking.triggered(trigger)
+    }
+}
+
+/// Regression: on a loaded machine the host was slow to answer, the controller paused for host
+/// silence, and the host, which never meant to leave, ignored the pause and waited forever.
+#[test]
+fn a_host_too_slow_to_answer_resumes_the_paused_run() {
+    let _one = one_at_a_time();
+    let (_, _, schedule) = silence_schedule(true, 8);
+    let (_qemu, mut session) = boot();
+    let mut hooks = StallingHooks {
+        checking: CheckingHooks {
+            schedule: schedule.clone(),
+            shown: vec![],
+        },
+        frame: 2,
+        stall: Duration::from_secs(2),
+        stalled: false,
+    };
+    let log = session
+        .run(&schedule, &mut hooks, &HostFaults::default())
+        .expect("the run completes");
+    assert!(
+        log.late
+            .iter()
+            .any(|late| late.frame == 2 && late.reason == LateReason::HostSilent),
+        "the controller paused for the stall: {:?}",
+        log.late
+    );
+    assert_eq!(log.done.outcome, RunOutcome::Completed);
+    assert_complete_and_labelled(&log);
+}
+
 #[test]
 fn disconnect_then_abort_keeps_every_frame_already_captured() {
     let _one = one_at_a_time();
@@ -387,21 +452,9 @@ fn disconnect_then_abort_keeps_every_frame_already_captured() {
             then: ReconnectAction::Abort,
         }),
     };
-    let acquired = acquire(
-        &mut session,
-        &schedule,
-        CaptureTarget {
-            booth: &booth,
-            plan: &plan,
-            out: &out,
-            source: serde_json::json!("hil test"),
-        },
-        &mut VirtualProjectors::new(),
-        Box::new(PatternCamera::new(&booth)),
-        &faults,
-        &mut |_| {},
-    )
-    .expect("capture of the frames before the abort written");
+    let acquired =
+        acquire_with_virtual_devices(&mut session, &schedule, &booth, &plan, &out, &faults)
+            .expect("capture of the frames before the abort written");
     assert!(!acquired.complete);
     assert_eq!(acquired.log.done.outcome, RunOutcome::AbortedByHost);
     assert_eq!(acquired.frames_written, 8);

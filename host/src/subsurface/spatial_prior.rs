@@ -1,0 +1,1052 @@
+//! Spatial prior on the fitted layer model: each pixel's layer shape and amplitude are pulled
+//! toward its neighbourhood as far as the training data say they should be.
+//!
+//! Why: a pixel's layers come from its own few profiles (the shape from one tile's EM fit, the
+//! amplitude from the pixel's own flux). Both carry errors that do not transfer to a new light:
+//! camera noise and the per-projector error of the irradiance model. On the quick head the raw
+//! per-pixel model lost to the homogeneous one under white light (held-out global error 0.100 vs
+//! 0.090): the inhomogeneity it captured was outweighed by its noise. Skin's parameters vary
+//! smoothly over most of the face, so borrowing strength from neighbours is the usual cure; the
+//! two strengths below are chosen from the training data alone (never the held-out projector).
+//!
+//! - **Shape** (weights relative to their sum, sigmas, depths): the shape of a tile becomes the
+//!   equal-weight mixture of the shapes of the fitted tiles within Chebyshev radius `r` (tiles of
+//!   the fit's `block`), with components of equal depth merged within log-sigma bins (variance
+//!   moment-matched) so the layer count stays small. `r` is chosen per channel among
+//!   [`PriorOptions::radii`] and "global" (one shape for the whole subject) by cross-validation:
+//!   the log-likelihood of the profiles of validation pixels that no fit used (per tile, a lit
+//!   pixel other than the fitted one; with `block = 1` the right neighbour, whose own tile is then
+//!   left out of the mixture).
+//! - **Amplitude** (the sum of a pixel's layer weights): empirical Bayes shrinkage toward the
+//!   subject's mean `m`. Each training projector `p` gives its own estimate `a_p = F_p / (E_p W_p)`
+//!   (flux of its two profiles over irradiance times slit width); their spread within a pixel is
+//!   the noise variance `s2`, the spread of pixel means beyond what that noise explains is the true
+//!   variation `t2`. A pixel seen by `n` projectors keeps the fraction `t2 / (t2 + s2 / n)` of its
+//!   deviation from `m` (the posterior mean under Gaussian prior and noise), in relative units.
+//!
+//! Pixels without layers stay without layers; the output has the input's size.
+
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::em_layered::{self, Layer, LayeredParams};
+use super::fit::tile_pixel;
+use super::mixture::{EmError, Profile};
+use super::profiles::{PixelGeometry, SlitSweep};
+use super::render::{LayerModel, SplatLayer};
+use super::surface::Surface;
+
+/// Errors of the spatial prior.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[non_exhaustive]
+pub enum SpatialPriorError {
+    /// The per-projector inputs disagree in number.
+    #[error("{geometries} projector geometries but {sweeps} slit sweeps")]
+    ProjectorCount { geometries: usize, sweeps: usize },
+    /// The layer model and the surface differ in size.
+    #[error("layer model is {model_width}x{model_height}, the surface {width}x{height}")]
+    SizeMismatch {
+        model_width: usize,
+        model_height: usize,
+        width: usize,
+        height: usize,
+    },
+    /// An option is out of range.
+    #[error("invalid spatial prior option: {0}")]
+    BadOption(&'static str),
+    /// A likelihood evaluation failed on malformed profiles.
+    #[error("validation pixel {pixel}: {source}")]
+    Likelihood { pixel: usize, source: EmError },
+}
+
+/// Knobs of the prior.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PriorOptions {
+    /// Candidate shape radii in tiles (0 = the tile's own shape); "global" is always a candidate.
+    pub radii: Vec<usize>,
+    /// Ratio between consecutive sigma bins when merging components (> 1).
+    pub sigma_bin_ratio: f64,
+    /// Shrink the amplitudes (empirical Bayes); off keeps each pixel's own.
+    pub shrink_amplitude: bool,
+    /// Slit images on each side in the likelihood (as the EM's `wrap_images`).
+    pub wrap_images: usize,
+}
+
+impl Default for PriorOptions {
+    fn default() -> Self {
+        Self {
+            radii: vec![0, 1, 2, 3, 4],
+            sigma_bin_ratio: 1.25,
+            shrink_amplitude: true,
+            wrap_images: 1,
+        }
+    }
+}
+
+/// Candidate shape neighbourhood.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Neighbourhood {
+    /// Tiles within this Chebyshev radius (in tiles).
+    Radius(usize),
+    /// Every fitted tile of the subject.
+    Global,
+}
+
+impl Neighbourhood {
+    /// Label for reports: `r0`, `r1`, ..., `global`.
+    pub fn label(self) -> String {
+        match self {
+            Self::Radius(r) => format!("r{r}"),
+            Self::Global => "global".into(),
+        }
+    }
+}
+
+/// What the prior chose for one channel, and why.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ChannelPrior {
+    /// Chosen shape neighbourhood (label, e.g. `r2` or `global`).
+    pub shape: String,
+    /// Mean held-out log-likelihood per validation profile set, per candidate label.
+    pub cv_log_likelihood: BTreeMap<String, f64>,
+    /// Subject mean amplitude `m`.
+    pub amplitude_mean: f64,
+    /// Relative noise variance of one projector's amplitude estimate (`s2`).
+    pub noise_variance: f64,
+    /// Relative variance of the true amplitudes (`t2`).
+    pub signal_variance: f64,
+    /// Mean fraction of each pixel's deviation kept (1 = no shrinkage).
+    pub mean_keep_fraction: f64,
+}
+
+/// What the prior did.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PriorReport {
+    /// Validation pixels scored per channel.
+    pub validation_pixels: [usize; 3],
+    /// R, G, B.
+    pub channels: Vec<ChannelPrior>,
+}
+
+/// A layer shape: weights sum to 1.
+type Shape = Vec<SplatLayer>;
+
+/// The tile grid of a fit with `block x block` tiles.
+#[derive(Debug, Clone, Copy)]
+struct Tiles {
+    width: usize,
+    height: usize,
+    block: usize,
+    across: usize,
+    down: usize,
+}
+
+impl Tiles {
+    fn new(width: usize, height: usize, block: usize) -> Self {
+        let block = block.max(1);
+        Self {
+            width,
+            height,
+            block,
+            across: width.div_ceil(block),
+            down: height.div_ceil(block),
+        }
+    }
+
+    fn count(&self) -> usize {
+        self.across * self.down
+    }
+
+    fn of_pixel(&self, i: usize) -> usize {
+        (i / self.width / self.block) * self.across + (i % self.width) / self.block
+    }
+}
+
+/// The pixel's layers scaled to unit total weight; `None` without weight.
+fn normalised(layers: &[SplatLayer]) -> Option<Shape> {
+    let total: f32 = layers.iter().map(|l| l.weight).sum();
+    (total > 0.0 && total.is_finite()).then(|| {
+        layers
+            .iter()
+            .map(|l| SplatLayer {
+                weight: l.weight / total,
+                ..*l
+            })
+            .collect()
+    })
+}
+
+/// Sigma bins per layer index in the merged layers' `index` code (`index * SIGMA_BINS + bin`).
+const SIGMA_BINS: u16 = 64;
+
+/// The merged layers' identity: depth index (or rank) and sigma bin, so that layers averaged
+/// across pixels by index (the homogeneous baseline) share depth and width.
+fn layer_code(index: u16, bin: i32) -> u16 {
+    let bin = (bin + i32::from(SIGMA_BINS / 2)).clamp(0, i32::from(SIGMA_BINS) - 1) as u16;
+    index.saturating_mul(SIGMA_BINS).saturating_add(bin)
+}
+
+/// Equal-weight mixture of `shapes`, components of equal layer index merged within log-sigma bins
+/// (weight summed, variance moment-matched, depth weight-averaged); the merged layers' `index`
+/// is [`layer_code`].
+fn merged_mixture<'a>(shapes: impl Iterator<Item = &'a Shape>, bin_ratio: f64) -> Option<Shape> {
+    // (layer index, sigma bin) -> (weight, weight * sigma^2, weight * depth)
+    let mut bins: BTreeMap<(u16, i32), (f64, f64, f64)> = BTreeMap::new();
+    let mut count = 0usize;
+    let log_ratio = bin_ratio.ln();
+    for shape in shapes {
+        count += 1;
+        for l in shape {
+            let sigma = f64::from(l.sigma_mm).max(1e-6);
+            let bin = (sigma.ln() / log_ratio).round() as i32;
+            let e = bins.entry((l.index, bin)).or_insert((0.0, 0.0, 0.0));
+            let w = f64::from(l.weight);
+            e.0 += w;
+            e.1 += w * sigma * sigma;
+            e.2 += w * f64::from(l.depth_mm);
+        }
+    }
+    if count == 0 {
+        return None;
+    }
+    let out: Shape = bins
+        .iter()
+        .filter(|(_, e)| e.0 > 0.0)
+        .map(|(&(index, bin), &(w, wss, wd))| SplatLayer {
+            index: layer_code(index, bin),
+            weight: (w / count as f64) as f32,
+            sigma_mm: (wss / w).sqrt() as f32,
+            depth_mm: (wd / w) as f32,
+        })
+        .collect();
+    (!out.is_empty()).then_some(out)
+}
+
+/// Profiles of pixel `i`, channel `c`, grouped per training projector that lights it, with each
+/// group's `E W` (irradiance x slit width summed over its profiles).
+fn profiles_by_projector(
+    i: usize,
+    c: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> Vec<(Vec<Profile>, f64)> {
+    geometries
+        .iter()
+        .zip(sweeps)
+        .filter_map(|(geo, sweep)| {
+            let g = geo.get(i).copied().flatten()?;
+            let profiles: Vec<Profile> =
+                (0..2).filter_map(|a| sweep.profile(i, c, a, &g)).collect();
+            let ew: f64 = profiles.iter().map(|p| g.irradiance * p.slit_width).sum();
+            (!profiles.is_empty()).then_some((profiles, ew))
+        })
+        .collect()
+}
+
+/// Log-likelihood (per unit weight, averaged over profiles) of `profiles` under `shape`, each
+/// layer at its own depth in units of `depth_spacing` (depth ignored when the spacing is 0, as
+/// the layered fit's means are then all 0).
+fn shape_log_likelihood(
+    profiles: &[Profile],
+    shape: &Shape,
+    depth_spacing: f64,
+    wrap_images: usize,
+) -> Result<f64, EmError> {
+    let params = LayeredParams {
+        layers: shape
+            .iter()
+            .map(|l| Layer {
+                depth_index: if depth_spacing > 0.0 {
+                    (f64::from(l.depth_mm) / depth_spacing).round().max(0.0) as usize
+                } else {
+                    0
+                },
+                weight: f64::from(l.weight),
+                sigma: f64::from(l.sigma_mm),
+            })
+            .collect(),
+        depth_spacing,
+    };
+    em_layered::log_likelihood(profiles, &params, wrap_images)
+}
+
+/// Everything the prior needs, borrowed.
+struct Inputs<'a> {
+    model: &'a LayerModel,
+    surface: &'a Surface,
+    geometries: &'a [Vec<Option<PixelGeometry>>],
+    sweeps: &'a [SlitSweep<'a>],
+    tiles: Tiles,
+    depth_spacing: f64,
+    opts: &'a PriorOptions,
+}
+
+impl Inputs<'_> {
+    fn lit(&self, i: usize) -> bool {
+        self.surface.mask[i] && self.geometries.iter().any(|g| g[i].is_some())
+    }
+
+    /// The pixel the fit used for tile `t`.
+    fn fitted_pixel(&self, t: usize) -> Option<usize> {
+        let tl = &self.tiles;
+        tile_pixel(
+            t % tl.across,
+            t / tl.across,
+            tl.block,
+            tl.width,
+            tl.height,
+            &|i| self.lit(i),
+        )
+    }
+
+    /// Shape of every tile and channel (from the fitted pixel's layers).
+    fn tile_shapes(&self) -> Vec<[Option<Shape>; 3]> {
+        (0..self.tiles.count())
+            .into_par_iter()
+            .map(|t| {
+                let mut out: [Option<Shape>; 3] = Default::default();
+                if let Some(i) = self.fitted_pixel(t) {
+                    for (c, o) in out.iter_mut().enumerate() {
+                        *o = normalised(self.model.layers(i, c));
+                    }
+                }
+                out
+            })
+            .collect()
+    }
+
+    /// A pixel of tile `t` no fit used, and the tile to leave out of its mixtures (the tile the
+    /// validation pixel was fitted in, when that is not `t`).
+    fn validation_pixel(&self, t: usize) -> Option<(usize, Option<usize>)> {
+        let tl = &self.tiles;
+        let fitted = self.fitted_pixel(t)?;
+        if tl.block == 1 {
+            let x = fitted % tl.width;
+            let right = fitted + 1;
+            return (x + 1 < tl.width && self.lit(right)).then_some((right, Some(right)));
+        }
+        let (x0, y0) = ((t % tl.across) * tl.block, (t / tl.across) * tl.block);
+        let (x1, y1) = (
+            (x0 + tl.block).min(tl.width),
+            (y0 + tl.block).min(tl.height),
+        );
+        (y0..y1)
+            .rev()
+            .flat_map(|y| (x0..x1).rev().map(move |x| y * tl.width + x))
+            .find(|&i| i != fitted && self.lit(i))
+            .map(|i| (i, None))
+    }
+
+    /// Tiles within Chebyshev radius `r` of tile `t` (itself included).
+    fn window(&self, t: usize, r: usize) -> impl Iterator<Item = usize> + '_ {
+        let tl = self.tiles;
+        let (tx, ty) = (t % tl.across, t / tl.across);
+        let (x0, x1) = (tx.saturating_sub(r), (tx + r).min(tl.across - 1));
+        let (y0, y1) = (ty.saturating_sub(r), (ty + r).min(tl.down - 1));
+        (y0..=y1).flat_map(move |y| (x0..=x1).map(move |x| y * tl.across + x))
+    }
+}
+
+/// The mixture shape of tile `t` over `hood`, leaving out tile `exclude`.
+fn hood_shape(
+    inputs: &Inputs,
+    shapes: &[[Option<Shape>; 3]],
+    global: &[Option<Shape>; 3],
+    t: usize,
+    c: usize,
+    hood: Neighbourhood,
+    exclude: Option<usize>,
+) -> Option<Shape> {
+    match hood {
+        Neighbourhood::Global => global[c].clone(),
+        Neighbourhood::Radius(r) => merged_mixture(
+            inputs
+                .window(t, r)
+                .filter(|&s| Some(s) != exclude)
+                .filter_map(|s| shapes[s][c].as_ref()),
+            inputs.opts.sigma_bin_ratio,
+        ),
+    }
+}
+
+/// The cross-validation's outcome per channel: the chosen neighbourhood, the mean log-likelihood
+/// per candidate label, and the number of validation pixels scored.
+struct Choice {
+    chosen: [Neighbourhood; 3],
+    tables: [BTreeMap<String, f64>; 3],
+    counts: [usize; 3],
+}
+
+/// Chooses the shape neighbourhood of each channel by the validation pixels' log-likelihood.
+fn choose_neighbourhoods(
+    inputs: &Inputs,
+    shapes: &[[Option<Shape>; 3]],
+    global: &[Option<Shape>; 3],
+    candidates: &[Neighbourhood],
+) -> Result<Choice, SpatialPriorError> {
+    // Per tile and channel: the log-likelihood under every candidate (None when not scorable).
+    type Scores = [Option<Vec<f64>>; 3];
+    let per_tile: Vec<Result<Scores, SpatialPriorError>> = (0..inputs.tiles.count())
+        .into_par_iter()
+        .map(|t| {
+            let mut out: Scores = Default::default();
+            let Some((v, exclude)) = inputs.validation_pixel(t) else {
+                return Ok(out);
+            };
+            for (c, o) in out.iter_mut().enumerate() {
+                let profiles: Vec<Profile> =
+                    profiles_by_projector(v, c, inputs.geometries, inputs.sweeps)
+                        .into_iter()
+                        .flat_map(|(p, _)| p)
+                        .collect();
+                if profiles.iter().all(|p| p.total() <= 0.0) {
+                    continue;
+                }
+                let mut scores = Vec::with_capacity(candidates.len());
+                for &hood in candidates {
+                    let Some(shape) = hood_shape(inputs, shapes, global, t, c, hood, exclude)
+                    else {
+                        break;
+                    };
+                    match shape_log_likelihood(
+                        &profiles,
+                        &shape,
+                        inputs.depth_spacing,
+                        inputs.opts.wrap_images,
+                    ) {
+                        Ok(ll) if ll.is_finite() => scores.push(ll),
+                        Ok(_) | Err(EmError::NoSignal) => break,
+                        Err(source) => {
+                            return Err(SpatialPriorError::Likelihood { pixel: v, source });
+                        }
+                    }
+                }
+                // Score a tile only when every candidate could be evaluated (a fair comparison).
+                if scores.len() == candidates.len() {
+                    *o = Some(scores);
+                }
+            }
+            Ok(out)
+        })
+        .collect();
+    let mut sums = [
+        vec![0.0; candidates.len()],
+        vec![0.0; candidates.len()],
+        vec![0.0; candidates.len()],
+    ];
+    let mut counts = [0usize; 3];
+    for tile in per_tile {
+        for (c, scores) in tile?.iter().enumerate() {
+            if let Some(s) = scores {
+                counts[c] += 1;
+                for (acc, v) in sums[c].iter_mut().zip(s) {
+                    *acc += v;
+                }
+            }
+        }
+    }
+    let mut chosen = [Neighbourhood::Radius(0); 3];
+    let mut tables: [BTreeMap<String, f64>; 3] = Default::default();
+    for c in 0..3 {
+        if counts[c] == 0 {
+            continue;
+        }
+        let means: Vec<f64> = sums[c].iter().map(|s| s / counts[c] as f64).collect();
+        let best = means
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(b.1))
+            .map_or(0, |(k, _)| k);
+        chosen[c] = candidates[best];
+        tables[c] = candidates
+            .iter()
+            .zip(&means)
+            .map(|(h, m)| (h.label(), *m))
+            .collect();
+    }
+    Ok(Choice {
+        chosen,
+        tables,
+        counts,
+    })
+}
+
+/// Variance components of the per-projector amplitude estimates of one channel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct AmplitudeStats {
+    mean: f64,
+    /// Relative noise variance of one projector's estimate.
+    noise: f64,
+    /// Relative variance of the true amplitudes.
+    signal: f64,
+}
+
+impl AmplitudeStats {
+    /// Fraction of a pixel's deviation kept when `n` projectors measured it.
+    fn keep(&self, n: usize) -> f64 {
+        let n = n.max(1) as f64;
+        let denom = self.signal + self.noise / n;
+        if denom > 0.0 {
+            self.signal / denom
+        } else {
+            1.0
+        }
+    }
+}
+
+/// Method-of-moments variance components from per-pixel lists of per-projector estimates
+/// (relative to their grand mean), and the subject mean `mean` of the pixel amplitudes.
+fn amplitude_stats(per_pixel: &[Vec<f64>], mean: f64) -> AmplitudeStats {
+    let mut none = AmplitudeStats {
+        mean,
+        noise: 0.0,
+        signal: 0.0,
+    };
+    if mean <= 0.0 {
+        return none;
+    }
+    let (mut within, mut dof) = (0.0, 0usize);
+    let mut pixel_means = Vec::with_capacity(per_pixel.len());
+    let mut noise_share = Vec::with_capacity(per_pixel.len());
+    for estimates in per_pixel.iter().filter(|e| !e.is_empty()) {
+        let rel: Vec<f64> = estimates.iter().map(|a| a / mean - 1.0).collect();
+        let m = rel.iter().sum::<f64>() / rel.len() as f64;
+        within += rel.iter().map(|d| (d - m).powi(2)).sum::<f64>();
+        dof += rel.len() - 1;
+        pixel_means.push(m);
+        noise_share.push(1.0 / rel.len() as f64);
+    }
+    if dof == 0 || pixel_means.len() < 2 {
+        return none;
+    }
+    let noise = within / dof as f64;
+    let grand = pixel_means.iter().sum::<f64>() / pixel_means.len() as f64;
+    let between = pixel_means.iter().map(|m| (m - grand).powi(2)).sum::<f64>()
+        / (pixel_means.len() - 1) as f64;
+    let explained = noise * noise_share.iter().sum::<f64>() / noise_share.len() as f64;
+    none.noise = noise;
+    none.signal = (between - explained).max(0.0);
+    none
+}
+
+/// The pipeline's call: with `enabled`, replaces `model` by its regularised version (default
+/// options) and reports what was chosen; otherwise leaves it alone and returns `None`.
+#[allow(clippy::too_many_arguments)]
+pub fn regularise_in_place(
+    enabled: bool,
+    model: &mut LayerModel,
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    block: usize,
+    depth_spacing: f64,
+) -> Result<Option<PriorReport>, SpatialPriorError> {
+    if !enabled {
+        return Ok(None);
+    }
+    let opts = PriorOptions::default();
+    let (out, report) = regularise(
+        model,
+        surface,
+        geometries,
+        sweeps,
+        block,
+        depth_spacing,
+        &opts,
+    )?;
+    *model = out;
+    Ok(Some(report))
+}
+
+/// Applies the prior to the fitted `model` (layers per pixel as `subsurface::fit::fit_model`
+/// returns them, fitted per `block x block` tile, layer depth `depth_index * depth_spacing`).
+pub fn regularise(
+    model: &LayerModel,
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    block: usize,
+    depth_spacing: f64,
+    opts: &PriorOptions,
+) -> Result<(LayerModel, PriorReport), SpatialPriorError> {
+    if geometries.len() != sweeps.len() {
+        return Err(SpatialPriorError::ProjectorCount {
+            geometries: geometries.len(),
+            sweeps: sweeps.len(),
+        });
+    }
+    if (model.width, model.height) != (surface.width, surface.height)
+        || geometries.iter().any(|g| g.len() != surface.len())
+    {
+        return Err(SpatialPriorError::SizeMismatch {
+            model_width: model.width,
+            model_height: model.height,
+            width: surface.width,
+            height: surface.height,
+        });
+    }
+    if opts.sigma_bin_ratio.is_nan() || opts.sigma_bin_ratio <= 1.0 {
+        return Err(SpatialPriorError::BadOption("sigma_bin_ratio must be > 1"));
+    }
+    let inputs = Inputs {
+        model,
+        surface,
+        geometries,
+        sweeps,
+        tiles: Tiles::new(surface.width, surface.height, block),
+        depth_spacing,
+        opts,
+    };
+    let shapes = inputs.tile_shapes();
+    let global: [Option<Shape>; 3] = std::array::from_fn(|c| {
+        merged_mixture(
+            shapes.iter().filter_map(|s| s[c].as_ref()),
+            opts.sigma_bin_ratio,
+        )
+    });
+    let mut candidates: Vec<Neighbourhood> = opts
+        .radii
+        .iter()
+        .map(|&r| Neighbourhood::Radius(r))
+        .collect();
+    candidates.push(Neighbourhood::Global);
+    let Choice {
+        chosen,
+        tables,
+        counts,
+    } = choose_neighbourhoods(&inputs, &shapes, &global, &candidates)?;
+
+    // Amplitudes: the fit's own per pixel, and per projector for the variance components.
+    let n = surface.len();
+    let own: Vec<[f64; 3]> = (0..n)
+        .map(|i| {
+            std::array::from_fn(|c| model.layers(i, c).iter().map(|l| f64::from(l.weight)).sum())
+        })
+        .collect();
+    let per_projector: Vec<[Vec<f64>; 3]> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            std::array::from_fn(|c| {
+                if own[i][c] <= 0.0 {
+                    return Vec::new();
+                }
+                profiles_by_projector(i, c, geometries, sweeps)
+                    .iter()
+                    .filter(|(_, ew)| *ew > 0.0)
+                    .map(|(p, ew)| p.iter().map(Profile::flux).sum::<f64>() / ew)
+                    .collect()
+            })
+        })
+        .collect();
+    let stats: [AmplitudeStats; 3] = std::array::from_fn(|c| {
+        let with: Vec<f64> = own.iter().map(|a| a[c]).filter(|a| *a > 0.0).collect();
+        let mean = if with.is_empty() {
+            0.0
+        } else {
+            with.iter().sum::<f64>() / with.len() as f64
+        };
+        let lists: Vec<Vec<f64>> = per_projector.iter().map(|p| p[c].clone()).collect();
+        amplitude_stats(&lists, mean)
+    });
+
+    // Shapes of every tile under the chosen neighbourhoods.
+    let final_shapes: Vec<[Option<Shape>; 3]> = (0..inputs.tiles.count())
+        .into_par_iter()
+        .map(|t| {
+            std::array::from_fn(|c| hood_shape(&inputs, &shapes, &global, t, c, chosen[c], None))
+        })
+        .collect();
+    let mut keep_sum = [0.0f64; 3];
+    let mut keep_count = [0usize; 3];
+    let out = LayerModel::from_fn(surface.width, surface.height, |i, c| {
+        let amplitude = own[i][c];
+        if amplitude <= 0.0 {
+            return model.layers(i, c).to_vec();
+        }
+        let Some(shape) = &final_shapes[inputs.tiles.of_pixel(i)][c] else {
+            return model.layers(i, c).to_vec();
+        };
+        let st = &stats[c];
+        let target = if opts.shrink_amplitude && st.mean > 0.0 {
+            let keep = st.keep(per_projector[i][c].len());
+            keep_sum[c] += keep;
+            keep_count[c] += 1;
+            st.mean * (1.0 + keep * (amplitude / st.mean - 1.0))
+        } else {
+            amplitude
+        };
+        shape
+            .iter()
+            .map(|l| SplatLayer {
+                weight: (f64::from(l.weight) * target) as f32,
+                ..*l
+            })
+            .collect()
+    });
+    let channels = (0..3)
+        .map(|c| ChannelPrior {
+            shape: chosen[c].label(),
+            cv_log_likelihood: tables[c].clone(),
+            amplitude_mean: stats[c].mean,
+            noise_variance: stats[c].noise,
+            signal_variance: stats[c].signal,
+            mean_keep_fraction: if keep_count[c] > 0 {
+                keep_sum[c] / keep_count[c] as f64
+            } else {
+                1.0
+            },
+        })
+        .collect();
+    Ok((
+        out,
+        PriorReport {
+            validation_pixels: counts,
+            channels,
+        },
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Vector3;
+    use rand::{Rng, SeedableRng};
+    use rand_pcg::Pcg64;
+
+    use super::*;
+    use crate::capture::{Axis, Pattern};
+    use crate::subsurface::fit::{FitOptions, fit_model};
+    use crate::subsurface::mixture::EmConfig;
+    use crate::subsurface::profiles::{AxisGeometry, SlitFrame};
+
+    const SIZE: usize = 30;
+    const PERIOD: u32 = 10;
+    /// The true layer shape everywhere: (weight fraction, sigma mm).
+    const TRUE_SHAPE: [(f64, f64); 2] = [(0.6, 0.8), (0.4, 2.5)];
+
+    fn layer(index: u16, weight: f32, sigma_mm: f32) -> SplatLayer {
+        SplatLayer {
+            index,
+            weight,
+            sigma_mm,
+            depth_mm: 0.0,
+        }
+    }
+
+    #[test]
+    fn merging_keeps_bins_apart_and_moment_matches_within_a_bin() {
+        // Two shapes: sigmas 1.0 and 1.05 share a bin (ratio 1.25), 3.0 does not.
+        let a = vec![layer(0, 0.5, 1.0), layer(1, 0.5, 3.0)];
+        let b = vec![layer(0, 1.0, 1.05)];
+        let m = merged_mixture([a, b].iter(), 1.25).unwrap();
+        assert_eq!(m.len(), 2, "{m:?}");
+        let narrow = m.iter().find(|l| l.sigma_mm < 2.0).unwrap();
+        let wide = m.iter().find(|l| l.sigma_mm > 2.0).unwrap();
+        // Equal-weight mixture: narrow (0.5 + 1.0) / 2, wide 0.5 / 2.
+        assert!((narrow.weight - 0.75).abs() < 1e-6);
+        assert!((wide.weight - 0.25).abs() < 1e-6);
+        let var = (0.5 * 1.0 + 1.0 * 1.05f64.powi(2)) / 1.5;
+        assert!((f64::from(narrow.sigma_mm) - var.sqrt()).abs() < 1e-5);
+        assert_eq!(f64::from(wide.sigma_mm), 3.0);
+        // Layer codes keep the original index recoverable and differ between bins.
+        assert_eq!(narrow.index / SIGMA_BINS, 0);
+        assert_eq!(wide.index / SIGMA_BINS, 1);
+        assert!(merged_mixture(std::iter::empty(), 1.25).is_none());
+    }
+
+    #[test]
+    fn variance_components_are_recovered_from_per_projector_estimates() {
+        // True relative deviations with variance 0.04, three projectors with noise variance 0.01.
+        let mut rng = Pcg64::seed_from_u64(7);
+        let mut normal = |sd: f64| {
+            let (u, v): (f64, f64) = (rng.r#gen::<f64>().max(1e-12), rng.r#gen());
+            sd * (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let mean = 2.0;
+        let lists: Vec<Vec<f64>> = (0..20_000)
+            .map(|_| {
+                let truth = 1.0 + normal(0.2);
+                (0..3).map(|_| mean * (truth + normal(0.1))).collect()
+            })
+            .collect();
+        let st = amplitude_stats(&lists, mean);
+        assert!((st.signal - 0.04).abs() < 0.003, "{st:?}");
+        assert!((st.noise - 0.01).abs() < 0.0005, "{st:?}");
+        // Posterior keep fraction for 3 projectors: 0.04 / (0.04 + 0.01 / 3).
+        assert!((st.keep(3) - 0.04 / (0.04 + 0.01 / 3.0)).abs() < 0.01);
+        // One estimate per pixel: no noise estimate, nothing shrunk.
+        let single: Vec<Vec<f64>> = lists.iter().map(|l| vec![l[0]]).collect();
+        assert_eq!(amplitude_stats(&single, mean).keep(1), 1.0);
+    }
+
+    /// Boxed Gaussian mass of a 1 mm slit at distance `s` (mm), with the comb's neighbours, for
+    /// the true shape with its sigmas scaled by `scale`.
+    fn true_profile(s: f64, scale: f64) -> f64 {
+        TRUE_SHAPE
+            .iter()
+            .map(|&(w, sigma)| {
+                let k = scale * sigma * std::f64::consts::SQRT_2;
+                (-1..=1)
+                    .map(|m| {
+                        let d = s - f64::from(m) * f64::from(PERIOD);
+                        0.5 * (libm::erf((d + 0.5) / k) - libm::erf((d - 0.5) / k))
+                    })
+                    .sum::<f64>()
+                    * w
+            })
+            .sum()
+    }
+
+    /// A synthetic capture: a flat `SIZE x SIZE` patch, 1 mm per projector pixel, three
+    /// projectors with their own irradiance, each pixel's irradiance model off by a random
+    /// factor per projector (the non-transferable error), camera noise on the slit frames.
+    struct Scene {
+        surface: Surface,
+        geometries: Vec<Vec<Option<PixelGeometry>>>,
+        frames: Vec<Vec<(Pattern, Vec<[f32; 3]>)>>,
+    }
+
+    fn scene(amplitude: impl Fn(usize) -> f64, scale: impl Fn(usize) -> f64, seed: u64) -> Scene {
+        let n = SIZE * SIZE;
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let surface = Surface {
+            width: SIZE,
+            height: SIZE,
+            points: (0..n)
+                .map(|i| Vector3::new((i % SIZE) as f64, (i / SIZE) as f64, 0.0))
+                .collect(),
+            normals: vec![Vector3::z(); n],
+            mask: vec![true; n],
+            camera_centre: Vector3::new(15.0, 15.0, 1000.0),
+        };
+        let axis = AxisGeometry {
+            px_per_mm: 1.0,
+            shift_per_depth: 0.0,
+        };
+        let mut geometries = Vec::new();
+        let mut frames = Vec::new();
+        for (p, irradiance) in [1.0, 0.8, 1.2].into_iter().enumerate() {
+            let offset = 0.37 * p as f64;
+            let geo: Vec<Option<PixelGeometry>> = (0..n)
+                .map(|i| {
+                    Some(PixelGeometry {
+                        coords: ((i % SIZE) as f64 + offset, (i / SIZE) as f64 - offset),
+                        irradiance,
+                        axes: [axis; 2],
+                        shift: Vector3::zeros(),
+                    })
+                })
+                .collect();
+            // The light really delivered differs from the model's by a few per cent per pixel.
+            let delivered: Vec<f64> = (0..n)
+                .map(|_| irradiance * (1.0 + 0.08 * (rng.r#gen::<f64>() - 0.5) * 3.46))
+                .collect();
+            let mut sweep = Vec::new();
+            for (a, ax) in [Axis::X, Axis::Y].into_iter().enumerate() {
+                for o in 0..PERIOD {
+                    let pattern = Pattern::Slit {
+                        axis: ax,
+                        width: 1,
+                        period: PERIOD,
+                        offset: o,
+                    };
+                    let img: Vec<[f32; 3]> = (0..n)
+                        .map(|i| {
+                            let g = geo[i].unwrap();
+                            let coord = if a == 0 { g.coords.0 } else { g.coords.1 };
+                            let s = super::super::profiles::slit_distance_px(coord, 1, PERIOD, o);
+                            let clean = delivered[i] * amplitude(i) * true_profile(s, scale(i));
+                            std::array::from_fn(|_| {
+                                let noise = 0.004 * (rng.r#gen::<f64>() - 0.5) * 3.46;
+                                (clean + noise) as f32
+                            })
+                        })
+                        .collect();
+                    sweep.push((pattern, img));
+                }
+            }
+            geometries.push(geo);
+            frames.push(sweep);
+        }
+        Scene {
+            surface,
+            geometries,
+            frames,
+        }
+    }
+
+    /// Fits the scene like the fit stage (3 x 3 tiles, up to 4 components) and applies the prior.
+    fn fit_and_regularise(s: &Scene) -> (LayerModel, LayerModel, PriorReport) {
+        let slit_frames: Vec<Vec<SlitFrame>> = s
+            .frames
+            .iter()
+            .map(|f| {
+                f.iter()
+                    .map(|(pattern, img)| SlitFrame {
+                        pattern: *pattern,
+                        global: img,
+                    })
+                    .collect()
+            })
+            .collect();
+        let sweeps: Vec<SlitSweep> = slit_frames
+            .iter()
+            .map(|f| SlitSweep::new(f, SIZE * SIZE).unwrap())
+            .collect();
+        let opts = FitOptions {
+            em: EmConfig {
+                components: 3,
+                max_iterations: 40,
+                ..EmConfig::default()
+            },
+            depth_spacing: Some(0.0),
+            block: 3,
+            ..FitOptions::default()
+        };
+        let fit = fit_model(&s.surface, &s.geometries, &sweeps, &opts).unwrap();
+        let (out, report) = regularise(
+            &fit.model,
+            &s.surface,
+            &s.geometries,
+            &sweeps,
+            3,
+            0.0,
+            &PriorOptions::default(),
+        )
+        .unwrap();
+        (fit.model, out, report)
+    }
+
+    fn total(model: &LayerModel, i: usize, c: usize) -> f64 {
+        model.layers(i, c).iter().map(|l| f64::from(l.weight)).sum()
+    }
+
+    /// Second moment `sum w sigma^2 / sum w` of a pixel's kernel (mm^2).
+    fn second_moment(model: &LayerModel, i: usize, c: usize) -> f64 {
+        let l = model.layers(i, c);
+        l.iter()
+            .map(|l| f64::from(l.weight) * f64::from(l.sigma_mm).powi(2))
+            .sum::<f64>()
+            / total(model, i, c)
+    }
+
+    fn rel_rms(values: impl Iterator<Item = (f64, f64)>) -> f64 {
+        let (mut num, mut den) = (0.0, 0.0);
+        for (got, want) in values {
+            num += (got - want).powi(2);
+            den += want * want;
+        }
+        (num / den).sqrt()
+    }
+
+    #[test]
+    fn uniform_skin_noise_is_shrunk_away() {
+        let truth = 0.3;
+        let s = scene(|_| truth, |_| 1.0, 11);
+        let (raw, reg, report) = fit_and_regularise(&s);
+        let n = SIZE * SIZE;
+        let err = |m: &LayerModel| rel_rms((0..n).map(|i| (total(m, i, 0), truth)));
+        let (before, after) = (err(&raw), err(&reg));
+        // Nothing real varies: most of each pixel's deviation is noise and goes.
+        assert!(report.channels[0].mean_keep_fraction < 0.5, "{report:?}");
+        assert!(after < 0.6 * before, "amplitude error {before} -> {after}");
+        // Shapes: one shape fits all, so the cross-validation pools neighbours, and the kernel's
+        // second moment gets closer to the truth's.
+        assert_ne!(report.channels[0].shape, "r0", "{report:?}");
+        let m2: f64 = TRUE_SHAPE.iter().map(|(w, s)| w * s * s).sum();
+        let shape_err = |m: &LayerModel| rel_rms((0..n).map(|i| (second_moment(m, i, 0), m2)));
+        let (sb, sa) = (shape_err(&raw), shape_err(&reg));
+        assert!(sa < sb, "second-moment error {sb} -> {sa}");
+    }
+
+    #[test]
+    fn a_real_material_edge_is_kept() {
+        // Two materials: the left half re-emits twice what the right half does.
+        let amp = |i: usize| if i % SIZE < SIZE / 2 { 0.4 } else { 0.2 };
+        let s = scene(amp, |_| 1.0, 12);
+        let (raw, reg, report) = fit_and_regularise(&s);
+        // The true variation dwarfs the noise: deviations are kept.
+        assert!(report.channels[0].mean_keep_fraction > 0.9, "{report:?}");
+        let half_mean = |m: &LayerModel, left: bool| {
+            let px: Vec<usize> = (0..SIZE * SIZE)
+                .filter(|i| (i % SIZE < SIZE / 2 - 2) == left && (i % SIZE > SIZE / 2 + 1) != left)
+                .collect();
+            px.iter().map(|&i| total(m, i, 1)).sum::<f64>() / px.len() as f64
+        };
+        for (left, want) in [(true, 0.4), (false, 0.2)] {
+            let (b, a) = (half_mean(&raw, left), half_mean(&reg, left));
+            assert!(
+                (a - want).abs() < 0.05 * want,
+                "left={left}: {b} -> {a}, truth {want}"
+            );
+        }
+        let n = SIZE * SIZE;
+        let err = |m: &LayerModel| rel_rms((0..n).map(|i| (total(m, i, 1), amp(i))));
+        assert!(
+            err(&reg) <= err(&raw) * 1.02,
+            "{} -> {}",
+            err(&raw),
+            err(&reg)
+        );
+    }
+
+    #[test]
+    fn shapes_are_not_pooled_across_a_change_of_material() {
+        // Same amplitude, but the right half scatters twice as wide: one global shape would be
+        // wrong on both sides, so the cross-validation keeps shapes local.
+        let scale = |i: usize| if i % SIZE < SIZE / 2 { 1.0 } else { 2.0 };
+        let s = scene(|_| 0.3, scale, 14);
+        let (raw, reg, report) = fit_and_regularise(&s);
+        assert!(
+            ["r0", "r1"].contains(&report.channels[0].shape.as_str()),
+            "{report:?}"
+        );
+        let m2 = |i: usize| -> f64 {
+            TRUE_SHAPE
+                .iter()
+                .map(|(w, s)| w * (s * scale(i)).powi(2))
+                .sum()
+        };
+        let n = SIZE * SIZE;
+        let shape_err = |m: &LayerModel| rel_rms((0..n).map(|i| (second_moment(m, i, 0), m2(i))));
+        let (sb, sa) = (shape_err(&raw), shape_err(&reg));
+        assert!(sa <= sb * 1.001, "second-moment error {sb} -> {sa}");
+    }
+
+    #[test]
+    fn switched_off_the_model_is_untouched() {
+        let s = scene(|_| 0.3, |_| 1.0, 13);
+        let raw = LayerModel::from_fn(SIZE, SIZE, |i, c| {
+            vec![layer(0, 0.3 + (i % 7) as f32 * 0.01, 1.0 + c as f32)]
+        });
+        let mut same = raw.clone();
+        let geometries = s.geometries.clone();
+        let frames: Vec<SlitFrame> = s.frames[0]
+            .iter()
+            .map(|(pattern, img)| SlitFrame {
+                pattern: *pattern,
+                global: img,
+            })
+            .collect();
+        let sweeps = vec![SlitSweep::new(&frames, SIZE * SIZE).unwrap()];
+        let report = regularise_in_place(
+            false,
+            &mut same,
+            &s.surface,
+            &geometries[..1],
+            &sweeps,
+            3,
+            0.0,
+        )
+        .unwrap();
+        assert!(report.is_none());
+        assert_eq!(same, raw);
+        // Mismatched inputs are refused, not guessed.
+        assert!(matches!(
+            regularise_in_place(true, &mut same, &s.surface, &geometries, &sweeps, 3, 0.0),
+            Err(SpatialPriorError::ProjectorCount { .. })
+        ));
+    }
+}
