@@ -38,7 +38,9 @@ use crate::calibrate::local_homography::LocalHomographyOptions;
 use crate::calibrate::pose_measurement::{
     BoardCorners, PoseLayout, PoseMeasurementError, measure_pose,
 };
-use crate::calibrate::procam::{BoardSpec, ProcamError, ProcamOptions, calibrate_procam};
+use crate::calibrate::procam::{
+    BoardSpec, ProcamError, ProcamOptions, calibrate_procam, distortion_term_names,
+};
 use crate::capture::{Capture, CaptureError, Pattern, truth};
 use crate::evaluate::backscatter::{BackscatterError, evaluate_backscatter};
 use crate::evaluate::calibration_error::{
@@ -385,6 +387,11 @@ fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoE
         "camera_rms_px": result.camera_rms_px,
         "projector_rms_px": result.projector_rms_px,
         "stereo_rms_px": result.stereo_rms_px,
+        "distortion_terms": result
+            .distortion_terms
+            .iter()
+            .map(distortion_term_names)
+            .collect::<Vec<_>>(),
         "responses": responses,
     });
     Ok((calibration, report))
