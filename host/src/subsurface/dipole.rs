@@ -497,7 +497,9 @@ mod tests {
             shift_per_depth: 0.0,
         };
         let reflectance = total_reflectance(albedo, eta);
-        let fit = table.fit(&[profile.clone()], reflectance, None).unwrap();
+        let fit = table
+            .fit(std::slice::from_ref(&profile), reflectance, None)
+            .unwrap();
         assert!(
             (fit.extinction / ext - 1.0).abs() < 0.05,
             "{}",
@@ -508,7 +510,7 @@ mod tests {
         // Searching from a neighbour's extinction, near or far, finds the same maximum.
         for hint in [0.3, 1.7, 2.4, 15.0] {
             let near = table
-                .fit(&[profile.clone()], reflectance, Some(hint))
+                .fit(std::slice::from_ref(&profile), reflectance, Some(hint))
                 .unwrap();
             assert!(
                 (near.extinction / fit.extinction - 1.0).abs() < 0.02,
