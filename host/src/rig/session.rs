@@ -454,3 +454,114 @@ impl RunState {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mlsss_shared::framing::{ControllerEncoder, HostDecoder, MAX_WIRE_FRAME_LEN};
+    use mlsss_shared::message::Board;
+    use std::io;
+
+    /// A controller that answers every Hello with `reply` and ignores everything else.
+    struct ScriptedController {
+        reply: HelloReply,
+        decoder: HostDecoder,
+        encoder: ControllerEncoder,
+        outbox: Vec<u8>,
+        hellos_seen: usize,
+    }
+
+    impl ScriptedController {
+        fn new(reply: HelloReply) -> Self {
+            Self {
+                reply,
+                decoder: HostDecoder::new(),
+                encoder: ControllerEncoder::new(),
+                outbox: Vec::new(),
+                hellos_seen: 0,
+            }
+        }
+    }
+
+    impl ByteLink for ScriptedController {
+        fn send_bytes(&mut self, bytes: &[u8]) -> io::Result<()> {
+            let hellos = self
+                .decoder
+                .feed(bytes)
+                .flatten()
+                .filter(|received| matches!(received.message, HostMessage::Hello(_)))
+                .count();
+            for _ in 0..hellos {
+                self.hellos_seen += 1;
+                let mut frame = [0u8; MAX_WIRE_FRAME_LEN];
+                let (_, bytes) = self
+                    .encoder
+                    .encode(&ControllerMessage::HelloReply(self.reply), &mut frame)
+                    .map_err(|e| io::Error::other(format!("{e:?}")))?;
+                self.outbox.extend_from_slice(bytes);
+            }
+            Ok(())
+        }
+
+        fn recv_bytes(&mut self, buf: &mut [u8], _timeout: Duration) -> io::Result<usize> {
+            let n = self.outbox.len().min(buf.len());
+            buf[..n].copy_from_slice(&self.outbox[..n]);
+            self.outbox.drain(..n);
+            Ok(n)
+        }
+    }
+
+    fn reply_from_this_build() -> HelloReply {
+        HelloReply {
+            protocol_version: PROTOCOL_VERSION,
+            schema_hash: SCHEMA_HASH,
+            board: Board::QemuMps2An386,
+            firmware_version: [0, 1, 0],
+            projectors: 4,
+            timer_tick_ns: 1000,
+        }
+    }
+
+    fn open_against(reply: HelloReply) -> Result<HelloReply, RigError> {
+        let link = ControllerLink::new(ScriptedController::new(reply));
+        Session::open(link).map(|session| *session.controller())
+    }
+
+    #[test]
+    fn a_controller_built_from_the_same_source_is_accepted() {
+        let reply = reply_from_this_build();
+        let accepted = open_against(reply).expect("same version and schema");
+        assert_eq!(accepted, reply);
+    }
+
+    #[test]
+    fn a_controller_speaking_another_protocol_version_is_refused() {
+        let reply = HelloReply {
+            protocol_version: PROTOCOL_VERSION.wrapping_add(1),
+            ..reply_from_this_build()
+        };
+        match open_against(reply) {
+            Err(RigError::ProtocolMismatch { host, controller }) => {
+                assert_eq!(host, PROTOCOL_VERSION);
+                assert_eq!(controller, PROTOCOL_VERSION.wrapping_add(1));
+            }
+            other => panic!("expected ProtocolMismatch, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_controller_with_other_message_definitions_is_refused() {
+        // Same version number, different schema: someone changed a message without bumping it.
+        let reply = HelloReply {
+            schema_hash: SCHEMA_HASH ^ 0x0100_0000,
+            ..reply_from_this_build()
+        };
+        match open_against(reply) {
+            Err(RigError::SchemaMismatch { host, controller }) => {
+                assert_eq!(host, SCHEMA_HASH);
+                assert_eq!(controller, SCHEMA_HASH ^ 0x0100_0000);
+            }
+            other => panic!("expected SchemaMismatch, got {other:?}"),
+        }
+    }
+}

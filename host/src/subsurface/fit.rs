@@ -410,24 +410,34 @@ pub fn fit_dipole_model(
     let block = block.max(1);
     let (bw, bh) = (w.div_ceil(block), h.div_ceil(block));
     let lit = |i: usize| surface.mask[i] && geometries.iter().any(|g| g[i].is_some());
-    // Extinction per tile and channel, fitted at the tile's pixel.
-    let extinctions: Vec<[Option<f64>; 3]> = (0..bw * bh)
+    // Extinction per tile and channel, fitted at the tile's pixel: rows of tiles in parallel,
+    // each tile's search starting from its left neighbour's optimum (the first of a row searches
+    // the whole range).
+    let extinctions: Vec<[Option<f64>; 3]> = (0..bh)
         .into_par_iter()
-        .map(|t| {
-            let mut out = [None; 3];
-            let Some(i) = tile_pixel(t % bw, t / bw, block, w, h, &lit) else {
-                return out;
-            };
-            for (c, o) in out.iter_mut().enumerate() {
-                let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
-                if profiles.is_empty() {
-                    continue;
+        .flat_map_iter(|by| {
+            let mut hint: [Option<f64>; 3] = [None; 3];
+            let table = &table;
+            let lit = &lit;
+            (0..bw).map(move |bx| {
+                let mut out = [None; 3];
+                let Some(i) = tile_pixel(bx, by, block, w, h, lit) else {
+                    return out;
+                };
+                for (c, o) in out.iter_mut().enumerate() {
+                    let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
+                    if profiles.is_empty() {
+                        continue;
+                    }
+                    *o = table
+                        .fit(&profiles, weight_scale(&profiles, &ew), hint[c])
+                        .map(|f| f.extinction);
+                    if o.is_some() {
+                        hint[c] = *o;
+                    }
                 }
-                *o = table
-                    .fit(&profiles, weight_scale(&profiles, &ew))
-                    .map(|f| f.extinction);
-            }
-            out
+                out
+            })
         })
         .collect();
     let fits: Vec<[Vec<SplatLayer>; 3]> = (0..w * h)
