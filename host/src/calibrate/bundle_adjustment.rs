@@ -100,10 +100,13 @@ pub struct RigModel {
 }
 
 /// Which intrinsic parameters are refined.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct RefineOptions {
     /// Refine `[k1, k2, p1, p2, k3]` element by element.
     pub distortion: [bool; 5],
+    /// Per device (in model order), which distortion terms are refined; when given it replaces
+    /// `distortion` (a term not refined keeps its value in the model).
+    pub device_distortion: Option<Vec<[bool; 5]>>,
     /// Refine focal lengths and principal points.
     pub pinhole: bool,
     pub lm: LmOptions,
@@ -113,6 +116,7 @@ impl Default for RefineOptions {
     fn default() -> Self {
         Self {
             distortion: [true; 5],
+            device_distortion: None,
             pinhole: true,
             lm: LmOptions::default(),
         }
@@ -225,9 +229,14 @@ impl RigModel {
     /// Which entries of the parameter vector are refined.
     fn free_mask(&self, options: &RefineOptions) -> Vec<bool> {
         let mut free = Vec::new();
-        for _ in 0..self.devices() {
+        for d in 0..self.devices() {
             free.extend([options.pinhole; 4]);
-            free.extend(options.distortion);
+            let terms = options
+                .device_distortion
+                .as_ref()
+                .and_then(|per| per.get(d))
+                .unwrap_or(&options.distortion);
+            free.extend(*terms);
         }
         let poses = self.device_poses.len().saturating_sub(1) + self.view_poses.len();
         free.extend(std::iter::repeat_n(true, poses * POSE_PARAMS));

@@ -9,7 +9,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::calibrate::local_homography::LocalHomographyOptions;
 use mlsss::calibrate::opencv_storage::{read_opencv, write_opencv};
 use mlsss::calibrate::pose_measurement::{BoardCorners, PoseLayout, measure_pose};
-use mlsss::calibrate::procam::{BoardSpec, ProcamOptions, ProcamResult, calibrate_procam};
+use mlsss::calibrate::procam::{
+    BoardSpec, ProcamOptions, ProcamResult, calibrate_procam, distortion_term_names,
+};
 use rayon::prelude::*;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -41,6 +43,12 @@ pub struct Args {
     /// Do not estimate the sixth-order radial coefficient k3 (keeps it 0; advisable with few poses).
     #[arg(long)]
     fix_k3: bool,
+    /// Estimate every allowed distortion term of every device instead of, per device, the fewest
+    /// that the corners support (chosen by the Bayesian information criterion; with a narrow
+    /// field of view the high-order terms cannot be measured and only trade against the focal
+    /// length and principal point).
+    #[arg(long)]
+    all_distortion_terms: bool,
     /// Convert this OpenCV FileStorage calibration (.xml/.yml) into our JSON instead of calibrating.
     #[arg(long, conflicts_with_all = ["captures", "board", "square"])]
     from_opencv: Option<PathBuf>,
@@ -117,6 +125,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.fix_k3 {
         options.distortion[4] = false;
     }
+    options.select_distortion = !args.all_distortion_terms;
     let poses: Vec<_> = measured.iter().map(|m| m.corners.clone()).collect();
     let result = calibrate_procam(
         &poses,
@@ -191,6 +200,16 @@ fn intrinsics_json(k: &mlsss::calib::Intrinsics) -> serde_json::Value {
     })
 }
 
+/// Per device, the names of the estimated distortion terms (camera first).
+fn distortion_terms_json(terms: &[[bool; 5]]) -> serde_json::Value {
+    serde_json::json!(
+        terms
+            .iter()
+            .map(|t| distortion_term_names(t))
+            .collect::<Vec<_>>()
+    )
+}
+
 fn print_result(result: &ProcamResult, args: &Args) {
     let cal = &result.calibration;
     let poses_used = result.poses.iter().filter(|p| p.used).count();
@@ -218,6 +237,7 @@ fn print_result(result: &ProcamResult, args: &Args) {
             "poses_total": result.poses.len(),
             "separate_fits": result.separate,
             "poses": result.poses,
+            "distortion_terms": distortion_terms_json(&result.distortion_terms),
             "out": args.out.display().to_string(),
             "opencv_out": opencv_path(args).display().to_string(),
         });

@@ -138,8 +138,33 @@ pub struct EmissionField {
 impl EmissionField {
     /// Emitted fraction of white towards projector coordinates (u, v).
     pub fn at(&self, u: f64, v: f64) -> f32 {
-        (self.u.at(u) * self.v.at(v)) as f32
+        self.at_position(&self.position(u, v))
     }
+
+    /// Where (u, v) falls on the tabulated profiles. Every emission field of one projector has
+    /// the same sample layout, so a position found on one serves for all of them: a batch of
+    /// frames locates each point once instead of once per frame.
+    pub fn position(&self, u: f64, v: f64) -> ProfilePosition {
+        ProfilePosition {
+            u: self.u.position(u),
+            v: self.v.position(v),
+        }
+    }
+
+    /// Emitted fraction of white at a position found by [`Self::position`] (on this field or
+    /// another field of the same projector); the same value as [`Self::at`].
+    #[inline]
+    pub fn at_position(&self, position: &ProfilePosition) -> f32 {
+        (self.u.value(position.u) * self.v.value(position.v)) as f32
+    }
+}
+
+/// A point's place on a projector's emission profiles: per axis, the sample below it and the
+/// interpolation weight towards the next (`None` outside the profile, where nothing is emitted).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProfilePosition {
+    u: Option<(usize, f64)>,
+    v: Option<(usize, f64)>,
 }
 
 /// A row of pixel levels as a continuous function: box pixels convolved with the lens Gaussian,
@@ -180,18 +205,30 @@ impl BlurredProfile {
         Self { start, samples }
     }
 
-    fn at(&self, x: f64) -> f64 {
+    /// The sample below `x` and the interpolation weight towards the next; `None` outside.
+    fn position(&self, x: f64) -> Option<(usize, f64)> {
         let f = (x - self.start) * PROFILE_OVERSAMPLING as f64;
         if f < 0.0 {
-            return 0.0;
+            return None;
         }
         // f >= 0: truncation is the floor (and avoids a libm call on baseline x86-64).
         let i = f as usize;
         if i + 1 >= self.samples.len() {
-            return 0.0;
+            return None;
         }
-        let t = f - i as f64;
-        self.samples[i] * (1.0 - t) + self.samples[i + 1] * t
+        Some((i, f - i as f64))
+    }
+
+    /// Linear interpolation at a position from [`Self::position`]; 0 outside.
+    #[inline]
+    fn value(&self, position: Option<(usize, f64)>) -> f64 {
+        let Some((i, t)) = position else {
+            return 0.0;
+        };
+        match (self.samples.get(i), self.samples.get(i + 1)) {
+            (Some(a), Some(b)) => a * (1.0 - t) + b * t,
+            _ => 0.0,
+        }
     }
 }
 
@@ -247,6 +284,34 @@ mod tests {
         let expected = p.black_level + (1.0 - p.black_level) * 0.5f64.powf(p.gamma);
         assert!((grey - expected).abs() < 1e-6);
         assert_eq!(p.emission(&Pattern::White).at(-3.0, 80.0), 0.0);
+    }
+
+    /// A position located on one pattern's field gives, on every other pattern's field of the
+    /// same projector, exactly the value of locating it there.
+    #[test]
+    fn a_position_serves_every_pattern_of_the_projector() {
+        use crate::capture::FramePlan;
+        let booth = Booth::builtin(true);
+        let p = projector();
+        let fields: Vec<EmissionField> = FramePlan::scan(&booth.patterns, 1)
+            .frames
+            .iter()
+            .map(|f| p.emission(&f.pattern))
+            .collect();
+        assert!(fields.len() > 20);
+        let (w, h) = (p.calib.width as f64, p.calib.height as f64);
+        for i in 0..500 {
+            // Inside, at the edges and outside the image.
+            let u = -8.0 + (w + 16.0) * ((i as f64 * 0.618).fract());
+            let v = -8.0 + (h + 16.0) * ((i as f64 * 0.377).fract());
+            let position = fields[0].position(u, v);
+            for field in &fields {
+                assert_eq!(
+                    field.at_position(&position).to_bits(),
+                    field.at(u, v).to_bits()
+                );
+            }
+        }
     }
 
     #[test]

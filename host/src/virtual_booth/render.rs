@@ -221,16 +221,21 @@ impl<'a> ProjectorView<'a> {
             .zip(flux.par_chunks_mut(frames))
             .enumerate()
             .for_each(|(i, (d, phi))| {
+                let Some(first) = emissions.first() else {
+                    return;
+                };
                 for s in i * spp..(i + 1) * spp {
                     let irr = self.sub_irradiance[s];
                     if irr <= 0.0 {
                         continue;
                     }
                     let [u, v] = self.sub_uv[s];
+                    // Located once, read for every frame (all fields share one layout).
+                    let position = first.position(u, v);
                     let refl = self.sub_reflect[s] / spp as f32;
                     let area = geo.subs[s].map_or(0.0, |x| x.area_mm2) as f32;
                     for (f, emission) in emissions.iter().enumerate() {
-                        let e = irr * emission.at(u, v);
+                        let e = irr * emission.at_position(&position);
                         d[f] += refl * e;
                         phi[f] += area * e;
                     }

@@ -63,6 +63,10 @@ fn real_data_calibration_matches_opencv_and_reports_a_pose_without_board() {
         "opencv",
         "--projector",
         "1024x768",
+        // OpenCV's reference estimates all five distortion terms: compare like with like (our
+        // default estimates only the terms the corners support, and the principal point of this
+        // narrow camera moves with the model by more than the tolerance below).
+        "--all-distortion-terms",
         "--json",
         "--out",
     ] {
