@@ -375,8 +375,9 @@ fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoE
         &first.projector_sizes,
         &ProcamOptions::default(),
     )?;
+    // Reading the grey-level frames (PNG decoding) is most of this step: one pose per task.
     let levels = poses
-        .iter()
+        .par_iter()
         .map(|p| level_frames(p))
         .collect::<Result<Vec<_>, _>>()?;
     let responses = estimate_responses(&levels)?;
