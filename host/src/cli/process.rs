@@ -52,6 +52,10 @@ pub struct Args {
     /// renders the same).
     #[arg(long)]
     no_heldout_check: bool,
+    /// Fit stage: skip the per-pixel dipole baseline (Jensen 2001). It is an evaluation baseline,
+    /// not part of the MLSSS model; `mlsss eval` then reports no dipole numbers.
+    #[arg(long)]
+    no_dipole: bool,
     /// Fit stage: keep each pixel's own fitted layers instead of the spatial prior (shapes pooled
     /// over neighbouring tiles, amplitudes shrunk toward the subject's mean, both as far as
     /// cross-validation on the training projectors says; `subsurface::spatial_prior`).
@@ -104,6 +108,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         tolerance: args.tolerance,
         max_iterations: args.max_iterations,
         heldout_check: !args.no_heldout_check,
+        dipole: !args.no_dipole,
         spatial_prior: !args.no_spatial_prior,
         refine_normals: !args.no_normal_refinement,
         ..FitParams::default()

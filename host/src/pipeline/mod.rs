@@ -16,8 +16,8 @@
 //!   not run again; its report fragment is reused. Changing a parameter re-runs that stage and
 //!   everything downstream of it.
 //! - Report: one JSON object. Each stage returns a fragment (a JSON object) stored under its name
-//!   (e.g. `geometry.depth_rmse_mm`); run times go to `timing_s.<stage>`, reused stages are listed
-//!   in `cached`.
+//!   (e.g. `geometry.depth_rmse_mm`); run times go to `timing_s.<stage>` (wall) and
+//!   `timing_cpu_s.<stage>` (CPU, all threads), reused stages are listed in `cached`.
 //!
 //! # How to add a stage
 //! 1. Write the algorithm in its own library module (e.g. `crate::photometry::nayar_separation`),
@@ -49,6 +49,7 @@ use serde_json::{Map, Value};
 
 use crate::calib::{Calibration, CalibrationError};
 use crate::capture::{Capture, CaptureError, truth};
+use crate::evaluate::resources::cpu_seconds;
 
 /// Every stage, in an order where inputs come first.
 pub const STAGES: &[Stage] = &[
@@ -207,6 +208,9 @@ struct StageRecord {
     key: String,
     report: Value,
     seconds: f64,
+    /// CPU seconds (user + system, all threads) the stage used, where the platform tells.
+    #[serde(default)]
+    cpu_seconds: Option<f64>,
 }
 
 /// Progress callback: stage name, and true when its result is reused from the cache.
@@ -282,6 +286,7 @@ impl Pipeline {
         create_dir(&self.out)?;
         let mut report = Map::new();
         let mut timing = Map::new();
+        let mut cpu = Map::new();
         let mut cached = Vec::new();
         let mut keys: BTreeMap<&str, String> = BTreeMap::new();
         for stage in order {
@@ -304,10 +309,14 @@ impl Pipeline {
                 }
             };
             timing.insert(stage.name.into(), Value::from(record.seconds));
+            if let Some(c) = record.cpu_seconds {
+                cpu.insert(stage.name.into(), Value::from(c));
+            }
             report.insert(stage.name.into(), record.report);
             keys.insert(stage.name, key);
         }
         report.insert("timing_s".into(), Value::Object(timing));
+        report.insert("timing_cpu_s".into(), Value::Object(cpu));
         report.insert("cached".into(), Value::Array(cached));
         let report = Value::Object(report);
         let path = self.out.join(REPORT_FILE);
@@ -336,6 +345,7 @@ impl Pipeline {
             params: self.params.get(stage.name),
         };
         let start = Instant::now();
+        let cpu_start = cpu_seconds();
         let report = (stage.run)(&ctx).map_err(|source| PipelineError::Stage {
             stage: stage.name,
             source,
@@ -344,6 +354,7 @@ impl Pipeline {
             key,
             report,
             seconds: start.elapsed().as_secs_f64(),
+            cpu_seconds: cpu_start.zip(cpu_seconds()).map(|(a, b)| b - a),
         };
         write_json(
             &record_path,

@@ -25,6 +25,7 @@
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -427,7 +428,8 @@ impl ProfileInputs {
     }
 }
 
-/// Stray light of every projector's frames (zeros when it cannot be estimated).
+/// Stray light of every projector's frames (zeros when it cannot be estimated). The white frames
+/// are decoded in parallel.
 fn stray_for_all(
     ctx: &StageContext,
     black: &[f64],
@@ -435,13 +437,16 @@ fn stray_for_all(
     let plan = &ctx.capture.manifest.plan;
     let cam = &ctx.capture.manifest.booth.camera;
     let n = (cam.width * cam.height) as usize;
-    let mut whites = Vec::new();
-    for k in 0..black.len() {
-        match plan.find(k as u8, &Pattern::White) {
-            Some(f) => whites.push(ctx.capture.read_frame(f.index)?),
-            None => return Ok(vec![vec![[0.0; 3]; n]; black.len()]),
-        }
-    }
+    let indices: Option<Vec<u32>> = (0..black.len())
+        .map(|k| plan.find(k as u8, &Pattern::White).map(|f| f.index))
+        .collect();
+    let Some(indices) = indices else {
+        return Ok(vec![vec![[0.0; 3]; n]; black.len()]);
+    };
+    let whites = indices
+        .par_iter()
+        .map(|&index| ctx.capture.read_frame(index))
+        .collect::<Result<Vec<_>, _>>()?;
     let refs: Vec<&image::Rgb32FImage> = whites.iter().collect();
     Ok(match stray_light(&refs, black) {
         Some(s) => s.iter().map(pixels).collect(),
@@ -449,7 +454,8 @@ fn stray_for_all(
     })
 }
 
-/// The global parts of projector `p`'s slit frames, in capture order.
+/// The global parts of projector `p`'s slit frames, in capture order (frames decoded and
+/// extracted in parallel).
 fn slit_globals(
     ctx: &StageContext,
     p: &ProjectorInputs,
@@ -462,21 +468,30 @@ fn slit_globals(
         black_level: p.black_level,
         blur_px,
     };
-    ctx.capture
-        .manifest
-        .plan
-        .for_projector(p.k as u8)
-        .filter(|f| matches!(f.pattern, Pattern::Slit { .. }))
-        .map(|f| {
-            let frame = pixels(&ctx.capture.read_frame(f.index)?);
-            let global = slit_global(&frame, &f.pattern, &p.coords, &white).map_err(|source| {
+    let frames: Vec<(u32, Pattern)> = slit_frames(ctx, p.k);
+    frames
+        .par_iter()
+        .map(|&(index, pattern)| {
+            let frame = pixels(&ctx.capture.read_frame(index)?);
+            let global = slit_global(&frame, &pattern, &p.coords, &white).map_err(|source| {
                 ProfilesStageError::SlitGlobal {
                     projector: p.k,
                     source,
                 }
             })?;
-            Ok((f.pattern, global))
+            Ok((pattern, global))
         })
+        .collect()
+}
+
+/// Frame index and pattern of projector `k`'s slit frames, in capture order.
+fn slit_frames(ctx: &StageContext, k: usize) -> Vec<(u32, Pattern)> {
+    ctx.capture
+        .manifest
+        .plan
+        .for_projector(k as u8)
+        .filter(|f| matches!(f.pattern, Pattern::Slit { .. }))
+        .map(|f| (f.index, f.pattern))
         .collect()
 }
 
@@ -529,17 +544,44 @@ pub fn true_slit_global(
     black_level: f32,
     size: (u32, u32),
 ) -> Result<Option<Vec<[f32; 3]>>, ProfilesStageError> {
+    let Some(white) = true_white_global(truth_dir, k, size)? else {
+        return Ok(None);
+    };
+    true_slit_global_with(truth_dir, k, pattern, &white, black_level, size)
+}
+
+/// The simulator's global image of projector `k`'s white frame, if the truth has it.
+fn true_white_global(
+    truth_dir: &Path,
+    k: usize,
+    size: (u32, u32),
+) -> Result<Option<Vec<[f32; 3]>>, ProfilesStageError> {
+    let path = truth::global(truth_dir, k, &Pattern::White);
+    if !path.is_file() {
+        return Ok(None);
+    }
+    read_rgb(&path, size).map(Some)
+}
+
+/// [`true_slit_global`] with the white truth already read (it is the same for every slit of a
+/// projector).
+fn true_slit_global_with(
+    truth_dir: &Path,
+    k: usize,
+    pattern: &Pattern,
+    white: &[[f32; 3]],
+    black_level: f32,
+    size: (u32, u32),
+) -> Result<Option<Vec<[f32; 3]>>, ProfilesStageError> {
     let slit_path = truth::global(truth_dir, k, pattern);
-    let white_path = truth::global(truth_dir, k, &Pattern::White);
-    if !slit_path.is_file() || !white_path.is_file() {
+    if !slit_path.is_file() {
         return Ok(None);
     }
     let slit = read_rgb(&slit_path, size)?;
-    let white = read_rgb(&white_path, size)?;
     let b = black_level;
     Ok(Some(
         slit.iter()
-            .zip(&white)
+            .zip(white)
             .map(|(s, w)| {
                 let mut o = [0.0f32; 3];
                 for c in 0..3 {
@@ -636,7 +678,8 @@ const VARIANTS: [(&str, Option<DirectPart>); 4] = [
 ];
 
 /// Relative RMS errors of the extracted slit globals against the truth: as configured, then the
-/// [`VARIANTS`]. `None` entries when the capture has no slit truth.
+/// [`VARIANTS`]. `None` entries when the capture has no slit truth. The slit frames of a
+/// projector are checked in parallel; each projector's white truth is read once.
 fn truth_check(
     ctx: &StageContext,
     inputs: &ProfileInputs,
@@ -644,9 +687,11 @@ fn truth_check(
     size: (u32, u32),
 ) -> Result<Vec<Option<f64>>, ProfilesStageError> {
     let mut acc = vec![(0.0, 0.0); VARIANTS.len() + 1];
-    let mask = &inputs.surface.mask;
     let mut compared = 0;
     for p in &inputs.projectors {
+        let Some(white_truth) = true_white_global(truth_dir, p.k, size)? else {
+            continue;
+        };
         let splits: Vec<WhiteSplit> = VARIANTS
             .iter()
             .map(|(_, rule)| match rule {
@@ -657,32 +702,28 @@ fn truth_check(
                 }
             })
             .collect();
-        for (pattern, global) in &p.slits {
-            let Some(truth) = true_slit_global(truth_dir, p.k, pattern, p.black_level, size)?
-            else {
-                continue;
-            };
+        let per_slit = p
+            .slits
+            .par_iter()
+            .map(|(pattern, global)| {
+                check_slit(
+                    ctx,
+                    inputs,
+                    p,
+                    &splits,
+                    pattern,
+                    global,
+                    &white_truth,
+                    truth_dir,
+                    size,
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        for sums in per_slit.into_iter().flatten() {
             compared += 1;
-            accumulate(&mut acc[0], global, &truth, mask);
-            let Some(frame) = ctx.capture.manifest.plan.find(p.k as u8, pattern) else {
-                continue;
-            };
-            let frame = pixels(&ctx.capture.read_frame(frame.index)?);
-            for (slot, (direct, global_white, blur_px)) in splits.iter().enumerate() {
-                let white = WhiteSeparation {
-                    direct,
-                    global: global_white,
-                    stray: &p.stray,
-                    black_level: p.black_level,
-                    blur_px: *blur_px,
-                };
-                let other = slit_global(&frame, pattern, &p.coords, &white).map_err(|source| {
-                    ProfilesStageError::SlitGlobal {
-                        projector: p.k,
-                        source,
-                    }
-                })?;
-                accumulate(&mut acc[slot + 1], &other, &truth, mask);
+            for (a, s) in acc.iter_mut().zip(sums) {
+                a.0 += s.0;
+                a.1 += s.1;
             }
         }
     }
@@ -690,6 +731,51 @@ fn truth_check(
         .into_iter()
         .map(|a| (compared > 0 && a.1 > 0.0).then(|| (a.0 / a.1).sqrt()))
         .collect())
+}
+
+/// The error sums `(sum err^2, sum truth^2)` of one slit frame of projector `p`: its extracted
+/// global part, then each of `splits`; `None` without truth for that slit.
+#[allow(clippy::too_many_arguments)]
+fn check_slit(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    p: &ProjectorInputs,
+    splits: &[WhiteSplit],
+    pattern: &Pattern,
+    global: &[[f32; 3]],
+    white_truth: &[[f32; 3]],
+    truth_dir: &Path,
+    size: (u32, u32),
+) -> Result<Option<Vec<(f64, f64)>>, ProfilesStageError> {
+    let mask = &inputs.surface.mask;
+    let Some(truth) =
+        true_slit_global_with(truth_dir, p.k, pattern, white_truth, p.black_level, size)?
+    else {
+        return Ok(None);
+    };
+    let mut sums = vec![(0.0, 0.0); splits.len() + 1];
+    accumulate(&mut sums[0], global, &truth, mask);
+    let Some(frame) = ctx.capture.manifest.plan.find(p.k as u8, pattern) else {
+        return Ok(Some(sums));
+    };
+    let frame = pixels(&ctx.capture.read_frame(frame.index)?);
+    for (slot, (direct, global_white, blur_px)) in splits.iter().enumerate() {
+        let white = WhiteSeparation {
+            direct,
+            global: global_white,
+            stray: &p.stray,
+            black_level: p.black_level,
+            blur_px: *blur_px,
+        };
+        let other = slit_global(&frame, pattern, &p.coords, &white).map_err(|source| {
+            ProfilesStageError::SlitGlobal {
+                projector: p.k,
+                source,
+            }
+        })?;
+        accumulate(&mut sums[slot + 1], &other, &truth, mask);
+    }
+    Ok(Some(sums))
 }
 
 fn write_scanline_plot(

@@ -17,6 +17,7 @@
 use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -125,11 +126,15 @@ fn projector_frames(
     }
     hf.sort_unstable();
     let stripe = hf[0].2;
-    let frames = hf
-        .iter()
-        .map(|&(_, index, _)| ctx.capture.read_frame(index))
+    // White first, then the shifts; decoded in parallel.
+    let mut frames = std::iter::once(white.index)
+        .chain(hf.iter().map(|&(_, index, _)| index))
+        .collect::<Vec<_>>()
+        .par_iter()
+        .map(|&index| ctx.capture.read_frame(index))
         .collect::<Result<Vec<_>, _>>()?;
-    Ok((ctx.capture.read_frame(white.index)?, frames, stripe))
+    let white = frames.remove(0);
+    Ok((white, frames, stripe))
 }
 
 /// Blur of the stripes seen by a camera pixel, projector px: defocus of the booth description
@@ -178,10 +183,10 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
         })
         .collect();
     let black: Vec<f64> = responses.iter().map(|b| b.unwrap_or(0.0)).collect();
-    let mut frames = Vec::with_capacity(captured);
-    for k in 0..captured {
-        frames.push(projector_frames(ctx, k)?);
-    }
+    let frames = (0..captured)
+        .into_par_iter()
+        .map(|k| projector_frames(ctx, k))
+        .collect::<Result<Vec<_>, _>>()?;
     let whites: Vec<&Rgb32FImage> = frames.iter().map(|f| &f.0).collect();
     let stray = if params.remove_stray {
         stray_light(&whites, &black)
@@ -231,13 +236,15 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
     let truth_images = match ctx.truth_dir() {
         Some(t) if truth::direct(&t, 0, &Pattern::White).is_file() => {
             let mask = read_mask(&truth::mask(&t));
-            let mut pairs = Vec::new();
-            for k in 0..captured {
-                pairs.push((
-                    imageio::read_exr_rgb(&truth::direct(&t, k, &Pattern::White))?,
-                    imageio::read_exr_rgb(&truth::global(&t, k, &Pattern::White))?,
-                ));
-            }
+            let pairs = (0..captured)
+                .into_par_iter()
+                .map(|k| {
+                    Ok((
+                        imageio::read_exr_rgb(&truth::direct(&t, k, &Pattern::White))?,
+                        imageio::read_exr_rgb(&truth::global(&t, k, &Pattern::White))?,
+                    ))
+                })
+                .collect::<Result<Vec<_>, SeparateStageError>>()?;
             let errors = relative_errors(&outputs, &pairs, mask.as_deref());
             report["direct_rel_rmse"] = errors.0.into();
             report["global_rel_rmse"] = errors.1.into();

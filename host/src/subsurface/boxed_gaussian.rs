@@ -75,6 +75,28 @@ pub fn ln_cdf_diff(a: f64, b: f64) -> f64 {
     }
 }
 
+/// `Phi(b) - Phi(a)` for `a <= b` in linear space, by the same branches as [`ln_cdf_diff`]
+/// without its logarithms (for callers that sum densities, e.g. a likelihood scan). Underflows
+/// to 0 beyond ~37 sigmas: callers fall back to [`ln_cdf_diff`] when a sum of these is tiny.
+pub fn cdf_diff(a: f64, b: f64) -> f64 {
+    let width = b - a;
+    if width <= 0.0 {
+        return 0.0;
+    }
+    if width < 1e-3 {
+        let m = 0.5 * (a + b);
+        return ln_phi(m).exp() * width * (1.0 + (m * m - 1.0) * width * width / 24.0);
+    }
+    let q = if a > 0.0 {
+        0.5 * (libm::erfc(a / SQRT_2) - libm::erfc(b / SQRT_2))
+    } else if b < 0.0 {
+        0.5 * (libm::erfc(-b / SQRT_2) - libm::erfc(-a / SQRT_2))
+    } else {
+        1.0 - 0.5 * libm::erfc(-a / SQRT_2) - 0.5 * libm::erfc(b / SQRT_2)
+    };
+    q.max(0.0)
+}
+
 /// `ln(e^p - e^q)` for `p >= q`.
 fn ln_diff_of_logs(p: f64, q: f64) -> f64 {
     let d = q - p;
@@ -118,6 +140,12 @@ impl BoxedGaussian {
             (s - half - self.mean) / self.sigma,
             (s + half - self.mean) / self.sigma,
         )
+    }
+
+    /// `h(s)` in linear space (0 where it underflows, ~37 sigmas out; see [`cdf_diff`]).
+    pub fn density(&self, s: f64) -> f64 {
+        let (a, b) = self.interval(s);
+        cdf_diff(a, b) / self.width
     }
 
     /// `ln h(s)`.
@@ -253,5 +281,26 @@ mod tests {
         assert!(p.ln_density.is_finite());
         assert!(p.mean > 49.75 && p.mean < 49.76, "{}", p.mean);
         assert!(p.variance >= 0.0 && p.variance < 1e-6);
+    }
+
+    #[test]
+    fn linear_cdf_difference_matches_the_log_space_one_until_it_underflows() {
+        let mut worst = 0.0f64;
+        for i in 0..400 {
+            let a = -40.0 + 0.2 * f64::from(i);
+            for width in [1e-5, 5e-4, 2e-3, 0.05, 0.7, 3.0, 25.0] {
+                let b = a + width;
+                let linear = cdf_diff(a, b);
+                let reference = ln_cdf_diff(a, b).exp();
+                if reference > 1e-280 {
+                    let rel = (linear / reference - 1.0).abs();
+                    worst = worst.max(rel);
+                    assert!(rel < 1e-9, "a={a} w={width}: {linear} vs {reference}");
+                } else {
+                    assert!(linear <= 1e-270, "a={a} w={width}: {linear}");
+                }
+            }
+        }
+        assert!(worst > 0.0, "the comparison ran");
     }
 }

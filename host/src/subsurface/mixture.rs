@@ -317,7 +317,7 @@ fn images(profile: &Profile, wrap: usize) -> impl Iterator<Item = f64> + '_ {
 }
 
 /// Beyond this many sigmas (plus half the slit) an image contributes nothing worth computing.
-const NEGLIGIBLE_SIGMAS: f64 = 12.0;
+pub(crate) const NEGLIGIBLE_SIGMAS: f64 = 12.0;
 
 /// Log-likelihood (per unit weight, averaged over profiles with signal) and, if `stats` is given,
 /// the E-step sufficient statistics.

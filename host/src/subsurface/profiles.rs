@@ -17,6 +17,7 @@
 //! all); the per-pixel geometry is computed once.
 
 use nalgebra::{Matrix2, Vector2, Vector3};
+use rayon::prelude::*;
 
 use super::mixture::{Profile, Sample};
 use super::surface::{Footprint, Surface, ViewRay, shift_per_depth};
@@ -184,7 +185,9 @@ pub fn pixel_geometry(
             want: surface.len(),
         });
     }
+    // Pixels are independent: split them across threads.
     Ok((0..surface.len())
+        .into_par_iter()
         .map(|i| {
             let (u, v) = view.coords[i]?;
             let fp = surface.footprint(i)?;

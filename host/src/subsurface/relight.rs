@@ -4,6 +4,7 @@
 //! Conventions as in [`super::profiles`] (irradiance units, projector coordinates).
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use super::profiles::{ProjectorView, irradiance};
 use super::render::{LayerModel, RenderError, RenderOptions, render_global};
@@ -63,7 +64,9 @@ pub fn pattern_irradiance(
     black_level: f32,
     blur_px: f32,
 ) -> Vec<f32> {
+    // Pixels are independent: split them across threads (same values as in sequence).
     (0..surface.len())
+        .into_par_iter()
         .map(|i| {
             let Some((u, v)) = view.coords[i] else {
                 return 0.0;
@@ -91,6 +94,7 @@ pub fn shifts(
     view_ray: ViewRay,
 ) -> Vec<Option<Vector3<f64>>> {
     (0..surface.len())
+        .into_par_iter()
         .map(|i| {
             if !surface.mask[i] {
                 return None;

@@ -322,7 +322,9 @@ pub fn render_global(
 }
 
 /// Forward-warps every lit source by each layer's shift into the images of its two sigma bins
-/// (bilinear, on each bin's pyramid level).
+/// (bilinear, on each bin's pyramid level). Channels are splatted in parallel; the bins come out
+/// channel by channel, each channel's in the order of first use (the order the sums use, so the
+/// result does not depend on the threads).
 fn splat_sources(
     surface: &Surface,
     irradiance: &[f32],
@@ -330,9 +332,27 @@ fn splat_sources(
     model: &LayerModel,
     opts: &RenderOptions,
 ) -> Vec<Bin> {
+    (0..3)
+        .into_par_iter()
+        .map(|c| splat_channel(surface, irradiance, shift, model, opts, c))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .flatten()
+        .collect()
+}
+
+/// [`splat_sources`] for channel `c`.
+fn splat_channel(
+    surface: &Surface,
+    irradiance: &[f32],
+    shift: &[Option<Vector3<f64>>],
+    model: &LayerModel,
+    opts: &RenderOptions,
+    c: usize,
+) -> Vec<Bin> {
     let (w, h) = (surface.width, surface.height);
-    // index[c][b]: position of channel c's bin b in `bins` (allocated on first use).
-    let mut index: [Vec<Option<usize>>; 3] = Default::default();
+    // index[b]: position of bin b in `bins` (allocated on first use).
+    let mut index: Vec<Option<usize>> = Vec::new();
     let mut bins: Vec<Bin> = Vec::new();
     for (i, &e) in irradiance.iter().enumerate() {
         if e.is_nan() || e <= 0.0 {
@@ -344,51 +364,49 @@ fn splat_sources(
         let area = fp.area();
         let pixel_mm = area.sqrt();
         let (x, y) = ((i % w) as f64, (i / w) as f64);
-        for (c, index) in index.iter_mut().enumerate() {
-            let layers = model.layers(i, c);
-            let total: f32 = layers.iter().map(|l| l.weight).sum();
-            for l in layers {
-                if l.weight.is_nan() || l.weight <= opts.min_relative_weight * total {
+        let layers = model.layers(i, c);
+        let total: f32 = layers.iter().map(|l| l.weight).sum();
+        for l in layers {
+            if l.weight.is_nan() || l.weight <= opts.min_relative_weight * total {
+                continue;
+            }
+            let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
+                continue;
+            };
+            let amount = f64::from(l.weight) * f64::from(e) * area;
+            let pos = opts.bin_position(f64::from(l.sigma_mm) / pixel_mm);
+            let b0 = pos.floor() as usize;
+            let frac = pos - b0 as f64;
+            for (b, share) in [(b0, 1.0 - frac), (b0 + 1, frac)] {
+                if share <= 0.0 {
                     continue;
                 }
-                let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
-                    continue;
-                };
-                let amount = f64::from(l.weight) * f64::from(e) * area;
-                let pos = opts.bin_position(f64::from(l.sigma_mm) / pixel_mm);
-                let b0 = pos.floor() as usize;
-                let frac = pos - b0 as f64;
-                for (b, share) in [(b0, 1.0 - frac), (b0 + 1, frac)] {
-                    if share <= 0.0 {
-                        continue;
-                    }
-                    if index.len() <= b {
-                        index.resize(b + 1, None);
-                    }
-                    let k = *index[b].get_or_insert_with(|| {
-                        let sigma_px = opts.bin_sigma(b);
-                        let level = opts.bin_level(sigma_px);
-                        let (gw, gh) = level_grid(w, h, level);
-                        bins.push(Bin {
-                            channel: c,
-                            sigma_px,
-                            level,
-                            image: vec![0.0; gw * gh],
-                        });
-                        bins.len() - 1
+                if index.len() <= b {
+                    index.resize(b + 1, None);
+                }
+                let k = *index[b].get_or_insert_with(|| {
+                    let sigma_px = opts.bin_sigma(b);
+                    let level = opts.bin_level(sigma_px);
+                    let (gw, gh) = level_grid(w, h, level);
+                    bins.push(Bin {
+                        channel: c,
+                        sigma_px,
+                        level,
+                        image: vec![0.0; gw * gh],
                     });
-                    let bin = &mut bins[k];
-                    let f = f64::from(1u32 << bin.level);
-                    let (gw, gh) = level_grid(w, h, bin.level);
-                    splat_bilinear(
-                        &mut bin.image,
-                        gw,
-                        gh,
-                        (x + d.x) / f,
-                        (y + d.y) / f,
-                        (amount * share) as f32,
-                    );
-                }
+                    bins.len() - 1
+                });
+                let bin = &mut bins[k];
+                let f = f64::from(1u32 << bin.level);
+                let (gw, gh) = level_grid(w, h, bin.level);
+                splat_bilinear(
+                    &mut bin.image,
+                    gw,
+                    gh,
+                    (x + d.x) / f,
+                    (y + d.y) / f,
+                    (amount * share) as f32,
+                );
             }
         }
     }

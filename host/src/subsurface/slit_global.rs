@@ -22,6 +22,8 @@
 //! Conventions: projector pixel centres at integer coordinates (as `capture::patterns`); images
 //! camera-sized, row-major, RGB in the frames' units.
 
+use rayon::prelude::*;
+
 use crate::capture::{Axis, Pattern};
 
 use super::profiles::slit_distance_px;
@@ -114,8 +116,9 @@ pub fn slit_global(
         return Err(SlitGlobalError::BadBlackLevel(b));
     }
     let blur = f64::from(white.blur_px.max(0.0));
+    // Pixels are independent: split them across threads (same values as in sequence).
     Ok(frame
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(i, f)| {
             let lit = coords[i].map_or(0.0, |(u, v)| {
