@@ -48,4 +48,5 @@ cargo test --workspace -- --skip rig_hil
 step "hardware-in-the-loop tests, alone"
 # With `-icount sleep=off` the emulated controller's clock runs ahead whenever the host is slow, so
 # a host starved by the heavy tests running beside it answers "late"; these run on a quiet machine.
-cargo test -p mlsss-tests --test integration -- rig_hil
+# `--workspace` keeps the feature set of the run above, so nothing is compiled again.
+cargo test --workspace --test integration -- rig_hil
