@@ -271,6 +271,8 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         .map(|i| (0..3).any(|c| !fit.model.layers(i, c).is_empty()))
         .collect();
     let (layers, filled) = fill_unfitted(&fit.model, &fitted, &surface.mask);
+    // The filled copy replaces it (~450 MB at full size).
+    fit.model = LayerModel::from_fn(0, 0, |_, _| Vec::new());
     let fit_s = t1.elapsed().as_secs_f64();
     let c2 = cpu_seconds();
 
