@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use mlsss::capture::Capture;
 use mlsss::demo::html_report::{RelightFigures, write_report};
+use mlsss::evaluate::backscatter::evaluate_backscatter;
 use mlsss::evaluate::holdout::evaluate_holdout;
 use mlsss::subsurface::model_file::{Baseline, SubsurfaceModel};
 use mlsss::subsurface::render::RenderOptions;
@@ -63,7 +64,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     eprintln!("rendering projector {k} under its evaluation patterns ...");
     let result = evaluate_holdout(&capture, &model, k, &renderers, &opts)?;
-    let report = serde_json::json!({ "relight": result.report });
+    let mut report = serde_json::json!({ "relight": result.report });
+    // A simulated capture has the true slit light: report the back-scatter split as the demo does.
+    if capture.truth_dir().is_some()
+        && let Some(b) = evaluate_backscatter(&model, k, &result.slits)?
+    {
+        report["relight"]["backscatter"] = b.report;
+    }
     if let Some(path) = &args.report {
         let processed = args
             .model

@@ -4,9 +4,10 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use mlsss::pipeline::fit::FitParams;
-use mlsss::pipeline::profiles::{DirectPart, ProfilesParams};
+use mlsss::pipeline::profiles::{DirectPart, ProfilesParams, SlitCoordinates};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
 use mlsss::subsurface::fit::EmVariant;
+use mlsss::subsurface::surface::ViewRay;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -66,6 +67,19 @@ pub struct Args {
     /// leave-one-projector-out cross-validation; `subsurface::shading_regression`).
     #[arg(long)]
     no_normal_refinement: bool,
+    /// Profiles stage: where the camera sees a layer at depth, `exit-point` (where the light
+    /// leaves the surface: no view term, diffuse emergence), `refracted` (along the refracted
+    /// view ray) or `unrefracted` (paper eq. 5). See `subsurface::layer_depth`.
+    #[arg(long, value_enum)]
+    view_ray: Option<ViewRayArg>,
+    /// Profiles stage: projector coordinates the slit distances are measured in, `projected`
+    /// (the surface point projected through the calibration, as every render places a light) or
+    /// `decoded` (the Gray-code coordinates; subsurface light moves them toward the light).
+    #[arg(long, value_enum, default_value_t = CoordinatesArg::Projected)]
+    slit_coordinates: CoordinatesArg,
+    /// Fit stage: fixed layer spacing D (mm) instead of the subject-wide estimate.
+    #[arg(long)]
+    depth_spacing: Option<f64>,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -79,6 +93,21 @@ pub struct Args {
 enum EmArg {
     Layered,
     Free,
+}
+
+/// View-ray models (`subsurface::surface::ViewRay`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ViewRayArg {
+    ExitPoint,
+    Refracted,
+    Unrefracted,
+}
+
+/// Slit coordinates (`pipeline::profiles::SlitCoordinates`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum CoordinatesArg {
+    Projected,
+    Decoded,
 }
 
 /// Direct part of the slit frames (see `pipeline::profiles::DirectPart`).
@@ -111,7 +140,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         dipole: !args.no_dipole,
         spatial_prior: !args.no_spatial_prior,
         refine_normals: !args.no_normal_refinement,
-        ..FitParams::default()
+        depth_spacing_mm: args.depth_spacing,
     };
     pipeline.set_params("fit", serde_json::to_value(&fit)?);
     let profiles = ProfilesParams {
@@ -119,6 +148,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             DirectArg::Separation => DirectPart::Separation,
             DirectArg::Colourless => DirectPart::Colourless,
             DirectArg::None => DirectPart::None,
+        },
+        view_ray: match args.view_ray {
+            None => ProfilesParams::default().view_ray,
+            Some(ViewRayArg::ExitPoint) => ViewRay::ExitPoint,
+            Some(ViewRayArg::Refracted) => ViewRay::Refracted,
+            Some(ViewRayArg::Unrefracted) => ViewRay::Unrefracted,
+        },
+        coordinates: match args.slit_coordinates {
+            CoordinatesArg::Projected => SlitCoordinates::Projected,
+            CoordinatesArg::Decoded => SlitCoordinates::Decoded,
         },
         ..ProfilesParams::default()
     };

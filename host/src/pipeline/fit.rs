@@ -19,7 +19,7 @@
 //!   training projector, along x) against the fitted model's profile.
 //! - `fig10.json`: the data of both plots (for the HTML report).
 //!
-//! Report fragment: `components_mean`, `depth_spacing_mm`, `pixels_fitted`, `pixels_skipped`,
+//! Report fragment: `components_mean`, `depth_spacing_mm`, `depth_estimate`, `pixels_fitted`, `pixels_skipped`,
 //! `pixels_filled`, `fits`, `mean_iterations`, `em`, `components`, `holdout`,
 //! `training_projectors`, `model_file`, `model_bytes`, `timing_s.{load,fit,dipole,save,figures}`
 //! (wall) and `timing_cpu_s.{...same}` (CPU, all threads),
@@ -305,6 +305,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         "components": params.components,
         "components_mean": fit.stats.mean_layers,
         "depth_spacing_mm": fit.stats.depth_spacing_mm,
+        "depth_estimate": fit.stats.depth,
         "pixels_fitted": fitted.iter().filter(|f| **f).count(),
         "pixels_skipped": surface.mask.iter().zip(&fitted).filter(|(m, f)| **m && !**f).count(),
         "pixels_filled": filled,

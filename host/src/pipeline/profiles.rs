@@ -24,7 +24,7 @@
 
 use std::path::{Path, PathBuf};
 
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
@@ -33,6 +33,7 @@ use super::decode::{DecodeStageError, coords_path, load_coords};
 use super::line_plot::{LinePlot, LinePlotError, Mark, Series};
 use super::separate::{direct_path, global_path, stripe_blur};
 use super::{Stage, StageContext, StageFailure};
+use crate::calib::DeviceCalibration;
 use crate::capture::{Axis, CaptureError, Pattern, truth};
 use crate::imageio::{self, ImageIoError};
 use crate::photometry::response::stray_light;
@@ -60,7 +61,8 @@ pub const RECORD_FILE: &str = "profiles.json";
 pub struct ProfilesParams {
     /// Refractive index of the skin (refraction of the light and view rays).
     pub eta: f64,
-    /// View-ray model of DESIGN section 5.
+    /// View-ray model of DESIGN section 5. Default: the exit point (no view term; diffuse light
+    /// leaving the skin, as the virtual booth's truth: `subsurface::layer_depth`).
     pub view_ray: ViewRay,
     /// Blur the slit edges by the projector defocus and pixel footprint when removing the direct
     /// reflection (see `subsurface::slit_global`).
@@ -69,6 +71,26 @@ pub struct ProfilesParams {
     pub scanline_projector: usize,
     /// Where the direct reflection on a lit slit comes from (see [`DirectPart`]).
     pub direct: DirectPart,
+    /// Which projector coordinates place the slits on the surface (see [`SlitCoordinates`]).
+    pub coordinates: SlitCoordinates,
+}
+
+/// The projector coordinates of each camera pixel that the profiles measure distances in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SlitCoordinates {
+    /// The pixel's surface point projected into the projector through the calibration, where
+    /// the projector decoded it (elsewhere none): the coordinates every render places a light's
+    /// pattern with (`SubsurfaceModel::projector_coords`), so the fitted layers' shifts mean the
+    /// same thing in the fit and in a relit image.
+    #[default]
+    Projected,
+    /// The decoded Gray-code coordinates. Subsurface light blurs the stripes forward, away from
+    /// the projector, so a pixel decodes the column lit slightly toward the light (0.1 mm on
+    /// the quick demo's skin against the truth coordinates): measured in these coordinates the
+    /// slit profiles lose the forward shift that the layer depth should explain
+    /// (`subsurface::layer_depth`).
+    Decoded,
 }
 
 /// The direct (surface) reflection removed from a slit frame where the slit lands.
@@ -118,10 +140,11 @@ impl Default for ProfilesParams {
     fn default() -> Self {
         Self {
             eta: 1.4,
-            view_ray: ViewRay::Refracted,
+            view_ray: ViewRay::ExitPoint,
             blur_edges: true,
             scanline_projector: 0,
             direct: DirectPart::None,
+            coordinates: SlitCoordinates::Projected,
         }
     }
 }
@@ -340,6 +363,23 @@ pub fn load_surface(
     Ok(surface)
 }
 
+/// `decoded`'s pixels (on the subject) with the projection of their surface point instead.
+fn projected_coords(
+    surface: &Surface,
+    device: &DeviceCalibration,
+    decoded: &[Option<(f32, f32)>],
+) -> Vec<Option<(f32, f32)>> {
+    decoded
+        .par_iter()
+        .enumerate()
+        .map(|(i, c)| {
+            c.filter(|_| surface.mask[i])?;
+            let q = device.project(&Point3::from(surface.points[i]))?;
+            Some((q.x as f32, q.y as f32))
+        })
+        .collect()
+}
+
 impl ProfileInputs {
     /// Rebuilds the profiles' inputs from the cached artefacts: the surface, every projector's
     /// geometry, and the global slit frames of the projectors in `with_slits`.
@@ -385,6 +425,10 @@ impl ProfileInputs {
                     .collect()
             } else {
                 vec![None; surface.len()]
+            };
+            let coords = match params.coordinates {
+                SlitCoordinates::Decoded => coords,
+                SlitCoordinates::Projected => projected_coords(&surface, device, &coords),
             };
             let view = ProjectorView {
                 centre,

@@ -1,12 +1,12 @@
 //! EM with layered means (ours, the default): component `l` is the layer at depth
 //! `z_l = l * D` (l = 0 is the surface layer), and its mean in profile `p` is tied to the pixel's
 //! light and view geometry, `mu_pl = z_l * c_p` with `c_p = (t_i + t_o) . s_hat_p` (see
-//! [`super::refraction`]). Weights and sigmas per layer are shared by all profiles of the pixel
+//! [`super::surface`]). Weights and sigmas per layer are shared by all profiles of the pixel
 //! (3 training projectors x 2 slit axes), so one fit explains every light direction and transfers
 //! to a new one by construction.
 //!
-//! `D` is either fixed (the pipeline estimates it once for the whole subject with
-//! [`estimate_depth_spacing`]) or estimated inside the fit by a conditional M-step (ECM: the
+//! `D` is either fixed (the pipeline estimates it once for the whole subject, see
+//! [`super::layer_depth`]) or estimated inside the fit by a conditional M-step (ECM: the
 //! auxiliary function is quadratic in `D`, clamped to `[0, max]`).
 
 use super::mixture::{self, Data, EmConfig, EmError, MeanModel, Profile, State, Stats, Trace};
@@ -60,18 +60,7 @@ impl MeanModel for LayerMeans {
 
     fn update(&mut self, profiles: &[Profile], stats: &Stats, sigmas: &[f64]) {
         let Some(max) = self.estimate else { return };
-        // Maximise sum_l sum_p -E[(x - z_l c_p)^2] / (2 sigma_l^2) over D: a weighted least squares.
-        let (mut num, mut den) = (0.0, 0.0);
-        for (l, &sigma) in sigmas.iter().enumerate() {
-            let z = self.depth_index[l] as f64;
-            let inv_var = 1.0 / (sigma * sigma);
-            for (p, prof) in profiles.iter().enumerate() {
-                let i = stats.at(p, l);
-                let c = z * prof.shift_per_depth;
-                num += inv_var * c * stats.sx[i];
-                den += inv_var * c * c * stats.n[i];
-            }
-        }
+        let (num, den) = spacing_normal_equations(&self.depth_index, profiles, stats, sigmas);
         if den > 1e-300 {
             self.spacing = (num / den).clamp(0.0, max);
         }
@@ -83,6 +72,62 @@ impl MeanModel for LayerMeans {
 
     fn parameter_count(&self, _components: usize) -> usize {
         usize::from(self.estimate.is_some())
+    }
+}
+
+/// The conditional M-step of the spacing as normal equations `D = num / den`: maximising
+/// `sum_l sum_p -E[(x - z_l c_p)^2] / (2 sigma_l^2)` over `D` (with `z_l = index_l D`) is a
+/// weighted least squares. Sums of several pixels' equations give the ECM step of a spacing
+/// shared by all of them (`subsurface::layer_depth`).
+fn spacing_normal_equations(
+    depth_index: &[usize],
+    profiles: &[Profile],
+    stats: &Stats,
+    sigmas: &[f64],
+) -> (f64, f64) {
+    let (mut num, mut den) = (0.0, 0.0);
+    for (l, &sigma) in sigmas.iter().enumerate() {
+        let z = depth_index[l] as f64;
+        let inv_var = 1.0 / (sigma * sigma);
+        for (p, prof) in profiles.iter().enumerate() {
+            let i = stats.at(p, l);
+            let c = z * prof.shift_per_depth;
+            num += inv_var * c * stats.sx[i];
+            den += inv_var * c * c * stats.n[i];
+        }
+    }
+    (num, den)
+}
+
+/// [`spacing_normal_equations`] of `profiles` at `params` (one E-step): `(num, den)`, with
+/// `num / den` the spacing that `params`' weights and sigmas prefer for this pixel alone
+/// (unclamped: negative when its profiles lean toward the light).
+pub fn spacing_moments(
+    profiles: &[Profile],
+    params: &LayeredParams,
+    wrap_images: usize,
+) -> Result<(f64, f64), EmError> {
+    let data = Data::new(profiles)?;
+    let state = params_state(params);
+    let mut stats = Stats::new(profiles.len(), state.weights.len());
+    mixture::e_step(&data, &state, wrap_images, Some(&mut stats));
+    Ok(spacing_normal_equations(
+        &state.means.depth_index,
+        profiles,
+        &stats,
+        &state.sigmas,
+    ))
+}
+
+fn params_state(params: &LayeredParams) -> State<LayerMeans> {
+    State {
+        weights: params.layers.iter().map(|l| l.weight).collect(),
+        sigmas: params.layers.iter().map(|l| l.sigma).collect(),
+        means: LayerMeans {
+            depth_index: params.layers.iter().map(|l| l.depth_index).collect(),
+            spacing: params.depth_spacing,
+            estimate: None,
+        },
     }
 }
 
@@ -189,51 +234,6 @@ pub fn log_likelihood(
     wrap_images: usize,
 ) -> Result<f64, EmError> {
     let data = Data::new(profiles)?;
-    let state = State {
-        weights: params.layers.iter().map(|l| l.weight).collect(),
-        sigmas: params.layers.iter().map(|l| l.sigma).collect(),
-        means: LayerMeans {
-            depth_index: params.layers.iter().map(|l| l.depth_index).collect(),
-            spacing: params.depth_spacing,
-            estimate: None,
-        },
-    };
+    let state = params_state(params);
     Ok(mixture::e_step(&data, &state, wrap_images, None))
-}
-
-/// The global layer spacing of a subject: each pixel's profiles fitted with `D` free, the
-/// likelihood-weighted median of the per-pixel estimates (robust to pixels whose geometry barely
-/// constrains `D`, e.g. light and camera nearly aligned). Pixels without signal are skipped.
-pub fn estimate_depth_spacing(
-    pixels: &[Vec<Profile>],
-    start: f64,
-    max: f64,
-    cfg: &EmConfig,
-) -> Result<f64, EmError> {
-    let mut estimates: Vec<(f64, f64)> = Vec::new();
-    for profiles in pixels {
-        // Pixels whose layers would not move (c_p ~ 0) say nothing about D.
-        let leverage: f64 = profiles.iter().map(|p| p.shift_per_depth.abs()).sum();
-        if leverage < 1e-3 {
-            continue;
-        }
-        match fit_layered(profiles, DepthSpacing::Estimate { start, max }, cfg, None) {
-            Ok(fit) => estimates.push((fit.depth_spacing, leverage)),
-            Err(EmError::NoSignal) => {}
-            Err(e) => return Err(e),
-        }
-    }
-    if estimates.is_empty() {
-        return Err(EmError::NoSignal);
-    }
-    estimates.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let half = estimates.iter().map(|e| e.1).sum::<f64>() / 2.0;
-    let mut acc = 0.0;
-    for (d, w) in &estimates {
-        acc += w;
-        if acc >= half {
-            return Ok(*d);
-        }
-    }
-    Ok(estimates[estimates.len() - 1].0)
 }

@@ -2,7 +2,7 @@
 //! the training projectors, as a [`LayerModel`] the renderer consumes.
 //!
 //! - `Layered` (default): one joint fit of the 6 profiles (3 projectors x 2 axes) with the layer
-//!   spacing `D` fixed to a subject-wide estimate (from a subsample of pixels, all channels).
+//!   spacing `D` fixed to a subject-wide estimate ([`super::layer_depth`]).
 //! - `Free` (the paper): each profile fitted on its own; components ranked by mean, weights and
 //!   sigmas averaged over the profiles per rank, and the depth of rank `r` implied by its means,
 //!   `z_r = sum_p mu_pr c_p / sum_p c_p^2` (least squares, clamped to >= 0).
@@ -18,6 +18,7 @@ use rayon::prelude::*;
 
 use super::em_free::{self, Component};
 use super::em_layered::{self, DepthSpacing, LayeredParams};
+use super::layer_depth::{self, LayerDepthError, SpacingEstimate};
 use super::mixture::{EmConfig, EmError, Profile};
 use super::profiles::{PixelGeometry, SlitSweep};
 use super::render::{LayerModel, SplatLayer};
@@ -33,6 +34,9 @@ pub enum FitError {
     /// No pixel has light in its profiles (wrong frames, or all shadowed).
     #[error("no pixel has light in its slit profiles: nothing to fit")]
     NothingToFit,
+    /// The layer spacing could not be estimated.
+    #[error(transparent)]
+    Depth(#[from] LayerDepthError),
     /// The per-projector inputs disagree in number.
     #[error("{geometries} projector geometries but {sweeps} slit sweeps")]
     ProjectorCount { geometries: usize, sweeps: usize },
@@ -56,10 +60,10 @@ pub struct FitOptions {
     pub variant: EmVariant,
     /// Fixed layer spacing (mm); `None` estimates it.
     pub depth_spacing: Option<f64>,
-    /// Start and upper bound of the spacing estimate (mm).
+    /// Start and upper bound of the spacing estimate (mm; `subsurface::layer_depth`).
     pub spacing_start: f64,
     pub spacing_max: f64,
-    /// Pixels used for the spacing estimate.
+    /// Pixels used for the spacing estimate (each with all 3 channels).
     pub spacing_pixels: usize,
     /// Fit one pixel per `block x block` tile.
     pub block: usize,
@@ -83,6 +87,9 @@ impl Default for FitOptions {
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FitStats {
     pub depth_spacing_mm: f64,
+    /// How the spacing was estimated (`subsurface::layer_depth`).
+    #[serde(default)]
+    pub depth: SpacingEstimate,
     /// Pixel-channel fits run, and skipped for lack of light.
     pub fits: usize,
     pub skipped: usize,
@@ -99,7 +106,7 @@ pub struct FitResult {
 
 /// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
 /// `E W` product of each (for absolute weights).
-fn pixel_profiles(
+pub(crate) fn pixel_profiles(
     i: usize,
     c: usize,
     geometries: &[Vec<Option<PixelGeometry>>],
@@ -216,49 +223,6 @@ fn fit_free_shape(profiles: &[Profile], opts: &FitOptions) -> Result<Shape, EmEr
     Ok(Shape { layers, iterations })
 }
 
-/// Subject-wide layer spacing from up to `opts.spacing_pixels` pixels spread over the lit area.
-pub fn estimate_spacing(
-    lit: &[usize],
-    geometries: &[Vec<Option<PixelGeometry>>],
-    sweeps: &[SlitSweep],
-    opts: &FitOptions,
-) -> Result<f64, FitError> {
-    if let Some(d) = opts.depth_spacing {
-        return Ok(d);
-    }
-    let step = (lit.len() / opts.spacing_pixels.max(1)).max(1);
-    let chosen: Vec<usize> = lit.iter().copied().step_by(step).collect();
-    let sets: Vec<Vec<Profile>> = chosen
-        .iter()
-        .flat_map(|&i| (0..3).map(move |c| (i, c)))
-        .map(|(i, c)| pixel_profiles(i, c, geometries, sweeps).0)
-        .collect();
-    // Per-pixel ECM estimates are independent: split them across threads.
-    let em = EmConfig {
-        max_iterations: opts.em.max_iterations.min(80),
-        bic: false,
-        ..opts.em.clone()
-    };
-    let estimates: Vec<f64> = sets
-        .par_iter()
-        .filter_map(|set| {
-            em_layered::estimate_depth_spacing(
-                std::slice::from_ref(set),
-                opts.spacing_start,
-                opts.spacing_max,
-                &em,
-            )
-            .ok()
-        })
-        .collect();
-    if estimates.is_empty() {
-        return Err(FitError::NothingToFit);
-    }
-    let mut sorted = estimates;
-    sorted.sort_by(f64::total_cmp);
-    Ok(sorted[sorted.len() / 2])
-}
-
 /// Runs the fit stage over the surface.
 pub fn fit_model(
     surface: &Surface,
@@ -278,10 +242,11 @@ pub fn fit_model(
     if lit.is_empty() {
         return Err(FitError::NothingToFit);
     }
-    let spacing = match opts.variant {
-        EmVariant::Layered => estimate_spacing(&lit, geometries, sweeps, opts)?,
-        EmVariant::Free => opts.depth_spacing.unwrap_or(0.0),
+    let depth = match opts.variant {
+        EmVariant::Layered => layer_depth::estimate_spacing(&lit, geometries, sweeps, opts)?,
+        EmVariant::Free => SpacingEstimate::fixed(opts.depth_spacing.unwrap_or(0.0)),
     };
+    let spacing = depth.spacing_mm;
     let block = opts.block.max(1);
     let (bw, bh) = (w.div_ceil(block), h.div_ceil(block));
     // Fit tile centres (or the first lit pixel of the tile), rows of tiles in parallel with a
@@ -326,6 +291,7 @@ pub fn fit_model(
     }
     let mut stats = FitStats {
         depth_spacing_mm: spacing,
+        depth,
         ..FitStats::default()
     };
     let (mut layer_sum, mut iter_sum) = (0usize, 0usize);

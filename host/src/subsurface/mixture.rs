@@ -231,7 +231,7 @@ pub(crate) struct Stats {
 }
 
 impl Stats {
-    fn new(profiles: usize, components: usize) -> Self {
+    pub(crate) fn new(profiles: usize, components: usize) -> Self {
         let len = profiles * components;
         Self {
             components,

@@ -19,11 +19,16 @@ use nalgebra::{Matrix2, Vector2, Vector3};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ViewRay {
-    /// Refracted at the surface with the tissue's index (default).
-    #[default]
+    /// Refracted at the surface with the tissue's index.
     Refracted,
     /// Unrefracted, as in paper eq. 5: `w_o / (w_o . N) - N`.
     Unrefracted,
+    /// No view term (`t_o = 0`): the camera sees the light where it leaves the surface. Right
+    /// for diffuse emergence, where the exit direction forgets the depth the light came from;
+    /// the virtual booth's truth is exitance at the exit point (see `subsurface::layer_depth`).
+    /// Default.
+    #[default]
+    ExitPoint,
 }
 
 /// Tangential offset per unit depth of a ray entering along `-w` (refracted with index `eta`),
@@ -72,6 +77,9 @@ pub fn shift_per_depth(
     let t_o = match view {
         ViewRay::Refracted => -refracted_tangent(&w_o, normal, eta)?,
         ViewRay::Unrefracted => -straight_tangent(&w_o, normal)?,
+        // The camera must still see the point (it is on the lit side of the surface).
+        ViewRay::ExitPoint if w_o.dot(normal) <= 1e-6 => return None,
+        ViewRay::ExitPoint => Vector3::zeros(),
     };
     Some(t_i + t_o)
 }
