@@ -40,16 +40,65 @@ pub fn mc_cache_dir() -> PathBuf {
         .expect("target directory")
 }
 
-/// A fresh scratch directory for this test process, removed at exit by the OS temp cleaner only
-/// (kept for inspection when a test fails).
+/// Environment variable that keeps the scratch directory after the test process exits.
+pub const KEEP_OUTPUT_VAR: &str = "MLSSS_KEEP_TEST_OUTPUT";
+
+static SCRATCH_DIR: OnceLock<PathBuf> = OnceLock::new();
+
+/// A fresh scratch directory for this test process (`$TMPDIR/mlsss-tests-<pid>`), removed when the
+/// process exits unless `MLSSS_KEEP_TEST_OUTPUT` is set: the shared scans in it take about half a
+/// gigabyte, and CI machines can be short of disk.
 pub fn scratch_dir() -> &'static Path {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
+    SCRATCH_DIR.get_or_init(|| {
         let dir = std::env::temp_dir().join(format!("mlsss-tests-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("create scratch dir");
+        if std::env::var_os(KEEP_OUTPUT_VAR).is_none() {
+            remove_at_exit();
+        }
         dir
     })
+}
+
+/// Registers [`remove_scratch_dir`] with the C runtime: the test harness ends the process with
+/// `exit` (after the last test, passed or failed), which runs it. Rust statics are never dropped.
+fn remove_at_exit() {
+    unsafe extern "C" {
+        fn atexit(callback: extern "C" fn()) -> std::ffi::c_int;
+    }
+    // SAFETY: `atexit` is the C standard library's; the callback takes no arguments, does not
+    // unwind (it ignores every error) and touches only a `OnceLock` that is set by then.
+    let registered = unsafe { atexit(remove_scratch_dir) };
+    assert_eq!(registered, 0, "atexit refused the scratch cleanup");
+}
+
+extern "C" fn remove_scratch_dir() {
+    if let Some(dir) = SCRATCH_DIR.get() {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
+
+/// One test's own output folder inside [`scratch_dir`], removed when the test passes and kept when
+/// it fails (dropped while panicking), so a passing suite holds only the shared scans at once.
+pub struct TestDir(PathBuf);
+
+impl TestDir {
+    /// `scratch_dir()/name`; the folder itself is not created (most commands refuse an existing one).
+    pub fn new(name: &str) -> Self {
+        Self(scratch_dir().join(name))
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TestDir {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
 }
 
 /// Runs `cmd`, fails the test with its stderr unless it succeeds, and returns the one JSON object

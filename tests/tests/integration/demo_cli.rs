@@ -1,7 +1,7 @@
 //! `mlsss demo` end to end on a tiny scene (the quick booth shrunk 4x, exact calibration), and its
 //! refusal of bad options.
 
-use mlsss_tests::{mc_cache_dir, mlsss, scratch_dir};
+use mlsss_tests::{TestDir, mc_cache_dir, mlsss};
 use serde_json::Value;
 
 fn number(report: &Value, path: &str) -> f64 {
@@ -15,13 +15,14 @@ fn number(report: &Value, path: &str) -> f64 {
 
 #[test]
 fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
-    let out = scratch_dir().join("demo-tiny");
+    let out_dir = TestDir::new("demo-tiny");
+    let out = out_dir.path();
     let output = mlsss()
         .args(["demo", "--quick", "--scale-down", "4", "--calib", "truth"])
         .args(["--photons", "4000", "--json", "--cache"])
         .arg(mc_cache_dir())
         .arg("--out")
-        .arg(&out)
+        .arg(out)
         .output()
         .expect("run mlsss demo");
     assert!(
@@ -88,11 +89,12 @@ fn demo_on_a_tiny_head_reports_every_key_against_the_truth() {
 
 #[test]
 fn demo_refuses_a_missing_projector_and_a_foreign_output_folder() {
-    let out = scratch_dir().join("demo-bad-holdout");
+    let out_dir = TestDir::new("demo-bad-holdout");
+    let out = out_dir.path();
     let output = mlsss()
         .args(["demo", "--quick", "--scale-down", "4", "--holdout", "7"])
         .arg("--out")
-        .arg(&out)
+        .arg(out)
         .output()
         .expect("run mlsss demo");
     assert!(!output.status.success());
@@ -102,13 +104,14 @@ fn demo_refuses_a_missing_projector_and_a_foreign_output_folder() {
         "{err}"
     );
 
-    let foreign = scratch_dir().join("demo-foreign");
-    std::fs::create_dir_all(&foreign).unwrap();
+    let foreign_dir = TestDir::new("demo-foreign");
+    let foreign = foreign_dir.path();
+    std::fs::create_dir_all(foreign).unwrap();
     std::fs::write(foreign.join("precious.txt"), "keep me").unwrap();
     let output = mlsss()
         .args(["demo", "--quick", "--scale-down", "4"])
         .arg("--out")
-        .arg(&foreign)
+        .arg(foreign)
         .output()
         .expect("run mlsss demo");
     assert!(!output.status.success());

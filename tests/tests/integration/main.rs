@@ -8,4 +8,5 @@ mod mc_validation;
 mod normals_cli;
 mod photometry_pipeline;
 mod rig_hil;
+mod scratch;
 mod simulate;

@@ -10,7 +10,7 @@ use mlsss::virtual_booth::camera::GAIN;
 use mlsss::virtual_booth::response_cache::material_medium;
 use mlsss::virtual_booth::skin_optics::{BASE, SKIN_INDEX, SkinPreset};
 use mlsss::virtual_booth::surface_reflection::DiffuseExit;
-use mlsss_tests::{CALIBRATION_POSES, calibration_captures, quick_capture, scratch_dir, simulate};
+use mlsss_tests::{CALIBRATION_POSES, TestDir, calibration_captures, quick_capture, simulate};
 use nalgebra::Point3;
 
 #[test]
@@ -120,10 +120,11 @@ fn sphere_normals_are_radial() {
 /// Fresnel-transmitted angular distribution.
 #[test]
 fn global_light_on_a_plane_matches_the_monte_carlo_albedo() {
-    let out = scratch_dir().join("plane-uniform");
+    let out_dir = TestDir::new("plane-uniform");
+    let out = out_dir.path();
     let sim_photons: f64 = 16_000.0;
     simulate(
-        &out,
+        out,
         4,
         &[
             "--subject",
@@ -135,7 +136,7 @@ fn global_light_on_a_plane_matches_the_monte_carlo_albedo() {
             "16000",
         ],
     );
-    let cap = Capture::open(&out).unwrap();
+    let cap = Capture::open(out).unwrap();
     let booth = &cap.manifest.booth;
     let global = read_exr_rgb(&truth::global(&out.join("truth"), 0, &Pattern::White)).unwrap();
     // The camera looks at the origin along +z; there the plane's irradiance is cos(theta_i).
@@ -171,10 +172,12 @@ fn global_light_on_a_plane_matches_the_monte_carlo_albedo() {
 
 #[test]
 fn same_seed_gives_the_same_frames_and_the_second_run_uses_the_cache() {
-    let a = scratch_dir().join("determinism-a");
-    let b = scratch_dir().join("determinism-b");
-    simulate(&a, 4, &["--subject", "sphere", "--seed", "5"]);
-    let report = simulate(&b, 4, &["--subject", "sphere", "--seed", "5"]);
+    let a_dir = TestDir::new("determinism-a");
+    let a = a_dir.path();
+    let b_dir = TestDir::new("determinism-b");
+    let b = b_dir.path();
+    simulate(a, 4, &["--subject", "sphere", "--seed", "5"]);
+    let report = simulate(b, 4, &["--subject", "sphere", "--seed", "5"]);
     assert_eq!(report["cache"]["misses"], 0, "{report}");
     assert_eq!(report["cache"]["photons_traced"], 0, "{report}");
     for index in [0u32, 7, 40, 100] {
@@ -186,8 +189,9 @@ fn same_seed_gives_the_same_frames_and_the_second_run_uses_the_cache() {
             "frame {index} differs between two runs with the same seed"
         );
     }
-    let c = scratch_dir().join("determinism-c");
-    simulate(&c, 4, &["--subject", "sphere", "--seed", "6"]);
+    let c_dir = TestDir::new("determinism-c");
+    let c = c_dir.path();
+    simulate(c, 4, &["--subject", "sphere", "--seed", "6"]);
     let name = mlsss::capture::folder::frame_file(0);
     assert_ne!(
         std::fs::read(a.join(&name)).unwrap(),
