@@ -184,3 +184,24 @@ pub fn calibration_captures(poses: usize) -> PathBuf {
     done.push((poses, out.clone()));
     out
 }
+
+/// `mlsss calibrate` of all [`CALIBRATION_POSES`] shared calibration captures (the 9x7 board of
+/// 9 mm squares the virtual booth shows, k3 fixed), made once per test binary run; returns the
+/// calibration file (in the camera's frame, as from a real booth) and the `--json` report.
+pub fn estimated_calibration() -> &'static (PathBuf, serde_json::Value) {
+    static CALIBRATION: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
+    CALIBRATION.get_or_init(|| {
+        let root = calibration_captures(CALIBRATION_POSES);
+        let out = scratch_dir().join(format!("calibration-{CALIBRATION_POSES}.json"));
+        let report = run_json(
+            mlsss()
+                .arg("calibrate")
+                .args((0..CALIBRATION_POSES).map(|p| root.join(format!("pose{p:02}"))))
+                .args([
+                    "--board", "9x7", "--square", "9", "--fix-k3", "--json", "--out",
+                ])
+                .arg(&out),
+        );
+        (out, report)
+    })
+}

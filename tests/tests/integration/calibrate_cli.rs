@@ -6,7 +6,7 @@
 
 use std::path::{Path, PathBuf};
 
-use mlsss_tests::{CALIBRATION_POSES, calibration_captures, mlsss};
+use mlsss_tests::{CALIBRATION_POSES, calibration_captures, estimated_calibration, mlsss};
 
 fn sample_data() -> PathBuf {
     [
@@ -170,24 +170,14 @@ fn simulated_booth_calibration_recovers_the_true_rig() {
     let poses: Vec<PathBuf> = (0..CALIBRATION_POSES)
         .map(|p| root.join(format!("pose{p:02}")))
         .collect();
-    let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().join("calib.json");
-    let report = mlsss_tests::run_json(
-        mlsss()
-            .arg("calibrate")
-            .args(&poses)
-            .args([
-                "--board", "9x7", "--square", "9", "--fix-k3", "--json", "--out",
-            ])
-            .arg(&out),
-    );
+    let (out, report) = estimated_calibration();
     assert_eq!(report["poses_used"], CALIBRATION_POSES, "{report}");
     assert!(report["camera_rms_px"].as_f64().unwrap() < 0.3, "{report}");
 
     let read = |p: &Path| -> mlsss::calib::Calibration {
         serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
     };
-    let estimate = read(&out);
+    let estimate = read(out);
     let truth = read(&poses[0].join("truth/calibration.json"));
     let focal_error = |e: &mlsss::calib::Intrinsics, t: &mlsss::calib::Intrinsics| {
         (e.fx / t.fx - 1.0).abs().max((e.fy / t.fy - 1.0).abs())
