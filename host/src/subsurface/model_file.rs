@@ -1,7 +1,8 @@
 //! The fitted model as one file (`OUT/fit/model.mlsss`), and rendering a projector's pattern from
 //! it: everything `mlsss render`, `mlsss eval` and the demo need, with no other artefact.
 //!
-//! File layout: 8-byte magic [`MAGIC`], `u32` LE format version, then a gzip stream holding a
+//! File layout: 8-byte magic [`MAGIC`], `u32` LE format version, then gzip data (one or more
+//! gzip members, concatenated: one gzip stream to `gunzip`) holding a
 //! `u32` LE header length, the UTF-8 JSON [`ModelHeader`], and little-endian binary sections in
 //! this order (`n` = width x height camera pixels, row-major, pixel `i = y * width + x`):
 //! points `n x 3 f32` (world mm), normals `n x 3 f32`, mask `n u8`, direct albedo `n x 3 f32`,
@@ -28,6 +29,7 @@ use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::fit::{EmVariant, FitStats};
@@ -41,6 +43,10 @@ use crate::capture::Pattern;
 
 /// First bytes of a model file.
 pub const MAGIC: &[u8; 8] = b"MLSSSMDL";
+/// Bytes per gzip member of the compressed part (compressed in parallel); small in the unit
+/// tests so that their round trip crosses members.
+const GZIP_CHUNK: usize = if cfg!(test) { 4096 } else { 64 << 20 };
+
 /// Version of the layout written by this code.
 pub const FORMAT_VERSION: u32 = 2;
 /// Oldest layout this code still reads (its layer sections differ, see the module doc).
@@ -232,7 +238,6 @@ impl SubsurfaceModel {
         let mut out = std::io::BufWriter::new(file);
         out.write_all(MAGIC).map_err(io)?;
         out.write_all(&version.to_le_bytes()).map_err(io)?;
-        let mut gz = flate2::write::GzEncoder::new(out, flate2::Compression::fast());
         let header = serde_json::to_vec(&self.header)
             .map_err(|e| ModelFileError::Inconsistent(e.to_string()))?;
         let mut buf = Vec::with_capacity(header.len() + 64 * self.surface.len());
@@ -266,8 +271,21 @@ impl SubsurfaceModel {
             }
             None => buf.push(0),
         }
-        gz.write_all(&buf).map_err(io)?;
-        gz.finish().map_err(io)?.flush().map_err(io)
+        // Compressed in chunks on every core, written as consecutive gzip members (one gzip
+        // stream to a reader that reads them all, as `load` does).
+        let members: Vec<Vec<u8>> = buf
+            .par_chunks(GZIP_CHUNK)
+            .map(|chunk| {
+                let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+                gz.write_all(chunk)?;
+                gz.finish()
+            })
+            .collect::<Result<_, _>>()
+            .map_err(io)?;
+        for member in &members {
+            out.write_all(member).map_err(io)?;
+        }
+        out.flush().map_err(io)
     }
 
     /// Reads a model file.
@@ -292,7 +310,7 @@ impl SubsurfaceModel {
             return Err(not_a_model(&format!("it has version {version}")));
         }
         let mut bytes = Vec::new();
-        flate2::read::GzDecoder::new(file)
+        flate2::read::MultiGzDecoder::new(file)
             .read_to_end(&mut bytes)
             .map_err(io)?;
         let mut r = Reader {
