@@ -44,7 +44,7 @@ use crate::subsurface::fit::{EmVariant, FitError, FitOptions, fit_dipole_model, 
 use crate::subsurface::mixture::{EmConfig, Profile};
 use crate::subsurface::model_file::{
     Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, SubsurfaceModel,
-    render_projector,
+    render_pattern_alone, render_projector,
 };
 use crate::subsurface::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use crate::subsurface::relight::{direct_albedo, pattern_irradiance};
@@ -271,6 +271,8 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         .map(|i| (0..3).any(|c| !fit.model.layers(i, c).is_empty()))
         .collect();
     let (layers, filled) = fill_unfitted(&fit.model, &fitted, &surface.mask);
+    // The filled copy replaces it (~450 MB at full size).
+    fit.model = LayerModel::from_fn(0, 0, |_, _| Vec::new());
     let fit_s = t1.elapsed().as_secs_f64();
     let c2 = cpu_seconds();
 
@@ -561,8 +563,6 @@ fn write_figures(
         offset: 0,
     };
     let opts = RenderOptions::default();
-    let ours = render_projector(model, k, &slit, Baseline::Mlsss, &opts)?;
-    let homog = render_projector(model, k, &slit, Baseline::Homogeneous, &opts)?;
     let columns: Vec<usize> = (c0..=c1.max(c0))
         .filter(|&x| x < w && surface.mask[row * w + x])
         .collect();
@@ -603,24 +603,9 @@ fn write_figures(
             points: along(&truth),
         });
     }
-    // The model renders include the black level's light; the slit alone is (G - b G_white)/(1-b).
-    let b = inputs.projectors.get(k).map_or(0.0, |p| p.black_level);
-    let white_ours = render_projector(model, k, &Pattern::White, Baseline::Mlsss, &opts)?;
-    let white_homog = render_projector(model, k, &Pattern::White, Baseline::Homogeneous, &opts)?;
-    let alone = |g: &[[f32; 3]], white: &[[f32; 3]]| -> Vec<[f32; 3]> {
-        g.iter()
-            .zip(white)
-            .map(|(g, wh)| {
-                let mut o = [0.0; 3];
-                for c in 0..3 {
-                    o[c] = (g[c] - b * wh[c]) / (1.0 - b);
-                }
-                o
-            })
-            .collect()
-    };
-    let ours_alone = alone(&ours.global, &white_ours.global);
-    let homog_alone = alone(&homog.global, &white_homog.global);
+    // The measured and true curves are the slit's light alone (without the black level's).
+    let ours_alone = render_pattern_alone(model, k, &slit, Baseline::Mlsss, &opts)?.global;
+    let homog_alone = render_pattern_alone(model, k, &slit, Baseline::Homogeneous, &opts)?.global;
     series.push(Series {
         label: "MLSSS (R)".into(),
         colour: [30, 90, 200],

@@ -121,6 +121,27 @@ pub struct BoxedGaussian {
     pub width: f64,
 }
 
+/// Smallest `Phi(b) - Phi(a)` the linear-space forms use: far above the subnormal range, so
+/// `phi(a) / Z` keeps full precision and a sum of densities that stays above ~1e-200 loses
+/// nothing measurable by dropping the terms below it.
+pub const LINEAR_MIN: f64 = 1e-290;
+
+/// The standard normal density.
+fn phi(x: f64) -> f64 {
+    (-0.5 * x * x).exp() * (0.5 / PI).sqrt()
+}
+
+/// [`Posterior`] in linear space (see [`BoxedGaussian::posterior_linear`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinearPosterior {
+    /// `h(s)`, the density of the sample.
+    pub density: f64,
+    /// `E[x | s]`.
+    pub mean: f64,
+    /// `Var[x | s]`, clamped to `[0, W^2/12]`.
+    pub variance: f64,
+}
+
 /// Posterior of the latent (unboxed) position given one observed sample.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Posterior {
@@ -154,6 +175,41 @@ impl BoxedGaussian {
         ln_cdf_diff(a, b) - self.width.ln()
     }
 
+    /// Density and the truncated-normal moments of `x` given `s`, in linear space: the same
+    /// formulas as [`BoxedGaussian::posterior`] without its logarithms and exponentials of the
+    /// normaliser (`phi(a) / Z` directly). `None` when `Z = Phi(b) - Phi(a)` is below
+    /// [`LINEAR_MIN`] (~37 sigmas out), where only the log-space form is accurate.
+    pub fn posterior_linear(&self, s: f64) -> Option<LinearPosterior> {
+        let (a, b) = self.interval(s);
+        let z = cdf_diff(a, b);
+        if z.is_nan() || z < LINEAR_MIN {
+            return None;
+        }
+        let width = b - a;
+        let (m1, var_std) = if width < 1e-3 {
+            let m = 0.5 * (a + b);
+            (m - m * width * width / 12.0, width * width / 12.0)
+        } else {
+            let ra = phi(a) / z;
+            let rb = phi(b) / z;
+            let m1 = ra - rb;
+            (m1, 1.0 + a * ra - b * rb - m1 * m1)
+        };
+        Some(self.moments(z / self.width, a, b, m1, var_std))
+    }
+
+    /// The posterior mean and variance (clamped to their exact bounds) from the standardised
+    /// moments, with `density` as given.
+    fn moments(&self, density: f64, a: f64, b: f64, m1: f64, var_std: f64) -> LinearPosterior {
+        let max_var = self.width * self.width / 12.0;
+        let variance = (self.sigma * self.sigma * var_std).clamp(0.0, max_var);
+        LinearPosterior {
+            density,
+            mean: self.mean + self.sigma * m1.clamp(a, b),
+            variance: if variance.is_finite() { variance } else { 0.0 },
+        }
+    }
+
     /// Log-density and the truncated-normal moments of `x` given `s`.
     pub fn posterior(&self, s: f64) -> Posterior {
         let (a, b) = self.interval(s);
@@ -171,13 +227,11 @@ impl BoxedGaussian {
             let second = 1.0 + a * ra - b * rb;
             (m1, second - m1 * m1)
         };
-        let max_var = self.width * self.width / 12.0;
-        let mean = self.mean + self.sigma * m1.clamp(a, b);
-        let variance = (self.sigma * self.sigma * var_std).clamp(0.0, max_var);
+        let moments = self.moments(0.0, a, b, m1, var_std);
         Posterior {
             ln_density: ln_z - self.width.ln(),
-            mean,
-            variance: if variance.is_finite() { variance } else { 0.0 },
+            mean: moments.mean,
+            variance: moments.variance,
         }
     }
 }
@@ -281,6 +335,46 @@ mod tests {
         assert!(p.ln_density.is_finite());
         assert!(p.mean > 49.75 && p.mean < 49.76, "{}", p.mean);
         assert!(p.variance >= 0.0 && p.variance < 1e-6);
+    }
+
+    #[test]
+    fn linear_posterior_matches_the_log_space_one_wherever_it_is_defined() {
+        let mut compared = 0;
+        for sigma in [0.01, 0.3, 2.0, 15.0] {
+            for width in [1e-4, 0.05, 0.6, 3.0] {
+                let g = BoxedGaussian {
+                    mean: 0.25,
+                    sigma,
+                    width,
+                };
+                for i in -200..=200 {
+                    let s = 0.25 + f64::from(i) * 0.37 * sigma.max(width);
+                    let log = g.posterior(s);
+                    match g.posterior_linear(s) {
+                        Some(lin) => {
+                            compared += 1;
+                            let rel = (lin.density / log.ln_density.exp() - 1.0).abs();
+                            assert!(rel < 1e-9, "s={s} sigma={sigma} W={width}: {rel}");
+                            let scale = sigma.max(width);
+                            assert!((lin.mean - log.mean).abs() < 1e-9 * scale, "s={s}");
+                            // The variance is a difference of terms ~ d^2 (d sigmas out) in
+                            // both forms: it carries their normalisers' rounding times d^2.
+                            let d = (s - g.mean) / sigma;
+                            let tol = 1e-9 * scale * scale + 1e-11 * (1.0 + d * d) * sigma * sigma;
+                            assert!(
+                                (lin.variance - log.variance).abs() < tol,
+                                "s={s} sigma={sigma} W={width}: {} vs {}",
+                                lin.variance,
+                                log.variance
+                            );
+                        }
+                        // Only where the density is beyond the linear range.
+                        None => assert!(log.ln_density + width.ln() < LINEAR_MIN.ln() + 1e-6),
+                    }
+                }
+            }
+        }
+        assert!(compared > 1000, "{compared}");
     }
 
     #[test]

@@ -312,6 +312,19 @@ pub fn fit_model(
     }
     stats.mean_layers = layer_sum as f64 / stats.fits as f64;
     stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
+    // Every pixel's own amplitude (its profiles' flux), pixels in parallel.
+    let scales: Vec<[f32; 3]> = (0..w * h)
+        .into_par_iter()
+        .map(|i| {
+            if !lit_by_any(i) {
+                return [0.0; 3];
+            }
+            std::array::from_fn(|c| {
+                let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
+                weight_scale(&profiles, &ew) as f32
+            })
+        })
+        .collect();
     let model = LayerModel::from_fn(w, h, |i, c| {
         if !lit_by_any(i) {
             return Vec::new();
@@ -320,8 +333,7 @@ pub fn fit_model(
         let Some(shape) = &tiles[(y / block) * bw + x / block][c] else {
             return Vec::new();
         };
-        let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
-        let scale = weight_scale(&profiles, &ew) as f32;
+        let scale = scales[i][c];
         shape
             .layers
             .iter()

@@ -319,8 +319,21 @@ fn images(profile: &Profile, wrap: usize) -> impl Iterator<Item = f64> + '_ {
 /// Beyond this many sigmas (plus half the slit) an image contributes nothing worth computing.
 pub(crate) const NEGLIGIBLE_SIGMAS: f64 = 12.0;
 
+/// Below this a sample's summed density is recomputed in log space (its linear terms may have
+/// dropped components beyond [`LINEAR_MIN`] that matter at this scale).
+const LINEAR_SUM_MIN: f64 = 1e-200;
+
+/// One term of a sample's mixture: component, joint (density x weight, linear or log), and the
+/// posterior mean and variance of the latent position.
+type Term = (usize, f64, f64, f64);
+
 /// Log-likelihood (per unit weight, averaged over profiles with signal) and, if `stats` is given,
 /// the E-step sufficient statistics.
+///
+/// Each sample's terms are summed in linear space ([`BoxedGaussian::posterior_linear`], no
+/// logarithm or exponential per term); a sample whose summed density is below
+/// [`LINEAR_SUM_MIN`] (every component ~37 sigmas away) is redone in log space, which is
+/// accurate for any distance.
 pub(crate) fn e_step<M: MeanModel>(
     data: &Data,
     state: &State<M>,
@@ -328,64 +341,49 @@ pub(crate) fn e_step<M: MeanModel>(
     mut stats: Option<&mut Stats>,
 ) -> f64 {
     let k = state.weights.len();
-    let ln_w: Vec<f64> = state
-        .weights
-        .iter()
-        .map(|&w| if w > 0.0 { w.ln() } else { f64::NEG_INFINITY })
-        .collect();
     let mut total = 0.0;
     let with_stats = stats.is_some();
-    // Scratch: (component, ln joint, posterior mean, variance); the joint is replaced by its
-    // exponential relative to the largest one, reused for the responsibilities.
-    let mut terms: Vec<(usize, f64, f64, f64)> = Vec::with_capacity(k * (2 * wrap + 1));
+    let mut terms: Vec<Term> = Vec::with_capacity(k * (2 * wrap + 1));
+    // (component, weight, its boxed Gaussian in this profile): components with weight only.
+    let mut components: Vec<(usize, f64, BoxedGaussian)> = Vec::with_capacity(k);
     for (p, prof) in data.profiles.iter().enumerate() {
         let weights = &data.weights[p];
         if weights.is_empty() {
             continue;
         }
+        components.clear();
+        components.extend((0..k).filter(|&l| state.weights[l] > 0.0).map(|l| {
+            (
+                l,
+                state.weights[l],
+                BoxedGaussian {
+                    mean: state.means.mean(data.profiles, p, l),
+                    sigma: state.sigmas[l],
+                    width: prof.slit_width,
+                },
+            )
+        }));
         let mut ll = 0.0;
         for (sample, &y) in prof.samples.iter().zip(weights) {
             if y <= 0.0 {
                 continue;
             }
-            terms.clear();
-            for (l, &ln_weight) in ln_w.iter().enumerate() {
-                if ln_weight == f64::NEG_INFINITY {
-                    continue;
-                }
-                let g = BoxedGaussian {
-                    mean: state.means.mean(data.profiles, p, l),
-                    sigma: state.sigmas[l],
-                    width: prof.slit_width,
-                };
-                for offset in images(prof, wrap) {
-                    let dist = (sample.s - offset - g.mean).abs() - 0.5 * g.width;
-                    if offset != 0.0 && dist > NEGLIGIBLE_SIGMAS * g.sigma {
-                        continue;
-                    }
-                    // The posterior moments only when the statistics are wanted (a likelihood
-                    // alone needs the density only).
-                    if with_stats {
-                        let post = g.posterior(sample.s - offset);
-                        terms.push((l, ln_weight + post.ln_density, post.mean, post.variance));
-                    } else {
-                        terms.push((l, ln_weight + g.ln_density(sample.s - offset), 0.0, 0.0));
-                    }
-                }
-            }
-            let max = terms.iter().map(|t| t.1).fold(f64::NEG_INFINITY, f64::max);
-            let mut sum = 0.0;
-            for t in terms.iter_mut() {
-                t.1 = (t.1 - max).exp();
-                sum += t.1;
-            }
-            ll += y * (max + sum.ln());
+            let mut sum = linear_terms(&components, prof, sample.s, wrap, with_stats, &mut terms);
+            let ln_sum = if sum >= LINEAR_SUM_MIN {
+                sum.ln()
+            } else {
+                let (max, shares) =
+                    log_terms(&components, prof, sample.s, wrap, with_stats, &mut terms);
+                sum = shares;
+                max + shares.ln()
+            };
+            ll += y * ln_sum;
             if let Some(st) = stats.as_deref_mut() {
                 let scale = y / sum;
-                for &(l, share, mean, var) in &terms {
+                for &(c, share, mean, var) in &terms {
                     let r = scale * share;
                     if r > 0.0 {
-                        let i = st.at(p, l);
+                        let i = st.at(p, c);
                         st.n[i] += r;
                         st.sx[i] += r * mean;
                         st.sxx[i] += r * (var + mean * mean);
@@ -396,6 +394,83 @@ pub(crate) fn e_step<M: MeanModel>(
         total += ll;
     }
     total / data.profiles_with_signal() as f64
+}
+
+/// The slit images of `prof` component `g` reaches from sample `s`.
+fn images_of<'a>(
+    prof: &'a Profile,
+    wrap: usize,
+    g: &'a BoxedGaussian,
+    s: f64,
+) -> impl Iterator<Item = f64> + 'a {
+    // Beyond NEGLIGIBLE_SIGMAS an image (never the central one) contributes nothing worth
+    // computing.
+    images(prof, wrap).filter(move |&offset| {
+        let dist = (s - offset - g.mean).abs() - 0.5 * g.width;
+        offset == 0.0 || dist <= NEGLIGIBLE_SIGMAS * g.sigma
+    })
+}
+
+/// Fills `terms` with the linear joints `w h(s)` (and the posterior moments when `with_stats`)
+/// of every component and slit image of one sample; returns their sum.
+fn linear_terms(
+    components: &[(usize, f64, BoxedGaussian)],
+    prof: &Profile,
+    s: f64,
+    wrap: usize,
+    with_stats: bool,
+    terms: &mut Vec<Term>,
+) -> f64 {
+    terms.clear();
+    let mut sum = 0.0;
+    for &(l, w, ref g) in components {
+        for offset in images_of(prof, wrap, g, s) {
+            let x = s - offset;
+            if with_stats {
+                if let Some(post) = g.posterior_linear(x) {
+                    let joint = w * post.density;
+                    sum += joint;
+                    terms.push((l, joint, post.mean, post.variance));
+                }
+            } else {
+                sum += w * g.density(x);
+            }
+        }
+    }
+    sum
+}
+
+/// Fills `terms` with the joints of one sample relative to the largest (`exp(ln joint - max)`),
+/// computed in log space; returns `max` and the sum of the relative joints.
+fn log_terms(
+    components: &[(usize, f64, BoxedGaussian)],
+    prof: &Profile,
+    s: f64,
+    wrap: usize,
+    with_stats: bool,
+    terms: &mut Vec<Term>,
+) -> (f64, f64) {
+    terms.clear();
+    for &(l, w, ref g) in components {
+        let ln_w = w.ln();
+        for offset in images_of(prof, wrap, g, s) {
+            let x = s - offset;
+            // The posterior moments only when the statistics are wanted.
+            if with_stats {
+                let post = g.posterior(x);
+                terms.push((l, ln_w + post.ln_density, post.mean, post.variance));
+            } else {
+                terms.push((l, ln_w + g.ln_density(x), 0.0, 0.0));
+            }
+        }
+    }
+    let max = terms.iter().map(|t| t.1).fold(f64::NEG_INFINITY, f64::max);
+    let mut sum = 0.0;
+    for t in terms.iter_mut() {
+        t.1 = (t.1 - max).exp();
+        sum += t.1;
+    }
+    (max, sum)
 }
 
 /// Exact maximiser of `sum n_l ln pi_l` over the simplex with `pi_l >= floor`.
@@ -608,6 +683,110 @@ pub(crate) fn fit<M: MeanModel>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Fixed means per component (the test needs no M-step of the means).
+    #[derive(Debug, Clone)]
+    struct Fixed(Vec<f64>);
+
+    impl MeanModel for Fixed {
+        fn mean(&self, _profiles: &[Profile], _p: usize, l: usize) -> f64 {
+            self.0[l]
+        }
+        fn update(&mut self, _profiles: &[Profile], _stats: &Stats, _sigmas: &[f64]) {}
+        fn remove(&mut self, l: usize) {
+            self.0.remove(l);
+        }
+        fn parameter_count(&self, components: usize) -> usize {
+            components
+        }
+    }
+
+    /// The E-step with every sample in log space (the form accurate at any distance).
+    fn log_space_e_step(data: &Data, state: &State<Fixed>, wrap: usize, st: &mut Stats) -> f64 {
+        let mut total = 0.0;
+        let mut terms = Vec::new();
+        for (p, prof) in data.profiles.iter().enumerate() {
+            let components: Vec<(usize, f64, BoxedGaussian)> = (0..state.weights.len())
+                .map(|l| {
+                    let g = BoxedGaussian {
+                        mean: state.means.0[l],
+                        sigma: state.sigmas[l],
+                        width: prof.slit_width,
+                    };
+                    (l, state.weights[l], g)
+                })
+                .collect();
+            for (sample, &y) in prof.samples.iter().zip(&data.weights[p]) {
+                let (max, sum) = log_terms(&components, prof, sample.s, wrap, true, &mut terms);
+                total += y * (max + sum.ln());
+                for &(l, share, mean, var) in &terms {
+                    let (i, r) = (st.at(p, l), y * share / sum);
+                    st.n[i] += r;
+                    st.sx[i] += r * mean;
+                    st.sxx[i] += r * (var + mean * mean);
+                }
+            }
+        }
+        total / data.profiles_with_signal() as f64
+    }
+
+    #[test]
+    fn linear_e_step_matches_the_log_space_one_near_and_far() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        for trial in 0..40 {
+            // Some trials put every sample ~50 sigmas from every component (the log fallback).
+            let far = trial % 4 == 0;
+            let profiles: Vec<Profile> = (0..3)
+                .map(|_| {
+                    let period = rng.gen_range(3.0..12.0);
+                    Profile {
+                        samples: (0..10)
+                            .map(|j| Sample {
+                                s: -0.5 * period + period * (j as f64 + 0.5) / 10.0,
+                                y: rng.gen_range(0.0..2.0),
+                            })
+                            .collect(),
+                        slit_width: period / 10.0,
+                        period: Some(period),
+                        shift_per_depth: 0.0,
+                    }
+                })
+                .collect();
+            let data = Data::new(&profiles).unwrap();
+            let k = rng.gen_range(1..5);
+            let state = State {
+                weights: vec![1.0 / k as f64; k],
+                sigmas: (0..k)
+                    .map(|_| if far { 0.02 } else { rng.gen_range(0.05..6.0) })
+                    .collect(),
+                means: Fixed(
+                    (0..k)
+                        .map(|_| if far { 40.0 } else { rng.gen_range(-1.0..1.0) })
+                        .collect(),
+                ),
+            };
+            let mut fast = Stats::new(profiles.len(), k);
+            let mut reference = Stats::new(profiles.len(), k);
+            let ll = e_step(&data, &state, 1, Some(&mut fast));
+            let ll_ref = log_space_e_step(&data, &state, 1, &mut reference);
+            let ll_only = e_step(&data, &state, 1, None);
+            assert!(
+                (ll - ll_ref).abs() < 1e-10 * ll_ref.abs().max(1.0),
+                "{ll} vs {ll_ref}"
+            );
+            assert!((ll_only - ll_ref).abs() < 1e-10 * ll_ref.abs().max(1.0));
+            for (a, b) in [
+                (&fast.n, &reference.n),
+                (&fast.sx, &reference.sx),
+                (&fast.sxx, &reference.sxx),
+            ] {
+                for (x, y) in a.iter().zip(b) {
+                    assert!((x - y).abs() < 1e-9 * y.abs().max(1.0), "{x} vs {y}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn water_fill_respects_floor_and_sums_to_one() {

@@ -6,10 +6,19 @@
 //! this order (`n` = width x height camera pixels, row-major, pixel `i = y * width + x`):
 //! points `n x 3 f32` (world mm), normals `n x 3 f32`, mask `n u8`, direct albedo `n x 3 f32`,
 //! white albedo `n x 3 f32`,
-//! visibility `projectors x n u8`, the layer model (offsets `n x 3 + 1 u32`, layer count `u32`,
-//! layers `u16 index, f32 weight, f32 sigma_mm, f32 depth_mm`), a `u8` flag and, when set, the
-//! dipole baseline in the same layout. Binary because the layer model of a full-size capture is
-//! tens of millions of numbers; gzip because most pixels are background or share few layers.
+//! visibility `projectors x n u8`, the layer model, a `u8` flag and, when set, the dipole baseline
+//! in the same layout. Binary because the layer model of a full-size capture is tens of millions
+//! of numbers; gzip because most pixels are background or share few layers.
+//!
+//! Layer model section, format 2: the layer count of every pixel and channel (`n x 3 u16`, row
+//! `i * 3 + c`); a palette of the distinct `(index, sigma_mm, depth_mm)` triples (`u32` count,
+//! then `u16 index, f32 sigma_mm, f32 depth_mm` each); the layer count `u32`; the byte width of a
+//! palette id (`u8`: 1, 2 or 4) and every layer's palette id; every layer's `f32 weight` as four
+//! byte planes (all first bytes, then all second bytes, ...). Why: with the spatial prior most
+//! pixels share one shape, so the ids repeat and the planes of the weights' high bytes compress,
+//! where format 1 (offsets `n x 3 + 1 u32`, layer count `u32`, layers `u16 index, f32 weight,
+//! f32 sigma_mm, f32 depth_mm`) stored 14 incompressible bytes per layer (383 MB at full size).
+//! Format 1 files are still read.
 //!
 //! Conventions: as [`super::surface`] and [`super::profiles`]; radiance in the frames' linear
 //! units. A render holds projector `k`'s light only (its black level included, the stray light of
@@ -33,7 +42,9 @@ use crate::capture::Pattern;
 /// First bytes of a model file.
 pub const MAGIC: &[u8; 8] = b"MLSSSMDL";
 /// Version of the layout written by this code.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
+/// Oldest layout this code still reads (its layer sections differ, see the module doc).
+pub const OLDEST_READABLE_VERSION: u32 = 1;
 
 /// Errors reading, writing or rendering a model file.
 #[derive(Debug, thiserror::Error)]
@@ -47,8 +58,8 @@ pub enum ModelFileError {
     },
     /// The file is not a model file (wrong magic) or is of another version.
     #[error(
-        "{path} is not an mlsss model file of format version {FORMAT_VERSION} ({reason}); \
-         write one with `mlsss process CAPTURE --calib ... --until fit`"
+        "{path} is not an mlsss model file of format version {OLDEST_READABLE_VERSION} to \
+         {FORMAT_VERSION} ({reason}); write one with `mlsss process CAPTURE --calib ... --until fit`"
     )]
     NotAModel { path: PathBuf, reason: String },
     /// The file ends early or its sections disagree with the header.
@@ -207,6 +218,11 @@ impl SubsurfaceModel {
 
     /// Writes the model file.
     pub fn save(&self, path: &Path) -> Result<(), ModelFileError> {
+        self.save_as(path, FORMAT_VERSION)
+    }
+
+    /// Writes the model file in layout `version` (format 1 only to test that it is still read).
+    fn save_as(&self, path: &Path, version: u32) -> Result<(), ModelFileError> {
         self.check()?;
         let io = |source| ModelFileError::Io {
             path: path.to_owned(),
@@ -215,7 +231,7 @@ impl SubsurfaceModel {
         let file = std::fs::File::create(path).map_err(io)?;
         let mut out = std::io::BufWriter::new(file);
         out.write_all(MAGIC).map_err(io)?;
-        out.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io)?;
+        out.write_all(&version.to_le_bytes()).map_err(io)?;
         let mut gz = flate2::write::GzEncoder::new(out, flate2::Compression::fast());
         let header = serde_json::to_vec(&self.header)
             .map_err(|e| ModelFileError::Inconsistent(e.to_string()))?;
@@ -235,11 +251,18 @@ impl SubsurfaceModel {
         for v in &self.visibility {
             buf.extend(v.iter().map(|&m| u8::from(m)));
         }
-        put_layers(&mut buf, &self.layers);
+        let put = |buf: &mut Vec<u8>, model: &LayerModel| match version {
+            1 => {
+                put_layers_v1(buf, model);
+                Ok(())
+            }
+            _ => put_layers(buf, model),
+        };
+        put(&mut buf, &self.layers)?;
         match &self.dipole {
             Some(d) => {
                 buf.push(1);
-                put_layers(&mut buf, d);
+                put(&mut buf, d)?;
             }
             None => buf.push(0),
         }
@@ -265,7 +288,7 @@ impl SubsurfaceModel {
             return Err(not_a_model("wrong magic bytes"));
         }
         let version = u32::from_le_bytes([magic[8], magic[9], magic[10], magic[11]]);
-        if version != FORMAT_VERSION {
+        if !(OLDEST_READABLE_VERSION..=FORMAT_VERSION).contains(&version) {
             return Err(not_a_model(&format!("it has version {version}")));
         }
         let mut bytes = Vec::new();
@@ -300,10 +323,14 @@ impl SubsurfaceModel {
         let visibility = (0..header.projectors.len())
             .map(|_| r.flags(n))
             .collect::<Result<Vec<_>, _>>()?;
-        let layers = r.layers(header.width, header.height)?;
+        let layer_model = |r: &mut Reader| match version {
+            1 => r.layers_v1(header.width, header.height),
+            _ => r.layers(header.width, header.height),
+        };
+        let layers = layer_model(&mut r)?;
         let dipole = match r.take(1)?[0] {
             0 => None,
-            _ => Some(r.layers(header.width, header.height)?),
+            _ => Some(layer_model(&mut r)?),
         };
         if r.at != bytes.len() {
             return Err(r.corrupt("trailing bytes after the last section"));
@@ -340,7 +367,8 @@ fn put_f32s(buf: &mut Vec<u8>, vs: &[f32]) {
     }
 }
 
-fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) {
+/// Writes the layer model section of format 1 (see the module doc).
+fn put_layers_v1(buf: &mut Vec<u8>, model: &LayerModel) {
     let (offsets, layers) = model.parts();
     for &o in offsets {
         put_u32(buf, o);
@@ -350,6 +378,52 @@ fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) {
         buf.extend_from_slice(&l.index.to_le_bytes());
         put_f32s(buf, &[l.weight, l.sigma_mm, l.depth_mm]);
     }
+}
+
+/// A layer's identity in the palette: index and the bits of sigma and depth.
+type PaletteKey = (u16, u32, u32);
+
+/// Writes the layer model section of format 2 (see the module doc).
+fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) -> Result<(), ModelFileError> {
+    let (offsets, layers) = model.parts();
+    for row in offsets.windows(2) {
+        let count = u16::try_from(row[1] - row[0]).map_err(|_| {
+            ModelFileError::Inconsistent("a pixel has more than 65535 layers".into())
+        })?;
+        buf.extend_from_slice(&count.to_le_bytes());
+    }
+    let mut palette: std::collections::HashMap<PaletteKey, u32> = Default::default();
+    let mut entries: Vec<PaletteKey> = Vec::new();
+    let ids: Vec<u32> = layers
+        .iter()
+        .map(|l| {
+            let key = (l.index, l.sigma_mm.to_bits(), l.depth_mm.to_bits());
+            *palette.entry(key).or_insert_with(|| {
+                entries.push(key);
+                (entries.len() - 1) as u32
+            })
+        })
+        .collect();
+    put_u32(buf, entries.len() as u32);
+    for &(index, sigma, depth) in &entries {
+        buf.extend_from_slice(&index.to_le_bytes());
+        put_u32(buf, sigma);
+        put_u32(buf, depth);
+    }
+    put_u32(buf, layers.len() as u32);
+    let id_bytes: u8 = match entries.len() {
+        0..=0x100 => 1,
+        0x101..=0x1_0000 => 2,
+        _ => 4,
+    };
+    buf.push(id_bytes);
+    for id in ids {
+        buf.extend_from_slice(&id.to_le_bytes()[..usize::from(id_bytes)]);
+    }
+    for plane in 0..4 {
+        buf.extend(layers.iter().map(|l| l.weight.to_le_bytes()[plane]));
+    }
+    Ok(())
 }
 
 /// Cursor over the decompressed sections.
@@ -409,7 +483,68 @@ impl<'a> Reader<'a> {
         Ok(self.take(n)?.iter().map(|&b| b != 0).collect())
     }
 
+    /// The layer model section of format 2 (see the module doc).
     fn layers(&mut self, width: usize, height: usize) -> Result<LayerModel, ModelFileError> {
+        let rows = width * height * 3;
+        let counts = self.take(rows.checked_mul(2).ok_or_else(|| self.corrupt("size"))?)?;
+        let mut offsets = Vec::with_capacity(rows + 1);
+        let mut total = 0u32;
+        offsets.push(0);
+        for c in counts.chunks_exact(2) {
+            total = total
+                .checked_add(u32::from(u16::from_le_bytes([c[0], c[1]])))
+                .ok_or_else(|| self.corrupt("more than 2^32 layers"))?;
+            offsets.push(total);
+        }
+        let entries = self.u32()? as usize;
+        if entries > self.bytes.len() / 10 {
+            return Err(self.corrupt("palette larger than the file"));
+        }
+        let palette = (0..entries)
+            .map(|_| {
+                let b = self.take(2)?;
+                Ok((u16::from_le_bytes([b[0], b[1]]), self.f32()?, self.f32()?))
+            })
+            .collect::<Result<Vec<_>, ModelFileError>>()?;
+        let count = self.u32()? as usize;
+        if count != total as usize {
+            return Err(self.corrupt("layer count differs from the pixels' layer counts"));
+        }
+        let id_bytes = usize::from(self.take(1)?[0]);
+        if ![1, 2, 4].contains(&id_bytes) {
+            return Err(self.corrupt("palette id width is not 1, 2 or 4 bytes"));
+        }
+        let ids = self.take(
+            count
+                .checked_mul(id_bytes)
+                .ok_or_else(|| self.corrupt("size"))?,
+        )?;
+        let planes = self.take(count.checked_mul(4).ok_or_else(|| self.corrupt("size"))?)?;
+        let layers = (0..count)
+            .map(|j| {
+                let mut id = [0u8; 4];
+                id[..id_bytes].copy_from_slice(&ids[j * id_bytes..(j + 1) * id_bytes]);
+                let &(index, sigma_mm, depth_mm) = palette
+                    .get(u32::from_le_bytes(id) as usize)
+                    .ok_or_else(|| self.corrupt("a palette id beyond the palette"))?;
+                let weight = f32::from_le_bytes(std::array::from_fn(|k| planes[k * count + j]));
+                if !weight.is_finite() {
+                    return Err(self.corrupt("a non-finite number"));
+                }
+                Ok(SplatLayer {
+                    index,
+                    weight,
+                    sigma_mm,
+                    depth_mm,
+                })
+            })
+            .collect::<Result<Vec<_>, ModelFileError>>()?;
+        LayerModel::from_parts(width, height, offsets, layers)
+            .ok_or_else(|| self.corrupt("layer counts do not index the layers"))
+    }
+
+    /// The layer model section of format 1: offsets, then 14 bytes per layer.
+    fn layers_v1(&mut self, width: usize, height: usize) -> Result<LayerModel, ModelFileError> {
         let rows = width * height * 3 + 1;
         let offsets = (0..rows)
             .map(|_| self.u32())
@@ -443,6 +578,31 @@ pub fn render_projector(
     pattern: &Pattern,
     baseline: Baseline,
     opts: &RenderOptions,
+) -> Result<Relit, ModelFileError> {
+    let black_level = |light: &ProjectorLight| light.black_level;
+    render_with_black_level(model, k, pattern, baseline, opts, black_level)
+}
+
+/// As [`render_projector`] with the projector's black level taken as 0: the pattern's own light
+/// alone (for a slit, what `(G_slit - b G_white) / (1 - b)` gives from two renders with the
+/// black level `b`; the renderer is linear in the irradiance), in one render.
+pub fn render_pattern_alone(
+    model: &SubsurfaceModel,
+    k: usize,
+    pattern: &Pattern,
+    baseline: Baseline,
+    opts: &RenderOptions,
+) -> Result<Relit, ModelFileError> {
+    render_with_black_level(model, k, pattern, baseline, opts, |_| 0.0)
+}
+
+fn render_with_black_level(
+    model: &SubsurfaceModel,
+    k: usize,
+    pattern: &Pattern,
+    baseline: Baseline,
+    opts: &RenderOptions,
+    black_level: impl Fn(&ProjectorLight) -> f32,
 ) -> Result<Relit, ModelFileError> {
     let light = model
         .header
@@ -479,7 +639,7 @@ pub fn render_projector(
         &model.surface,
         &view,
         pattern,
-        light.black_level,
+        black_level(light),
         light.blur_px,
         layers,
         albedo,
@@ -583,7 +743,29 @@ mod tests {
             .iter()
             .map(|p| p.map(|v| f64::from(v as f32)))
             .collect();
-        model.dipole = Some(model.layers.clone());
+        // A second layer model with a palette of more than 256 entries (2-byte ids) and rows of
+        // 0 to 2 layers.
+        model.dipole = Some(LayerModel::from_fn(
+            model.header.width,
+            model.header.height,
+            |i, c| {
+                (0..(i + c) % 3)
+                    .map(|k| SplatLayer {
+                        index: k as u16,
+                        weight: 1e-3 * (i * 3 + c) as f32,
+                        sigma_mm: 0.1 + 1e-3 * i as f32,
+                        depth_mm: 0.0,
+                    })
+                    .collect()
+            },
+        ));
+        // Format 1 files are still read, bit for bit.
+        model.save_as(&path, 1).unwrap();
+        let old = SubsurfaceModel::load(&path).unwrap();
+        assert_eq!(
+            (old.layers, old.dipole),
+            (model.layers.clone(), model.dipole.clone())
+        );
         model.save(&path).unwrap();
         let back = SubsurfaceModel::load(&path).unwrap();
         // Binary sections are exact; the JSON header's floats may differ in the last digit.

@@ -76,6 +76,11 @@ pub struct PriorOptions {
     pub shrink_amplitude: bool,
     /// Slit images on each side in the likelihood (as the EM's `wrap_images`).
     pub wrap_images: usize,
+    /// At most about this many tiles, evenly spread, have their validation pixel's likelihood
+    /// scored (the report's `cv_log_likelihood` is a mean over tiles; the choice rests on the
+    /// width prediction, which scores every tile). Why: scoring every tile of a full-size capture
+    /// under every candidate cost more CPU than the EM fits themselves (60 of ~200 CPU-s).
+    pub likelihood_tiles: usize,
 }
 
 impl Default for PriorOptions {
@@ -85,6 +90,7 @@ impl Default for PriorOptions {
             sigma_bin_ratio: 1.25,
             shrink_amplitude: true,
             wrap_images: 1,
+            likelihood_tiles: 4096,
         }
     }
 }
@@ -114,7 +120,8 @@ impl Neighbourhood {
 pub struct ChannelPrior {
     /// Chosen shape neighbourhood (label, e.g. `r2` or `global`).
     pub shape: String,
-    /// Mean held-out log-likelihood per validation profile set, per candidate label.
+    /// Mean held-out log-likelihood per validation profile set, per candidate label (over the
+    /// tiles [`PriorOptions::likelihood_tiles`] selects).
     pub cv_log_likelihood: BTreeMap<String, f64>,
     /// Leave-one-projector-out mean squared error of the validation pixels' log profile width
     /// per candidate label (the criterion of the choice, with the one-standard-error rule).
@@ -137,7 +144,8 @@ pub struct ChannelPrior {
 /// What the prior did.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PriorReport {
-    /// Validation pixels scored per channel.
+    /// Validation pixels whose likelihood was scored per channel (at most about
+    /// [`PriorOptions::likelihood_tiles`]).
     pub validation_pixels: [usize; 3],
     /// R, G, B.
     pub channels: Vec<ChannelPrior>,
@@ -414,8 +422,14 @@ fn choose_neighbourhoods(
 ) -> Result<Choice, SpatialPriorError> {
     // Per tile and channel: the log-likelihood under every candidate (None when not scorable).
     type Scores = [Option<Vec<f64>>; 3];
+    let stride = inputs
+        .tiles
+        .count()
+        .div_ceil(inputs.opts.likelihood_tiles.max(1))
+        .max(1);
     let per_tile: Vec<Result<Scores, SpatialPriorError>> = (0..inputs.tiles.count())
         .into_par_iter()
+        .step_by(stride)
         .map(|t| {
             let mut out: Scores = Default::default();
             let Some((v, exclude)) = inputs.validation_pixel(t) else {
