@@ -185,8 +185,8 @@ pub fn calibration_captures(poses: usize) -> PathBuf {
     out
 }
 
-/// `mlsss calibrate` of all [`CALIBRATION_POSES`] shared calibration captures (the 9x7 board of
-/// 9 mm squares the virtual booth shows, k3 fixed), made once per test binary run; returns the
+/// `mlsss calibrate` of all [`CALIBRATION_POSES`] shared calibration captures (k3 fixed; the board
+/// is the one the simulated captures record), made once per test binary run; returns the
 /// calibration file (in the camera's frame, as from a real booth) and the `--json` report.
 pub fn estimated_calibration() -> &'static (PathBuf, serde_json::Value) {
     static CALIBRATION: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
@@ -197,9 +197,7 @@ pub fn estimated_calibration() -> &'static (PathBuf, serde_json::Value) {
             mlsss()
                 .arg("calibrate")
                 .args((0..CALIBRATION_POSES).map(|p| root.join(format!("pose{p:02}"))))
-                .args([
-                    "--board", "9x7", "--square", "9", "--fix-k3", "--json", "--out",
-                ])
+                .args(["--fix-k3", "--json", "--out"])
                 .arg(&out),
         );
         (out, report)

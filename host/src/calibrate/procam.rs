@@ -20,6 +20,7 @@ use super::bundle_adjustment::{
 use super::homography::{HomographyError, fit_homography};
 use super::zhang::{ZhangError, intrinsics_from_homographies, pose_from_homography};
 use crate::calib::{Calibration, DeviceCalibration, Extrinsics, Intrinsics, ProjectorCalibration};
+use crate::capture::folder::CaptureManifest;
 
 /// Why a calibration could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -53,6 +54,20 @@ pub struct BoardSpec {
 }
 
 impl BoardSpec {
+    /// The board a simulated calibration capture shows, from its manifest's `source.board`
+    /// (`inner_corners: [cols, rows]`, `square_mm`); `None` for a real capture, which does not
+    /// record it.
+    pub fn from_manifest(manifest: &CaptureManifest) -> Option<Self> {
+        let board = &manifest.source["board"];
+        let corners = board["inner_corners"].as_array()?;
+        let count = |i: usize| corners.get(i)?.as_u64().map(|v| v as usize);
+        Some(Self {
+            cols: count(0)?,
+            rows: count(1)?,
+            square_mm: board["square_mm"].as_f64()?,
+        })
+    }
+
     /// Board points in row-major corner order.
     pub fn points(&self) -> Vec<Vector3<f64>> {
         (0..self.rows)

@@ -12,6 +12,7 @@ use mlsss::calibrate::pose_measurement::{BoardCorners, PoseLayout, measure_pose}
 use mlsss::calibrate::procam::{
     BoardSpec, ProcamOptions, ProcamResult, calibrate_procam, distortion_term_names,
 };
+use mlsss::capture::Capture;
 use rayon::prelude::*;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -27,11 +28,12 @@ pub struct Args {
     /// One folder per chessboard pose.
     #[arg(required_unless_present = "from_opencv")]
     captures: Vec<PathBuf>,
-    /// Inner corners of the chessboard, COLSxROWS (e.g. 9x7).
-    #[arg(long, value_parser = parse_size, required_unless_present = "from_opencv")]
+    /// Inner corners of the chessboard, COLSxROWS (e.g. 9x7). Default: the board a simulated
+    /// capture records in its capture.json (real captures do not record it).
+    #[arg(long, value_parser = parse_size, requires = "square")]
     board: Option<(u32, u32)>,
-    /// Side of a chessboard square in millimetres.
-    #[arg(long, required_unless_present = "from_opencv")]
+    /// Side of a chessboard square in millimetres (default: as --board).
+    #[arg(long, requires = "board")]
     square: Option<f64>,
     /// Layout of the pose folders.
     #[arg(long, value_enum, default_value_t = Layout::Capture)]
@@ -63,13 +65,29 @@ pub struct Args {
     json: bool,
 }
 
+/// The chessboard from `--board` and `--square`, or else from the first simulated capture.
+fn board_of(args: &Args) -> anyhow::Result<(u32, u32, f64)> {
+    if let (Some((cols, rows)), Some(square)) = (args.board, args.square) {
+        return Ok((cols, rows, square));
+    }
+    let recorded = match (args.layout, args.captures.first()) {
+        (Layout::Capture, Some(first)) => Capture::open(first)
+            .ok()
+            .and_then(|capture| BoardSpec::from_manifest(&capture.manifest))
+            .map(|b| (b.cols as u32, b.rows as u32, b.square_mm)),
+        _ => None,
+    };
+    recorded.context(
+        "--board and --square are required: the captures do not record their chessboard \
+         (only simulated ones do); e.g. --board 9x7 --square 9",
+    )
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(path) = &args.from_opencv {
         return convert(path, &args);
     }
-    let (Some((cols, rows)), Some(square)) = (args.board, args.square) else {
-        bail!("--board and --square are required to calibrate");
-    };
+    let (cols, rows, square) = board_of(&args)?;
     if !(square > 0.0 && square.is_finite()) {
         bail!("--square must be a positive length in millimetres, got {square}");
     }

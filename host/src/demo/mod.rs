@@ -301,25 +301,10 @@ fn simulation_options(opts: &DemoOptions, subject: SubjectKind) -> SimulationOpt
 /// Chessboard layout of a simulated calibration pose (from its manifest).
 fn board_of(pose: &Path) -> Result<BoardSpec, DemoError> {
     let capture = Capture::open(pose)?;
-    let board = &capture.manifest.source["board"];
-    let corners = board["inner_corners"].as_array();
-    let size = |i: usize| {
-        corners
-            .and_then(|c| c.get(i))
-            .and_then(Value::as_u64)
-            .map(|v| v as usize)
-    };
-    match (size(0), size(1), board["square_mm"].as_f64()) {
-        (Some(cols), Some(rows), Some(square_mm)) => Ok(BoardSpec {
-            cols,
-            rows,
-            square_mm,
-        }),
-        _ => Err(DemoError::Output {
-            path: pose.to_owned(),
-            reason: "capture.json has no source.board (inner_corners, square_mm)".into(),
-        }),
-    }
+    BoardSpec::from_manifest(&capture.manifest).ok_or_else(|| DemoError::Output {
+        path: pose.to_owned(),
+        reason: "capture.json has no source.board (inner_corners, square_mm)".into(),
+    })
 }
 
 /// The full-field levels a projector response is estimated from.

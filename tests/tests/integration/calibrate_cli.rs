@@ -158,6 +158,20 @@ fn opencv_layout_without_projector_size_is_a_clear_error() {
     assert!(err.contains("--projector"), "{err}");
 }
 
+#[test]
+fn a_real_capture_without_board_size_is_a_clear_error() {
+    let data = sample_data();
+    let out = mlsss()
+        .args(["calibrate", "--layout", "opencv", "--projector", "1024x768"])
+        .args(["--out", "/nonexistent/c.json"])
+        .arg(data.join("capture_0"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--board and --square are required"), "{err}");
+}
+
 /// The virtual booth's own calibration capture (the tests' shrunk quick booth, steeply tilted board
 /// poses) calibrated by `mlsss calibrate`, against the simulator's true calibration. The shrunk
 /// booth has a narrow field (camera 230 px wide), which leaves focal length and distance, and the
