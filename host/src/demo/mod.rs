@@ -78,8 +78,12 @@ pub enum DemoError {
     /// A calibration pose could not be measured.
     #[error("measuring a calibration pose failed")]
     PoseMeasurement(#[from] PoseMeasurementError),
-    /// The calibration from the poses failed.
-    #[error("calibration from the chessboard poses failed")]
+    /// The calibration from the poses failed (typically: the board was not found in enough poses
+    /// because the camera is too small, as at `--scale-down 4`).
+    #[error(
+        "calibration from the chessboard poses failed (a camera shrunk by --scale-down 4 or more \
+         is too small to find the board: use --calib truth, or a smaller --scale-down)"
+    )]
     Procam(#[from] ProcamError),
     /// The projector responses could not be estimated.
     #[error("projector response estimation failed")]

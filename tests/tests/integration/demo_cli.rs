@@ -119,3 +119,24 @@ fn demo_refuses_a_missing_projector_and_a_foreign_output_folder() {
     assert!(err.contains("not a demo output folder"), "{err}");
     assert!(foreign.join("precious.txt").is_file());
 }
+
+/// Regression: at `--scale-down 4` the 115-px camera cannot find the chessboard, and the demo's
+/// error said only "only 0 usable board poses"; it now names the way out.
+#[test]
+fn demo_with_a_camera_too_small_for_the_chessboard_suggests_the_true_calibration() {
+    let out_dir = TestDir::new("demo-small-camera");
+    let output = mlsss()
+        .args(["demo", "--quick", "--scale-down", "4", "--photons", "4000"])
+        .arg("--cache")
+        .arg(mc_cache_dir())
+        .arg("--out")
+        .arg(out_dir.path())
+        .output()
+        .expect("run mlsss demo");
+    assert!(!output.status.success());
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        err.contains("usable board poses") && err.contains("--calib truth"),
+        "{err}"
+    );
+}
