@@ -1190,10 +1190,9 @@ mod tests {
         }
     }
 
-    /// Fits the scene like the fit stage (3 x 3 tiles, up to 4 components) and applies the prior.
-    fn fit_and_regularise(s: &Scene) -> (LayerModel, LayerModel, PriorReport) {
-        let slit_frames: Vec<Vec<SlitFrame>> = s
-            .frames
+    /// The scene's slit frames as the fit stage sees them, one list per projector.
+    fn slit_frames(s: &Scene) -> Vec<Vec<SlitFrame<'_>>> {
+        s.frames
             .iter()
             .map(|f| {
                 f.iter()
@@ -1203,11 +1202,21 @@ mod tests {
                     })
                     .collect()
             })
-            .collect();
-        let sweeps: Vec<SlitSweep> = slit_frames
+            .collect()
+    }
+
+    /// One slit sweep per projector over `frames`.
+    fn sweeps<'a>(frames: &'a [Vec<SlitFrame<'a>>]) -> Vec<SlitSweep<'a>> {
+        frames
             .iter()
             .map(|f| SlitSweep::new(f, SIZE * SIZE).unwrap())
-            .collect();
+            .collect()
+    }
+
+    /// Fits the scene like the fit stage (3 x 3 tiles, up to 4 components) and applies the prior.
+    fn fit_and_regularise(s: &Scene) -> (LayerModel, LayerModel, PriorReport) {
+        let slit_frames = slit_frames(s);
+        let sweeps = sweeps(&slit_frames);
         let opts = FitOptions {
             em: EmConfig {
                 components: 3,
@@ -1262,22 +1271,8 @@ mod tests {
         // paper's rank averaging of sigmas causes.
         let truth = 0.3;
         let s = scene(|_| truth, |_| 1.0, 13);
-        let slit_frames: Vec<Vec<SlitFrame>> = s
-            .frames
-            .iter()
-            .map(|f| {
-                f.iter()
-                    .map(|(pattern, img)| SlitFrame {
-                        pattern: *pattern,
-                        global: img,
-                    })
-                    .collect()
-            })
-            .collect();
-        let sweeps: Vec<SlitSweep> = slit_frames
-            .iter()
-            .map(|f| SlitSweep::new(f, SIZE * SIZE).unwrap())
-            .collect();
+        let slit_frames = slit_frames(&s);
+        let sweeps = sweeps(&slit_frames);
         let opts = FitOptions {
             em: EmConfig {
                 components: 3,
