@@ -18,5 +18,6 @@ pub mod photometry;
 pub mod pipeline;
 pub mod report;
 pub mod rig;
+pub mod special;
 pub mod subsurface;
 pub mod virtual_booth;

@@ -22,7 +22,9 @@
 //! Report fragment: `components_mean`, `depth_spacing_mm`, `depth_estimate`, `pixels_fitted`, `pixels_skipped`,
 //! `pixels_filled`, `fits`, `mean_iterations`, `em`, `components`, `holdout`,
 //! `training_projectors`, `model_file`, `model_bytes`, `timing_s.{load,fit,dipole,save,figures}`
-//! (wall) and `timing_cpu_s.{...same}` (CPU, all threads),
+//! (wall; `fit`'s parts `fit_normals`, `fit_em`, `fit_prior`; the model is saved while the
+//! figures are drawn, so `save` and `figures` overlap) and `timing_cpu_s.{load,fit,dipole,
+//! save_and_figures}` (CPU, all threads),
 //! and with a holdout on a simulated capture (unless `heldout_check` is off)
 //! `heldout_global_rel_rmse.{pattern}.{mlsss,homogeneous,dipole}`: relative RMS error of the held-out projector's rendered subsurface light
 //! against the simulator's, over the pixels that projector lights.
@@ -198,7 +200,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     let candidates: Vec<usize> = (0..captured)
         .filter(|&k| Some(k) != params.holdout)
         .collect();
-    let mut inputs = ProfileInputs::load(ctx, &record.params, &candidates)?;
+    let mut inputs = ProfileInputs::take_or_load(ctx, &record.params, &candidates)?;
     let training: Vec<usize> = candidates
         .into_iter()
         .filter(|&k| inputs.projectors[k].geometry.iter().any(Option::is_some))
@@ -255,8 +257,11 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         block: params.block,
         ..FitOptions::default()
     };
+    let normals_s = t1.elapsed().as_secs_f64();
     let surface = &inputs.surface;
+    let t_em = Instant::now();
     let mut fit = fit_model(surface, &geometries, &sweeps, &opts)?;
+    let em_s = t_em.elapsed().as_secs_f64();
     let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
     let prior = regularise_in_place(
         params.spatial_prior,
@@ -284,6 +289,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
             &sweeps,
             record.params.eta,
             params.block,
+            &fit.amplitudes,
         )?)
     } else {
         None
@@ -291,15 +297,38 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     let dipole_s = t2.elapsed().as_secs_f64();
     let c3 = cpu_seconds();
 
-    let t3 = Instant::now();
     let model = assemble(ctx, &inputs, &params, &training, layers, dipole, &fit.stats)?;
+    let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
+        (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
+        _ => None,
+    };
+    // Saving is mostly serial (one palette, then a few gzip members) and the figures' renders are
+    // parallel: side by side they fill the cores.
     let path = ctx.dir().join(MODEL_FILE);
-    model.save(&path)?;
+    let timed = |f: &dyn Fn() -> Result<(), FitStageError>| {
+        let t = Instant::now();
+        f().map(|()| t.elapsed().as_secs_f64())
+    };
+    let (save_s, figures_s) = rayon::join(
+        || timed(&|| Ok(model.save(&path)?)),
+        || {
+            timed(&|| {
+                write_figures(
+                    ctx,
+                    &inputs,
+                    &record,
+                    &model,
+                    &training,
+                    &sweeps,
+                    &geometries,
+                )
+            })
+        },
+    );
+    let (save_s, figures_s) = (save_s?, figures_s?);
     let model_bytes = std::fs::metadata(&path).map_or(0, |m| m.len());
-    let save_s = t3.elapsed().as_secs_f64();
     let c4 = cpu_seconds();
 
-    let t4 = Instant::now();
     let mut report = json!({
         "em": params.em,
         "components": params.components,
@@ -318,51 +347,49 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         "spatial_prior": prior,
         "shading": shading,
     });
-    if let (Some(h), Some(t), true) = (params.holdout, ctx.truth_dir(), params.heldout_check) {
-        report["heldout_global_rel_rmse"] = heldout_errors(&model, h, &t)?;
+    if let Some(errors) = heldout {
+        report["heldout_global_rel_rmse"] = errors;
     }
-    write_figures(
-        ctx,
-        &inputs,
-        &record,
-        &model,
-        &training,
-        &sweeps,
-        &geometries,
-    )?;
     report["timing_s"] = json!({
         "load": load_s,
         "fit": fit_s,
         "dipole": dipole_s,
+        // Side by side: each its own wall clock, the two overlap.
         "save": save_s,
-        "figures": t4.elapsed().as_secs_f64(),
+        "figures": figures_s,
+        // Parts of `fit`: the normals' shading correction, the EM (with the layer spacing and
+        // the amplitudes), the spatial prior and the filling of unfitted pixels.
+        "fit_normals": normals_s,
+        "fit_em": em_s,
+        "fit_prior": fit_s - normals_s - em_s,
     });
-    // The same split in CPU seconds (all threads), where the platform tells.
-    let c5 = cpu_seconds();
+    // The same split in CPU seconds (all threads), where the platform tells; save and figures
+    // ran together.
     let span = |a: Option<f64>, b: Option<f64>| a.zip(b).map(|(a, b)| b - a);
     report["timing_cpu_s"] = json!({
         "load": span(c0, c1),
         "fit": span(c1, c2),
         "dipole": span(c2, c3),
-        "save": span(c3, c4),
-        "figures": span(c4, c5),
+        "save_and_figures": span(c3, c4),
     });
     Ok(report)
 }
 
 /// Surface pixels without layers in a channel get the homogeneous layers of that channel.
 fn fill_unfitted(model: &LayerModel, fitted: &[bool], mask: &[bool]) -> (LayerModel, usize) {
-    let mean = model.homogeneous(fitted, mask);
+    let mean = model.mean_layers(fitted);
     let mut filled = 0;
     let out = LayerModel::from_fn(model.width, model.height, |i, c| {
         let own = model.layers(i, c);
-        if !own.is_empty() || !mask[i] {
-            return own.to_vec();
-        }
-        if c == 0 {
-            filled += 1;
-        }
-        mean.layers(i, c).to_vec()
+        let layers = if !own.is_empty() || !mask[i] {
+            own
+        } else {
+            if c == 0 {
+                filled += 1;
+            }
+            &mean[c]
+        };
+        layers.iter().copied()
     });
     (out, filled)
 }
@@ -532,7 +559,8 @@ fn model_profile(layers: &[SplatLayer], irradiance: f64, profile: &Profile, s: f
                 .iter()
                 .map(|k| {
                     let d = s - mu - k * period;
-                    0.5 * (libm::erf((d + w / 2.0) / sigma) - libm::erf((d - w / 2.0) / sigma))
+                    0.5 * (crate::special::erf((d + w / 2.0) / sigma)
+                        - crate::special::erf((d - w / 2.0) / sigma))
                 })
                 .sum();
             f64::from(l.weight) * irradiance * mass

@@ -15,6 +15,11 @@
 //!   stage uses one, and the keys of its inputs. A stage whose `stage.json` holds the same key is
 //!   not run again; its report fragment is reused. Changing a parameter re-runs that stage and
 //!   everything downstream of it.
+//! - Hand-over: a stage may also leave an in-memory result for a later stage of the same run
+//!   ([`StageContext::hand_over`], [`StageContext::take_handed_over`]), which then need not read it
+//!   back from disk (e.g. the decoded slit frames, from `profiles` to `fit`). It is only taken
+//!   when it was made under the key the pipeline holds for that stage in this run, and whatever
+//!   is left is dropped when the run ends.
 //! - Report: one JSON object. Each stage returns a fragment (a JSON object) stored under its name
 //!   (e.g. `geometry.depth_rmse_mm`); run times go to `timing_s.<stage>` (wall) and
 //!   `timing_cpu_s.<stage>` (CPU, all threads), reused stages are listed in `cached`.
@@ -40,8 +45,10 @@ pub mod normals;
 pub mod profiles;
 pub mod separate;
 
+use std::any::Any;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -169,6 +176,36 @@ pub struct StageContext<'a> {
     pub out: &'a Path,
     stage: &'static str,
     params: Option<&'a Value>,
+    /// This stage's cache key and those of the stages run before it in this run.
+    key: &'a str,
+    keys: &'a BTreeMap<&'static str, String>,
+    handed_over: &'a HandedOver,
+}
+
+/// In-memory results left by stages for later stages of the same run: stage name to (the
+/// stage's key when it made it, the value).
+#[derive(Default)]
+struct HandedOver(Mutex<BTreeMap<&'static str, KeyedValue>>);
+
+/// A handed-over value and the key of the stage run that made it.
+type KeyedValue = (String, Box<dyn Any + Send>);
+
+impl HandedOver {
+    fn put(&self, stage: &'static str, key: &str, value: Box<dyn Any + Send>) {
+        if let Ok(mut map) = self.0.lock() {
+            map.insert(stage, (key.to_owned(), value));
+        }
+    }
+
+    /// Removes and returns what `from` left, if it was made under `current_key` and is a `T`.
+    fn take<T: Any>(&self, from: &str, current_key: Option<&String>) -> Option<T> {
+        let mut map = self.0.lock().ok()?;
+        if map.get(from).map(|(key, _)| key) != current_key {
+            return None;
+        }
+        let (_, value) = map.remove(from)?;
+        value.downcast::<T>().ok().map(|b| *b)
+    }
 }
 
 impl StageContext<'_> {
@@ -199,6 +236,19 @@ impl StageContext<'_> {
     /// The capture's ground truth folder, if any.
     pub fn truth_dir(&self) -> Option<PathBuf> {
         self.capture.truth_dir()
+    }
+
+    /// Leaves `value` for a later stage of this run (see the module documentation); replaces
+    /// what this stage left before.
+    pub fn hand_over<T: Any + Send>(&self, value: T) {
+        self.handed_over.put(self.stage, self.key, Box::new(value));
+    }
+
+    /// Takes what stage `from` left with [`StageContext::hand_over`] in this run, if it is a `T`
+    /// made under the key the pipeline holds for `from` now. `None` otherwise (e.g. `from` came
+    /// from the cache): the caller reads `from`'s artefacts instead.
+    pub fn take_handed_over<T: Any + Send>(&self, from: &str) -> Option<T> {
+        self.handed_over.take(from, self.keys.get(from))
     }
 }
 
@@ -288,7 +338,8 @@ impl Pipeline {
         let mut timing = Map::new();
         let mut cpu = Map::new();
         let mut cached = Vec::new();
-        let mut keys: BTreeMap<&str, String> = BTreeMap::new();
+        let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
+        let handed_over = HandedOver::default();
         for stage in order {
             let key = self.stage_key(stage, &keys);
             let dir = self.out.join(stage.name);
@@ -305,7 +356,7 @@ impl Pipeline {
                     if let Some(cb) = &self.on_stage {
                         cb(stage.name, false);
                     }
-                    self.run_stage(stage, &dir, key.clone())?
+                    self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?
                 }
             };
             timing.insert(stage.name.into(), Value::from(record.seconds));
@@ -329,6 +380,8 @@ impl Pipeline {
         stage: &Stage,
         dir: &Path,
         key: String,
+        keys: &BTreeMap<&'static str, String>,
+        handed_over: &HandedOver,
     ) -> Result<StageRecord, PipelineError> {
         if stage.uses_calibration && self.calibration.is_none() {
             return Err(PipelineError::CalibrationRequired(stage.name));
@@ -343,6 +396,9 @@ impl Pipeline {
             out: &self.out,
             stage: stage.name,
             params: self.params.get(stage.name),
+            key: &key,
+            keys,
+            handed_over,
         };
         let start = Instant::now();
         let cpu_start = cpu_seconds();
@@ -529,6 +585,31 @@ mod tests {
             crate::imageio::write_exr_rgb(&truth::projector_coords(&truth_dir, k), &img).unwrap();
         }
         writer.finish().unwrap()
+    }
+
+    #[test]
+    fn a_handed_over_value_is_taken_once_and_only_under_the_current_key() {
+        let handed = HandedOver::default();
+        let (k1, k2) = (String::from("k1"), String::from("k2"));
+        handed.put("profiles", "k1", Box::new(5u32));
+        assert_eq!(
+            handed.take::<u32>("profiles", Some(&k2)),
+            None,
+            "another run's key"
+        );
+        assert_eq!(handed.take::<u32>("profiles", None), None, "stage not run");
+        assert_eq!(
+            handed.take::<u64>("profiles", Some(&k1)),
+            None,
+            "another type"
+        );
+        handed.put("profiles", "k1", Box::new(5u32));
+        assert_eq!(handed.take::<u32>("profiles", Some(&k1)), Some(5));
+        assert_eq!(
+            handed.take::<u32>("profiles", Some(&k1)),
+            None,
+            "taken once"
+        );
     }
 
     #[test]

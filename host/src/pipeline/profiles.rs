@@ -6,7 +6,9 @@
 //! plus a few geometry numbers; stored for every pixel that is the slit frames themselves again
 //! (1.4 GB of f32 for the full-size booth). [`ProfileInputs::load`] rebuilds them on demand from
 //! the capture and the cached artefacts of decode, geometry, separate and normals (a subtraction
-//! per frame), and the fit stage calls it. What this stage stores is small: the parameters the
+//! per frame), and the fit stage calls it when this stage came from the cache; when this stage ran
+//! in the same `process` run it hands its inputs over in memory instead
+//! ([`ProfileInputs::take_or_load`]). What this stage stores is small: the parameters the
 //! profiles were built with, a scanline of measured global light for plots, and its checks.
 //!
 //! Artefacts in `OUT/profiles/`:
@@ -381,6 +383,26 @@ fn projected_coords(
 }
 
 impl ProfileInputs {
+    /// What the profiles stage of this run handed over (every projector's slits; those not in
+    /// `with_slits` are dropped), else [`ProfileInputs::load`].
+    pub fn take_or_load(
+        ctx: &StageContext,
+        params: &ProfilesParams,
+        with_slits: &[usize],
+    ) -> Result<Self, ProfilesStageError> {
+        match ctx.take_handed_over::<ProfileInputs>(STAGE.name) {
+            Some(mut inputs) if inputs.params == *params => {
+                for p in &mut inputs.projectors {
+                    if !with_slits.contains(&p.k) {
+                        p.slits = Vec::new();
+                    }
+                }
+                Ok(inputs)
+            }
+            _ => Self::load(ctx, params, with_slits),
+        }
+    }
+
     /// Rebuilds the profiles' inputs from the cached artefacts: the surface, every projector's
     /// geometry, and the global slit frames of the projectors in `with_slits`.
     pub fn load(
@@ -709,6 +731,8 @@ fn run_profiles(ctx: &StageContext) -> Result<Value, ProfilesStageError> {
         message: e.to_string(),
     })?;
     write_scanline_plot(ctx, &inputs, &record, truth_dir.as_deref(), size)?;
+    // The fit stage of the same run starts from these instead of decoding the slit frames again.
+    ctx.hand_over(inputs);
     Ok(report)
 }
 

@@ -6,7 +6,7 @@
 
 use nalgebra::Vector3;
 
-use super::fit::{FitOptions, fit_dipole_model, fit_model};
+use super::fit::{FitOptions, fit_dipole_model, fit_model, pixel_amplitudes};
 use super::mixture::EmConfig;
 use super::profiles::{Falloff, ProjectorView, SlitFrame, SlitSweep, irradiance, pixel_geometry};
 use super::relight::{pattern_irradiance, shifts};
@@ -198,7 +198,15 @@ fn profiles_fit_and_relight_a_held_out_projector() {
     };
     let shift = shifts(&s, &held.centre, ETA, ViewRay::Refracted);
     let homogeneous = fit.model.homogeneous(&s.mask, &s.mask);
-    let dipole = fit_dipole_model(&s, &geometries, &sweeps, ETA, 1).unwrap();
+    let dipole = fit_dipole_model(
+        &s,
+        &geometries,
+        &sweeps,
+        ETA,
+        1,
+        &pixel_amplitudes(&s, &geometries, &sweeps),
+    )
+    .unwrap();
     let ropts = RenderOptions::default();
     for pattern in [
         Pattern::White,

@@ -37,6 +37,9 @@ pub enum FitError {
     /// The layer spacing could not be estimated.
     #[error(transparent)]
     Depth(#[from] LayerDepthError),
+    /// The amplitudes handed to the dipole fit are not one per pixel.
+    #[error("{got} pixel amplitudes for {want} pixels")]
+    AmplitudeCount { got: usize, want: usize },
     /// The per-projector inputs disagree in number.
     #[error("{geometries} projector geometries but {sweeps} slit sweeps")]
     ProjectorCount { geometries: usize, sweeps: usize },
@@ -102,6 +105,9 @@ pub struct FitStats {
 pub struct FitResult {
     pub model: LayerModel,
     pub stats: FitStats,
+    /// Every pixel's measured amplitude per channel, `sum_p F_p / sum_p E_p W_p` (0 off the
+    /// lit surface): what scales its layer weights, and the dipole's total reflectance.
+    pub amplitudes: Vec<[f32; 3]>,
 }
 
 /// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
@@ -124,6 +130,27 @@ pub(crate) fn pixel_profiles(
         }
     }
     (profiles, ew)
+}
+
+/// `sum_p F_p / sum_p E_p W_p` for pixel `i`, channel `c`: [`weight_scale`] of
+/// [`pixel_profiles`], without building the profiles.
+pub(crate) fn pixel_amplitude(
+    i: usize,
+    c: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> f64 {
+    let (mut flux, mut ew) = (0.0, 0.0);
+    for (geo, sweep) in geometries.iter().zip(sweeps) {
+        let Some(g) = geo[i] else { continue };
+        for a in 0..2 {
+            if let Some((f, width)) = sweep.flux(i, c, a, &g) {
+                flux += f;
+                ew += g.irradiance * width;
+            }
+        }
+    }
+    if ew > 0.0 { flux / ew } else { 0.0 }
 }
 
 /// `sum_p F_p / sum_p E_p W_p` for pixel `i`, channel `c`.
@@ -312,19 +339,7 @@ pub fn fit_model(
     }
     stats.mean_layers = layer_sum as f64 / stats.fits as f64;
     stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
-    // Every pixel's own amplitude (its profiles' flux), pixels in parallel.
-    let scales: Vec<[f32; 3]> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            if !lit_by_any(i) {
-                return [0.0; 3];
-            }
-            std::array::from_fn(|c| {
-                let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
-                weight_scale(&profiles, &ew) as f32
-            })
-        })
-        .collect();
+    let scales = pixel_amplitudes(surface, geometries, sweeps);
     let model = LayerModel::from_fn(w, h, |i, c| {
         if !lit_by_any(i) {
             return Vec::new();
@@ -343,7 +358,29 @@ pub fn fit_model(
             })
             .collect()
     });
-    Ok(FitResult { model, stats })
+    Ok(FitResult {
+        model,
+        stats,
+        amplitudes: scales,
+    })
+}
+
+/// Every pixel's own amplitude per channel (its profiles' flux over `sum E W`; 0 where no
+/// training projector lights it), pixels in parallel.
+pub fn pixel_amplitudes(
+    surface: &Surface,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> Vec<[f32; 3]> {
+    (0..surface.len())
+        .into_par_iter()
+        .map(|i| {
+            if !surface.mask[i] || geometries.iter().all(|g| g[i].is_none()) {
+                return [0.0; 3];
+            }
+            std::array::from_fn(|c| pixel_amplitude(i, c, geometries, sweeps) as f32)
+        })
+        .collect()
 }
 
 /// The pixel fitted for tile `(bx, by)`: its centre if lit, else the first lit pixel of the tile.
@@ -369,18 +406,26 @@ pub fn tile_pixel(
 /// The dipole baseline over the surface: one isotropic dipole per pixel and channel, fitted to the
 /// same profiles (see [`super::dipole`]). With `block > 1` the reduced extinction (the profile's
 /// shape) is fitted at one pixel per `block x block` tile, as [`fit_model`] does, and every pixel
-/// of the tile keeps its own reflectance (amplitude). Pixels without light get no layers.
+/// of the tile keeps its own reflectance, `amplitudes` ([`FitResult::amplitudes`] or
+/// [`pixel_amplitudes`]). Pixels without light get no layers.
 pub fn fit_dipole_model(
     surface: &Surface,
     geometries: &[Vec<Option<PixelGeometry>>],
     sweeps: &[SlitSweep],
     eta: f64,
     block: usize,
+    amplitudes: &[[f32; 3]],
 ) -> Result<LayerModel, FitError> {
     if geometries.len() != sweeps.len() {
         return Err(FitError::ProjectorCount {
             geometries: geometries.len(),
             sweeps: sweeps.len(),
+        });
+    }
+    if amplitudes.len() != surface.len() {
+        return Err(FitError::AmplitudeCount {
+            got: amplitudes.len(),
+            want: surface.len(),
         });
     }
     let table = super::dipole::DipoleTable::new(eta);
@@ -430,8 +475,7 @@ pub fn fit_dipole_model(
                 let Some(ext) = extinctions[tile][c] else {
                     continue;
                 };
-                let (profiles, ew) = pixel_profiles(i, c, geometries, sweeps);
-                if let Some(fit) = table.with_extinction(weight_scale(&profiles, &ew), ext) {
+                if let Some(fit) = table.with_extinction(f64::from(amplitudes[i][c]), ext) {
                     *layers = fit.layers;
                 }
             }

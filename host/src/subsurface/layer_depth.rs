@@ -257,7 +257,7 @@ mod tests {
     /// The exact profile of a layered model through a slit comb: each layer a Gaussian at
     /// `z_l c` convolved with the box, with its images one period away (as the sweep sees it).
     fn profile(params: &LayeredParams, c: f64) -> Profile {
-        let cdf = |x: f64| 0.5 * libm::erfc(-x / std::f64::consts::SQRT_2);
+        let cdf = |x: f64| 0.5 * crate::special::erfc(-x / std::f64::consts::SQRT_2);
         let samples = (0..30)
             .map(|j| {
                 let s = -T / 2.0 + (j as f64 + 0.5) * T / 30.0;

@@ -18,7 +18,7 @@
 //! `sum n_l ln pi_l`), pruning of floor-weight components only when removal does not lower the
 //! likelihood. Model selection by BIC is a separate, explicit step that may lower it.
 
-use super::boxed_gaussian::BoxedGaussian;
+use super::boxed_gaussian::{BoxedGaussian, walk_boxes};
 
 /// Errors of the EM fits.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -344,6 +344,7 @@ pub(crate) fn e_step<M: MeanModel>(
     let mut total = 0.0;
     let with_stats = stats.is_some();
     let mut terms: Vec<Term> = Vec::with_capacity(k * (2 * wrap + 1));
+    let mut linear = LinearTerms::default();
     // (component, weight, its boxed Gaussian in this profile): components with weight only.
     let mut components: Vec<(usize, f64, BoxedGaussian)> = Vec::with_capacity(k);
     for (p, prof) in data.profiles.iter().enumerate() {
@@ -363,24 +364,25 @@ pub(crate) fn e_step<M: MeanModel>(
                 },
             )
         }));
+        linear.fill(&components, prof, weights, wrap, with_stats);
         let mut ll = 0.0;
-        for (sample, &y) in prof.samples.iter().zip(weights) {
+        for (j, (sample, &y)) in prof.samples.iter().zip(weights).enumerate() {
             if y <= 0.0 {
                 continue;
             }
-            let mut sum = linear_terms(&components, prof, sample.s, wrap, with_stats, &mut terms);
-            let ln_sum = if sum >= LINEAR_SUM_MIN {
-                sum.ln()
+            let mut sum = linear.sums[j];
+            let (ln_sum, sample_terms) = if sum >= LINEAR_SUM_MIN {
+                (sum.ln(), linear.terms[j].as_slice())
             } else {
                 let (max, shares) =
                     log_terms(&components, prof, sample.s, wrap, with_stats, &mut terms);
                 sum = shares;
-                max + shares.ln()
+                (max + shares.ln(), terms.as_slice())
             };
             ll += y * ln_sum;
             if let Some(st) = stats.as_deref_mut() {
                 let scale = y / sum;
-                for &(c, share, mean, var) in &terms {
+                for &(c, share, mean, var) in sample_terms {
                     let r = scale * share;
                     if r > 0.0 {
                         let i = st.at(p, c);
@@ -396,6 +398,70 @@ pub(crate) fn e_step<M: MeanModel>(
     total / data.profiles_with_signal() as f64
 }
 
+/// The linear-space terms of every sample of one profile: per sample, the joints `w h(s)` (and
+/// the posterior moments when wanted) of every component and slit image in the order
+/// components, then images, and their sum. Each component and image walks the samples in
+/// order of position so that neighbouring slit boxes share their common edge
+/// ([`walk_boxes`]).
+#[derive(Debug, Default)]
+struct LinearTerms {
+    terms: Vec<Vec<Term>>,
+    sums: Vec<f64>,
+    /// Samples with weight, by position.
+    order: Vec<usize>,
+}
+
+impl LinearTerms {
+    fn fill(
+        &mut self,
+        components: &[(usize, f64, BoxedGaussian)],
+        prof: &Profile,
+        weights: &[f64],
+        wrap: usize,
+        with_stats: bool,
+    ) {
+        let n = prof.samples.len();
+        self.terms.resize_with(n, Vec::new);
+        self.terms.iter_mut().for_each(Vec::clear);
+        self.sums.clear();
+        self.sums.resize(n, 0.0);
+        self.order.clear();
+        self.order.extend((0..n).filter(|&j| weights[j] > 0.0));
+        self.order
+            .sort_by(|&a, &b| prof.samples[a].s.total_cmp(&prof.samples[b].s));
+        for &(l, w, ref g) in components {
+            for offset in images(prof, wrap) {
+                walk_boxes(
+                    g,
+                    offset,
+                    &self.order,
+                    |j| prof.samples[j].s,
+                    |s| image_reaches(g, offset, s),
+                    with_stats,
+                    |j, lower, upper| {
+                        if with_stats {
+                            if let Some(post) = g.posterior_between(lower, upper) {
+                                let joint = w * post.density;
+                                self.sums[j] += joint;
+                                self.terms[j].push((l, joint, post.mean, post.variance));
+                            }
+                        } else {
+                            self.sums[j] += w * g.density_between(lower, upper);
+                        }
+                    },
+                );
+            }
+        }
+    }
+}
+
+/// Whether the slit image at `offset` of component `g` reaches sample `s`: beyond
+/// NEGLIGIBLE_SIGMAS an image (never the central one) contributes nothing worth computing.
+fn image_reaches(g: &BoxedGaussian, offset: f64, s: f64) -> bool {
+    let dist = (s - offset - g.mean).abs() - 0.5 * g.width;
+    offset == 0.0 || dist <= NEGLIGIBLE_SIGMAS * g.sigma
+}
+
 /// The slit images of `prof` component `g` reaches from sample `s`.
 fn images_of<'a>(
     prof: &'a Profile,
@@ -403,41 +469,7 @@ fn images_of<'a>(
     g: &'a BoxedGaussian,
     s: f64,
 ) -> impl Iterator<Item = f64> + 'a {
-    // Beyond NEGLIGIBLE_SIGMAS an image (never the central one) contributes nothing worth
-    // computing.
-    images(prof, wrap).filter(move |&offset| {
-        let dist = (s - offset - g.mean).abs() - 0.5 * g.width;
-        offset == 0.0 || dist <= NEGLIGIBLE_SIGMAS * g.sigma
-    })
-}
-
-/// Fills `terms` with the linear joints `w h(s)` (and the posterior moments when `with_stats`)
-/// of every component and slit image of one sample; returns their sum.
-fn linear_terms(
-    components: &[(usize, f64, BoxedGaussian)],
-    prof: &Profile,
-    s: f64,
-    wrap: usize,
-    with_stats: bool,
-    terms: &mut Vec<Term>,
-) -> f64 {
-    terms.clear();
-    let mut sum = 0.0;
-    for &(l, w, ref g) in components {
-        for offset in images_of(prof, wrap, g, s) {
-            let x = s - offset;
-            if with_stats {
-                if let Some(post) = g.posterior_linear(x) {
-                    let joint = w * post.density;
-                    sum += joint;
-                    terms.push((l, joint, post.mean, post.variance));
-                }
-            } else {
-                sum += w * g.density(x);
-            }
-        }
-    }
-    sum
+    images(prof, wrap).filter(move |&offset| image_reaches(g, offset, s))
 }
 
 /// Fills `terms` with the joints of one sample relative to the largest (`exp(ln joint - max)`),

@@ -28,7 +28,7 @@ pub fn pattern_level(pattern: &Pattern, u: f32, v: f32, blur_px: f32) -> f32 {
             .map(|j| {
                 let lo = (j as f64 - 0.5 - f64::from(c)) / sigma;
                 let hi = (j as f64 + 0.5 - f64::from(c)) / sigma;
-                (j, 0.5 * (libm::erf(hi) - libm::erf(lo)))
+                (j, 0.5 * (crate::special::erf(hi) - crate::special::erf(lo)))
             })
             .collect()
     };
@@ -154,7 +154,8 @@ mod tests {
         assert_eq!(pattern_level(&slit, 9.4, 0.0, 0.0), 0.0);
         // Blurred: Phi((12.5 - u) / s) - Phi((9.5 - u) / s), exactly (the erf terms telescope).
         for (u, blur) in [(11.0f32, 0.7f32), (9.5, 0.5), (13.2, 1.1)] {
-            let phi = |t: f64| 0.5 * (1.0 + libm::erf(t / (f64::from(blur) * 2f64.sqrt())));
+            let phi =
+                |t: f64| 0.5 * (1.0 + crate::special::erf(t / (f64::from(blur) * 2f64.sqrt())));
             let want = phi(12.5 - f64::from(u)) - phi(9.5 - f64::from(u));
             let got = f64::from(pattern_level(&slit, u, 50.0, blur));
             assert!(
@@ -227,7 +228,7 @@ mod tests {
                     sigma_mm,
                     depth_mm,
                 })
-                .collect()
+                .collect::<Vec<_>>()
         });
         let e = pattern_irradiance(&surface, &view, &slit, 0.0, 0.0);
         let shift = shifts(&surface, &light, 1.4, ViewRay::Refracted);
@@ -245,7 +246,7 @@ mod tests {
             &Falloff::Isotropic,
         );
         let tan_t = (theta.sin() / 1.4).asin().tan();
-        let phi = |t: f64| 0.5 * (1.0 + libm::erf(t / 2f64.sqrt()));
+        let phi = |t: f64| 0.5 * (1.0 + crate::special::erf(t / 2f64.sqrt()));
         let (c, width) = (5.1, 0.3);
         let row = h / 2;
         let mut peak = 0.0f64;

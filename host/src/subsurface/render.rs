@@ -68,10 +68,10 @@ pub struct LayerModel {
 
 impl LayerModel {
     /// Builds the model from a function giving each pixel's layers per channel.
-    pub fn from_fn(
+    pub fn from_fn<I: IntoIterator<Item = SplatLayer>>(
         width: usize,
         height: usize,
-        mut f: impl FnMut(usize, usize) -> Vec<SplatLayer>,
+        mut f: impl FnMut(usize, usize) -> I,
     ) -> Self {
         let mut offsets = Vec::with_capacity(width * height * 3 + 1);
         let mut layers = Vec::new();
@@ -130,6 +130,21 @@ impl LayerModel {
     /// layer index, the mean weight over the pixels of `average_over` and the weight-averaged
     /// sigma and depth.
     pub fn homogeneous(&self, average_over: &[bool], apply_to: &[bool]) -> Self {
+        let mean = self.mean_layers(average_over);
+        Self::from_fn(self.width, self.height, |i, c| {
+            let layers: &[SplatLayer] = if apply_to.get(i).copied().unwrap_or(false) {
+                &mean[c]
+            } else {
+                &[]
+            };
+            layers.iter().copied()
+        })
+    }
+
+    /// Per channel and layer index, the mean weight over the pixels of `average_over` and the
+    /// weight-averaged sigma and depth: the layers every pixel of [`LayerModel::homogeneous`]
+    /// gets.
+    pub fn mean_layers(&self, average_over: &[bool]) -> [Vec<SplatLayer>; 3] {
         let mut acc: Vec<std::collections::BTreeMap<u16, (f64, f64, f64)>> =
             vec![Default::default(); 3];
         let mut count = 0usize;
@@ -145,26 +160,17 @@ impl LayerModel {
                 }
             }
         }
-        let mean: Vec<Vec<SplatLayer>> = acc
-            .iter()
-            .map(|m| {
-                m.iter()
-                    .filter(|(_, v)| v.0 > 0.0)
-                    .map(|(&index, &(w, ws, wd))| SplatLayer {
-                        index,
-                        weight: (w / count.max(1) as f64) as f32,
-                        sigma_mm: (ws / w) as f32,
-                        depth_mm: (wd / w) as f32,
-                    })
-                    .collect()
-            })
-            .collect();
-        Self::from_fn(self.width, self.height, |i, c| {
-            if apply_to.get(i).copied().unwrap_or(false) {
-                mean[c].clone()
-            } else {
-                Vec::new()
-            }
+        std::array::from_fn(|c| {
+            acc[c]
+                .iter()
+                .filter(|(_, v)| v.0 > 0.0)
+                .map(|(&index, &(w, ws, wd))| SplatLayer {
+                    index,
+                    weight: (w / count.max(1) as f64) as f32,
+                    sigma_mm: (ws / w) as f32,
+                    depth_mm: (wd / w) as f32,
+                })
+                .collect()
         })
     }
 }
@@ -676,7 +682,7 @@ mod tests {
                         sigma_mm: (0.05f32.ln() + rng.gen_range(0.0..1.0f32) * 120f32.ln()).exp(),
                         depth_mm: rng.gen_range(0.0..1.5),
                     })
-                    .collect()
+                    .collect::<Vec<_>>()
             });
             let t = Vector3::new(rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8), 0.0);
             let shift = vec![Some(t); w * h];

@@ -69,7 +69,7 @@ pub fn lit_fraction(coord: f64, width: u32, period: u32, offset: u32, blur_px: f
     if blur_px <= 1e-6 {
         return if d.abs() < half { 1.0 } else { 0.0 };
     }
-    let phi = |t: f64| 0.5 * (1.0 + libm::erf(t / (blur_px * std::f64::consts::SQRT_2)));
+    let phi = |t: f64| 0.5 * (1.0 + crate::special::erf(t / (blur_px * std::f64::consts::SQRT_2)));
     let p = f64::from(period);
     // The nearest slit and its two neighbours (the blur never reaches further in practice).
     [-p, 0.0, p]
@@ -188,7 +188,9 @@ mod tests {
         // is erf(1.5 / (0.5 sqrt 2)) = 0.99730.
         assert!((lit_fraction(2.5, 3, 30, 0, 0.5) - 0.5).abs() < 1e-9);
         assert!(
-            (lit_fraction(1.0, 3, 30, 0, 0.5) - libm::erf(1.5 / (0.5 * 2f64.sqrt()))).abs() < 1e-9
+            (lit_fraction(1.0, 3, 30, 0, 0.5) - crate::special::erf(1.5 / (0.5 * 2f64.sqrt())))
+                .abs()
+                < 1e-9
         );
         // Summed over a period sampled every pixel, the lit fraction is the slit width.
         let total: f64 = (0..30)

@@ -277,6 +277,31 @@ fn profiles_by_projector(
         .collect()
 }
 
+/// Pixel `i`'s amplitude in channel `c` as each training projector that lights it measures it
+/// (its profiles' flux over their `E W`): the same numbers as [`profiles_by_projector`]'s
+/// groups give, without building the profiles.
+fn projector_amplitudes(
+    i: usize,
+    c: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> Vec<f64> {
+    geometries
+        .iter()
+        .zip(sweeps)
+        .filter_map(|(geo, sweep)| {
+            let g = geo.get(i).copied().flatten()?;
+            let (mut flux, mut ew, mut any) = (0.0, 0.0, false);
+            for (f, width) in (0..2).filter_map(|a| sweep.flux(i, c, a, &g)) {
+                flux += f;
+                ew += g.irradiance * width;
+                any = true;
+            }
+            (any && ew > 0.0).then(|| flux / ew)
+        })
+        .collect()
+}
+
 /// Log-likelihood (per unit weight, averaged over profiles) of `profiles` under `shape`, each
 /// layer at its own depth in units of `depth_spacing` (depth ignored when the spacing is 0, as
 /// the layered fit's means are then all 0).
@@ -898,11 +923,7 @@ pub fn regularise(
                 if own[i][c] <= 0.0 {
                     return Vec::new();
                 }
-                profiles_by_projector(i, c, geometries, sweeps)
-                    .iter()
-                    .filter(|(_, ew)| *ew > 0.0)
-                    .map(|(p, ew)| p.iter().map(Profile::flux).sum::<f64>() / ew)
-                    .collect()
+                projector_amplitudes(i, c, geometries, sweeps)
             })
         })
         .collect();
@@ -1104,7 +1125,8 @@ mod tests {
                 (-1..=1)
                     .map(|m| {
                         let d = s - f64::from(m) * f64::from(PERIOD);
-                        0.5 * (libm::erf((d + 0.5) / k) - libm::erf((d - 0.5) / k))
+                        0.5 * (crate::special::erf((d + 0.5) / k)
+                            - crate::special::erf((d - 0.5) / k))
                     })
                     .sum::<f64>()
                     * w
