@@ -23,8 +23,8 @@
 //! `pixels_filled`, `fits`, `mean_iterations`, `em`, `components`, `holdout`,
 //! `training_projectors`, `model_file`, `model_bytes`, `timing_s.{load,fit,dipole,save,figures}`
 //! (wall; `fit`'s parts `fit_normals`, `fit_em`, `fit_prior`; the model is saved while the
-//! figures are drawn, so `save` and `figures` overlap) and `timing_cpu_s.{load,fit,dipole,
-//! save_and_figures}` (CPU, all threads),
+//! figures are drawn, so `save` and `figures` overlap) and `timing_cpu_s.{load,fit,fit_normals,fit_em,
+//! fit_prior,dipole,save_and_figures}` (CPU, all threads),
 //! and with a holdout on a simulated capture (unless `heldout_check` is off)
 //! `heldout_global_rel_rmse.{pattern}.{mlsss,homogeneous,dipole}`: relative RMS error of the held-out projector's rendered subsurface light
 //! against the simulator's, over the pixels that projector lights.
@@ -33,6 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -258,10 +259,12 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         ..FitOptions::default()
     };
     let normals_s = t1.elapsed().as_secs_f64();
+    let c_em = cpu_seconds();
     let surface = &inputs.surface;
     let t_em = Instant::now();
     let mut fit = fit_model(surface, &geometries, &sweeps, &opts)?;
     let em_s = t_em.elapsed().as_secs_f64();
+    let c_prior = cpu_seconds();
     let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
     let prior = regularise_in_place(
         params.spatial_prior,
@@ -369,6 +372,9 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     report["timing_cpu_s"] = json!({
         "load": span(c0, c1),
         "fit": span(c1, c2),
+        "fit_normals": span(c1, c_em),
+        "fit_em": span(c_em, c_prior),
+        "fit_prior": span(c_prior, c2),
         "dipole": span(c2, c3),
         "save_and_figures": span(c3, c4),
     });
@@ -378,19 +384,19 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
 /// Surface pixels without layers in a channel get the homogeneous layers of that channel.
 fn fill_unfitted(model: &LayerModel, fitted: &[bool], mask: &[bool]) -> (LayerModel, usize) {
     let mean = model.mean_layers(fitted);
-    let mut filled = 0;
+    let unfitted = |i: usize, c: usize| mask[i] && model.layers(i, c).is_empty();
     let out = LayerModel::from_fn(model.width, model.height, |i, c| {
-        let own = model.layers(i, c);
-        let layers = if !own.is_empty() || !mask[i] {
-            own
-        } else {
-            if c == 0 {
-                filled += 1;
-            }
+        let layers = if unfitted(i, c) {
             &mean[c]
+        } else {
+            model.layers(i, c)
         };
         layers.iter().copied()
     });
+    let filled = (0..model.width * model.height)
+        .into_par_iter()
+        .filter(|&i| unfitted(i, 0))
+        .count();
     (out, filled)
 }
 

@@ -67,20 +67,39 @@ pub struct LayerModel {
 }
 
 impl LayerModel {
-    /// Builds the model from a function giving each pixel's layers per channel.
-    pub fn from_fn<I: IntoIterator<Item = SplatLayer>>(
-        width: usize,
-        height: usize,
-        mut f: impl FnMut(usize, usize) -> I,
-    ) -> Self {
-        let mut offsets = Vec::with_capacity(width * height * 3 + 1);
-        let mut layers = Vec::new();
+    /// Builds the model from a function giving each pixel's layers per channel. Runs of pixels
+    /// are built in parallel and joined in pixel order, so the result does not depend on the
+    /// threads (a full-size model is ~10^7 rows: serial, this was seconds of one core).
+    pub fn from_fn<I, F>(width: usize, height: usize, f: F) -> Self
+    where
+        I: IntoIterator<Item = SplatLayer>,
+        F: Fn(usize, usize) -> I + Sync,
+    {
+        const RUN: usize = 4096;
+        let n = width * height;
+        // Per run: the end of each row within the run's layers, and the layers.
+        let runs: Vec<(Vec<u32>, Vec<SplatLayer>)> = (0..n.div_ceil(RUN))
+            .into_par_iter()
+            .map(|r| {
+                let pixels = r * RUN..((r + 1) * RUN).min(n);
+                let mut ends = Vec::with_capacity(pixels.len() * 3);
+                let mut layers = Vec::new();
+                for i in pixels {
+                    for c in 0..3 {
+                        layers.extend(f(i, c));
+                        ends.push(layers.len() as u32);
+                    }
+                }
+                (ends, layers)
+            })
+            .collect();
+        let mut offsets = Vec::with_capacity(n * 3 + 1);
+        let mut layers = Vec::with_capacity(runs.iter().map(|r| r.1.len()).sum());
         offsets.push(0);
-        for i in 0..width * height {
-            for c in 0..3 {
-                layers.extend(f(i, c));
-                offsets.push(layers.len() as u32);
-            }
+        for (ends, run) in runs {
+            let base = layers.len() as u32;
+            offsets.extend(ends.iter().map(|e| base + e));
+            layers.extend(run);
         }
         Self {
             width,
@@ -673,17 +692,22 @@ mod tests {
                     if lit { rng.gen_range(0.2..1.0) } else { 0.0 }
                 })
                 .collect();
-            let model = LayerModel::from_fn(w, h, |_, _| {
-                (0..rng.gen_range(1..=3))
-                    .map(|k| SplatLayer {
-                        index: k,
-                        weight: rng.gen_range(0.01..1.0),
-                        // log-uniform over 0.05..6 mm = 0.25..30 px
-                        sigma_mm: (0.05f32.ln() + rng.gen_range(0.0..1.0f32) * 120f32.ln()).exp(),
-                        depth_mm: rng.gen_range(0.0..1.5),
-                    })
-                    .collect::<Vec<_>>()
-            });
+            // Drawn in pixel then channel order, as rows of the model.
+            let rows: Vec<Vec<SplatLayer>> = (0..w * h * 3)
+                .map(|_| {
+                    (0..rng.gen_range(1..=3))
+                        .map(|k| SplatLayer {
+                            index: k,
+                            weight: rng.gen_range(0.01..1.0),
+                            // log-uniform over 0.05..6 mm = 0.25..30 px
+                            sigma_mm: (0.05f32.ln() + rng.gen_range(0.0..1.0f32) * 120f32.ln())
+                                .exp(),
+                            depth_mm: rng.gen_range(0.0..1.5),
+                        })
+                        .collect()
+                })
+                .collect();
+            let model = LayerModel::from_fn(w, h, |i, c| rows[i * 3 + c].clone());
             let t = Vector3::new(rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8), 0.0);
             let shift = vec![Some(t); w * h];
             let fast_opts = RenderOptions::default();

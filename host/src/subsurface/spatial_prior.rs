@@ -39,7 +39,7 @@ use super::em_layered::{self, Layer, LayeredParams};
 use super::fit::tile_pixel;
 use super::mixture::{EmError, Profile};
 use super::profiles::{PixelGeometry, SlitSweep};
-use super::render::{LayerModel, SplatLayer};
+use super::render::{LayerModel, RenderOptions, SplatLayer};
 use super::surface::Surface;
 
 /// Errors of the spatial prior.
@@ -254,6 +254,19 @@ fn merged_mixture<'a>(shapes: impl Iterator<Item = &'a Shape>, bin_ratio: f64) -
         })
         .collect();
     (!out.is_empty()).then_some(out)
+}
+
+/// `shape` without the layers whose weight is at most the renderer's default
+/// `min_relative_weight` of the total, which it skips: merged shapes carry many such (the
+/// full-size subject's global shape: 9-14 of 25-29 layers per channel), and storing them made
+/// the model ~1.8x larger and every pass over it slower for no change in a default render. The
+/// rest keep their weights (the renderer does not renormalise either), so default renders are
+/// unchanged: dropping layers only raises the others' share of the smaller total.
+fn without_faint(mut shape: Shape) -> Shape {
+    let floor = RenderOptions::default().min_relative_weight;
+    let total: f32 = shape.iter().map(|l| l.weight).sum();
+    shape.retain(|l| l.weight > floor * total);
+    shape
 }
 
 /// Profiles of pixel `i`, channel `c`, grouped per training projector that lights it, with each
@@ -731,34 +744,31 @@ const KAPPAS: [f64; 16] = [
 /// estimate it needs no assumption that the projectors' errors are independent: errors that
 /// depend on the light direction (irradiance model, normals) do not carry over to a new
 /// projector, and this choice sees that.
-fn loo_kappa(per_pixel: &[Vec<f64>], mean: f64) -> Option<(f64, f64)> {
+fn loo_kappa<E: AsRef<[f64]>>(per_pixel: &[E], mean: f64) -> Option<(f64, f64)> {
     if mean <= 0.0 {
         return None;
     }
-    let rel: Vec<(Vec<f64>, f64)> = per_pixel
-        .iter()
-        .filter(|e| e.len() >= 2)
-        .map(|e| {
-            let r: Vec<f64> = e.iter().map(|a| a / mean - 1.0).collect();
-            let total = r.iter().sum();
-            (r, total)
-        })
-        .collect();
-    let mut best: Option<(f64, f64)> = None;
-    for &kappa in &KAPPAS {
-        let (mut sum, mut count) = (0.0, 0usize);
-        for (r, total) in &rel {
-            let others = (r.len() - 1) as f64;
-            for d in r {
+    // One pass over the pixels for all kappas (each kappa's sum in pixel order).
+    let mut sums = [0.0f64; KAPPAS.len()];
+    let mut count = 0usize;
+    for estimates in per_pixel.iter().map(AsRef::as_ref).filter(|e| e.len() >= 2) {
+        let total: f64 = estimates.iter().map(|a| a / mean - 1.0).sum();
+        let others = (estimates.len() - 1) as f64;
+        for a in estimates {
+            let d = a / mean - 1.0;
+            for (sum, kappa) in sums.iter_mut().zip(KAPPAS) {
                 // keep * mean of the others = sum of the others / (others + kappa).
                 let predicted = (total - d) / (others + kappa);
-                sum += (d - predicted).powi(2);
-                count += 1;
+                *sum += (d - predicted).powi(2);
             }
+            count += 1;
         }
-        if count == 0 {
-            return None;
-        }
+    }
+    if count == 0 {
+        return None;
+    }
+    let mut best: Option<(f64, f64)> = None;
+    for (&kappa, sum) in KAPPAS.iter().zip(sums) {
         let mse = sum / count as f64;
         if best.is_none_or(|b| mse < b.1) {
             best = Some((kappa, mse));
@@ -786,7 +796,7 @@ impl AmplitudeStats {
 
 /// Method-of-moments variance components from per-pixel lists of per-projector estimates
 /// (relative to their grand mean), and the subject mean `mean` of the pixel amplitudes.
-fn amplitude_stats(per_pixel: &[Vec<f64>], mean: f64) -> AmplitudeStats {
+fn amplitude_stats<E: AsRef<[f64]>>(per_pixel: &[E], mean: f64) -> AmplitudeStats {
     let mut none = AmplitudeStats {
         mean,
         noise: 0.0,
@@ -800,7 +810,11 @@ fn amplitude_stats(per_pixel: &[Vec<f64>], mean: f64) -> AmplitudeStats {
     let (mut within, mut dof) = (0.0, 0usize);
     let mut pixel_means = Vec::with_capacity(per_pixel.len());
     let mut noise_share = Vec::with_capacity(per_pixel.len());
-    for estimates in per_pixel.iter().filter(|e| !e.is_empty()) {
+    for estimates in per_pixel
+        .iter()
+        .map(AsRef::as_ref)
+        .filter(|e| !e.is_empty())
+    {
         let rel: Vec<f64> = estimates.iter().map(|a| a / mean - 1.0).collect();
         let m = rel.iter().sum::<f64>() / rel.len() as f64;
         within += rel.iter().map(|d| (d - m).powi(2)).sum::<f64>();
@@ -927,48 +941,53 @@ pub fn regularise(
             })
         })
         .collect();
-    let stats: [AmplitudeStats; 3] = std::array::from_fn(|c| {
-        let with: Vec<f64> = own.iter().map(|a| a[c]).filter(|a| *a > 0.0).collect();
-        let mean = if with.is_empty() {
-            0.0
-        } else {
-            with.iter().sum::<f64>() / with.len() as f64
-        };
-        let lists: Vec<Vec<f64>> = per_projector.iter().map(|p| p[c].clone()).collect();
-        let mut st = amplitude_stats(&lists, mean);
-        if let Some((kappa, mse)) = loo_kappa(&lists, mean) {
-            st.kappa = Some(kappa);
-            st.cv_mse = Some(mse);
-        }
-        st
-    });
+    // Channels in parallel; each reads its column of the per-projector lists in place.
+    let stats: Vec<AmplitudeStats> = (0..3)
+        .into_par_iter()
+        .map(|c| {
+            let with: Vec<f64> = own.iter().map(|a| a[c]).filter(|a| *a > 0.0).collect();
+            let mean = if with.is_empty() {
+                0.0
+            } else {
+                with.iter().sum::<f64>() / with.len() as f64
+            };
+            let lists: Vec<&[f64]> = per_projector.iter().map(|p| p[c].as_slice()).collect();
+            let mut st = amplitude_stats(&lists, mean);
+            if let Some((kappa, mse)) = loo_kappa(&lists, mean) {
+                st.kappa = Some(kappa);
+                st.cv_mse = Some(mse);
+            }
+            st
+        })
+        .collect();
 
-    // Shapes of every tile under the chosen neighbourhoods.
+    // Shapes of every tile under the chosen neighbourhoods, without the layers the renderer
+    // skips by default.
     let final_shapes: Vec<[Option<Shape>; 3]> = (0..inputs.tiles.count())
         .into_par_iter()
         .map(|t| {
-            std::array::from_fn(|c| hood_shape(&inputs, &shapes, &global, t, c, chosen[c], None))
+            std::array::from_fn(|c| {
+                hood_shape(&inputs, &shapes, &global, t, c, chosen[c], None).map(without_faint)
+            })
         })
         .collect();
-    let mut keep_sum = [0.0f64; 3];
-    let mut keep_count = [0usize; 3];
-    let out = LayerModel::from_fn(surface.width, surface.height, |i, c| {
-        let amplitude = own[i][c];
-        if amplitude <= 0.0 {
-            return model.layers(i, c).to_vec();
+    // The prior's shape and the fraction of the amplitude's deviation kept, where both apply.
+    let prior_of = |i: usize, c: usize| -> Option<(&Shape, Option<f64>)> {
+        if own[i][c] <= 0.0 {
+            return None;
         }
-        let Some(shape) = &final_shapes[inputs.tiles.of_pixel(i)][c] else {
+        let shape = final_shapes[inputs.tiles.of_pixel(i)][c].as_ref()?;
+        let st = &stats[c];
+        let keep =
+            (opts.shrink_amplitude && st.mean > 0.0).then(|| st.keep(per_projector[i][c].len()));
+        Some((shape, keep))
+    };
+    let out = LayerModel::from_fn(surface.width, surface.height, |i, c| {
+        let Some((shape, keep)) = prior_of(i, c) else {
             return model.layers(i, c).to_vec();
         };
-        let st = &stats[c];
-        let target = if opts.shrink_amplitude && st.mean > 0.0 {
-            let keep = st.keep(per_projector[i][c].len());
-            keep_sum[c] += keep;
-            keep_count[c] += 1;
-            st.mean * (1.0 + keep * (amplitude / st.mean - 1.0))
-        } else {
-            amplitude
-        };
+        let (amplitude, mean) = (own[i][c], stats[c].mean);
+        let target = keep.map_or(amplitude, |k| mean * (1.0 + k * (amplitude / mean - 1.0)));
         shape
             .iter()
             .map(|l| SplatLayer {
@@ -977,6 +996,14 @@ pub fn regularise(
             })
             .collect()
     });
+    let mean_keep_fraction = |c: usize| {
+        let keeps: Vec<f64> = (0..n).filter_map(|i| prior_of(i, c)?.1).collect();
+        if keeps.is_empty() {
+            1.0
+        } else {
+            keeps.iter().sum::<f64>() / keeps.len() as f64
+        }
+    };
     let channels = (0..3)
         .map(|c| ChannelPrior {
             shape: chosen[c].label(),
@@ -987,11 +1014,7 @@ pub fn regularise(
             signal_variance: stats[c].signal,
             amplitude_kappa: stats[c].kappa,
             amplitude_cv_mse: stats[c].cv_mse,
-            mean_keep_fraction: if keep_count[c] > 0 {
-                keep_sum[c] / keep_count[c] as f64
-            } else {
-                1.0
-            },
+            mean_keep_fraction: mean_keep_fraction(c),
         })
         .collect();
     Ok((
@@ -1061,6 +1084,52 @@ mod tests {
         // Weights 0.5 at 0.1 (twice) and 0.5 at 0.2: mean depth 0.4 / 3.
         assert!((f64::from(m[0].depth_mm) - 0.4 / 3.0).abs() < 1e-6, "{m:?}");
         assert!(merged_mixture(std::iter::empty(), 1.25).is_none());
+    }
+
+    /// Regression (full-size model 1.8x too large): faint layers of a shape are not stored, and
+    /// a default render of the model does not change for it, to the bit.
+    #[test]
+    fn faint_layers_are_dropped_without_changing_a_default_render() {
+        let shape = vec![
+            layer(0, 0.55, 0.3),
+            layer(1, 0.0009, 0.5),
+            layer(2, 0.4, 1.2),
+            layer(3, 0.0004, 2.5),
+            layer(4, 0.0487, 4.0),
+        ];
+        let kept = without_faint(shape.clone());
+        assert_eq!(kept, vec![shape[0], shape[2], shape[4]]);
+
+        let (w, h, pitch) = (48, 40, 0.1);
+        let surface = Surface {
+            width: w,
+            height: h,
+            points: (0..w * h)
+                .map(|i| Vector3::new((i % w) as f64 * pitch, (i / w) as f64 * pitch, 0.0))
+                .collect(),
+            normals: vec![Vector3::z(); w * h],
+            mask: vec![true; w * h],
+            camera_centre: Vector3::new(0.0, 0.0, 1e4),
+        };
+        let mut rng = Pcg64::seed_from_u64(5);
+        let irradiance: Vec<f32> = (0..w * h).map(|_| rng.gen_range(0.0..1.0)).collect();
+        let amplitude: Vec<f32> = (0..w * h).map(|_| rng.gen_range(0.2..0.9)).collect();
+        let scaled = |s: &Shape, i: usize| -> Vec<SplatLayer> {
+            s.iter()
+                .map(|l| SplatLayer {
+                    weight: l.weight * amplitude[i],
+                    ..*l
+                })
+                .collect()
+        };
+        let shift = vec![Some(Vector3::new(0.3, -0.2, 0.0)); w * h];
+        let opts = RenderOptions::default();
+        let render = |s: &Shape| {
+            let model = LayerModel::from_fn(w, h, |i, _| scaled(s, i));
+            crate::subsurface::render::render_global(&surface, &irradiance, &shift, &model, &opts)
+                .unwrap()
+        };
+        assert_eq!(render(&shape), render(&kept));
     }
 
     #[test]
