@@ -185,10 +185,133 @@ impl SubsurfaceModel {
     /// The homogeneous baseline: layers averaged over the pixels that have a fit, applied to the
     /// whole surface.
     pub fn homogeneous(&self) -> LayerModel {
+        let (w, h) = (self.header.width, self.header.height);
+        LayerModel::uniform(w, h, &self.homogeneous_layers(), &self.surface.mask)
+    }
+
+    /// The layers every skin pixel of [`SubsurfaceModel::homogeneous`] gets, per channel: the
+    /// mean over the fitted pixels.
+    pub fn homogeneous_layers(&self) -> [Vec<SplatLayer>; 3] {
         let fitted: Vec<bool> = (0..self.surface.len())
             .map(|i| (0..3).any(|c| !self.layers.layers(i, c).is_empty()))
             .collect();
-        self.layers.homogeneous(&fitted, &self.surface.mask)
+        self.layers.mean_layers(&fitted)
+    }
+
+    /// The model of image rows `rows` alone (clamped to the image): renders it gives agree with
+    /// the whole model's on the rows [`SubsurfaceModel::rows_reaching`] says they need.
+    pub fn rows(&self, rows: std::ops::Range<usize>) -> Self {
+        let end = rows.end.min(self.header.height);
+        let start = rows.start.min(end);
+        let span = start * self.header.width..end * self.header.width;
+        Self {
+            header: ModelHeader {
+                height: end - start,
+                ..self.header.clone()
+            },
+            surface: self.surface.rows(start..end),
+            albedo: self.albedo[span.clone()].to_vec(),
+            white_albedo: self.white_albedo[span.clone()].to_vec(),
+            visibility: self
+                .visibility
+                .iter()
+                .map(|v| v[span.clone()].to_vec())
+                .collect(),
+            layers: self.layers.rows(start..end),
+            dipole: self.dipole.as_ref().map(|d| d.rows(start..end)),
+        }
+    }
+
+    /// The rows a render of `baseline` with `opts` needs to get rows `rows` right: every source
+    /// whose light can reach them (per pixel: its widest and deepest layer, shifted by the
+    /// steepest refracted incidence `eta` allows plus its own view term, over its smallest
+    /// stretch), widened to the pyramid's grid so every level is sampled as on the whole image.
+    /// Serves figures that show a scanline.
+    pub fn rows_reaching(
+        &self,
+        rows: std::ops::Range<usize>,
+        baseline: Baseline,
+        opts: &RenderOptions,
+    ) -> std::ops::Range<usize> {
+        let height = self.header.height;
+        let eta = self.header.eta;
+        if eta.is_nan() || eta <= 1.0 {
+            return 0..height;
+        }
+        // Shift per depth: a refracted incident ray at most tan(asin(1 / eta)); the view term
+        // as `ViewRay` says, from the pixel's own view angle.
+        let incident = 1.0 / (eta * eta - 1.0).sqrt();
+        let view_term = |i: usize| {
+            let to_camera = (self.surface.camera_centre - self.surface.points[i]).normalize();
+            let cos = self.surface.normals[i].dot(&to_camera).abs().min(1.0);
+            let sin = (1.0 - cos * cos).sqrt();
+            match self.header.view_ray {
+                ViewRay::ExitPoint => 0.0,
+                ViewRay::Unrefracted => sin / cos,
+                ViewRay::Refracted => (sin / eta) / (1.0 - (sin / eta).powi(2)).sqrt(),
+            }
+        };
+        // Widest sigma and deepest layer of pixel `i` under `baseline`.
+        let homogeneous = match baseline {
+            Baseline::Homogeneous => {
+                let layers = self.homogeneous_layers();
+                let uniform = LayerModel::uniform(1, 1, &layers, &[true]);
+                Some(uniform.extent(0))
+            }
+            _ => None,
+        };
+        let extent = |i: usize| match (baseline, &self.dipole) {
+            (Baseline::Mlsss, _) => self.layers.extent(i),
+            (Baseline::Dipole, Some(d)) => d.extent(i),
+            (Baseline::Homogeneous, _) => homogeneous.unwrap_or_default(),
+            (Baseline::Dipole, None) | (Baseline::Direct, _) => (0.0, 0.0),
+        };
+        let width = self.header.width;
+        // Per image row: how far its sources' light can travel (0 without sources), and the
+        // coarsest pyramid level they use.
+        let per_row: Vec<(f64, usize)> = (0..height)
+            .into_par_iter()
+            .map(|y| {
+                (y * width..(y + 1) * width)
+                    .filter_map(|i| {
+                        let stretch = self.surface.footprint(i)?.smallest_stretch();
+                        let (sigma, depth) = extent(i);
+                        if stretch <= 0.0 {
+                            return Some((f64::INFINITY, usize::MAX));
+                        }
+                        let shift = (incident + view_term(i)) * depth;
+                        let sigma_px = sigma / stretch;
+                        Some((
+                            opts.reach_px(sigma_px, shift / stretch),
+                            opts.level_factor(sigma_px),
+                        ))
+                    })
+                    .fold((0.0f64, 1usize), |a, b| (a.0.max(b.0), a.1.max(b.1)))
+            })
+            .collect();
+        // A row is needed when its light reaches one of `rows` (plus two rows: a crop's edge
+        // rows see their surface one-sidedly).
+        let reaches = |y: usize| {
+            let (reach, _) = per_row[y];
+            let gap = if y < rows.start {
+                rows.start - y
+            } else {
+                y.saturating_sub(rows.end.saturating_sub(1))
+            };
+            gap as f64 <= reach + 2.0
+        };
+        let (Some(first), Some(last)) = (
+            (0..height).find(|&y| reaches(y)),
+            (0..height).rev().find(|&y| reaches(y)),
+        ) else {
+            return rows.start.min(height)..rows.end.min(height);
+        };
+        let factor = per_row[first..=last].iter().map(|r| r.1).max().unwrap_or(1);
+        if factor > height {
+            return 0..height;
+        }
+        let start = first.min(rows.start) / factor * factor;
+        start..(last + 1).max(rows.end).min(height)
     }
 
     /// Projector `k`'s coordinates of every visible surface pixel, projected through the
@@ -708,10 +831,13 @@ mod tests {
 
     /// A small model of the plane z = 0 seen by the quick booth's calibration.
     fn plane_model() -> SubsurfaceModel {
+        plane_model_sized(24, 16)
+    }
+
+    fn plane_model_sized(w: usize, h: usize) -> SubsurfaceModel {
         let booth = Booth::builtin(true);
         let calibration = Calibration::from_booth(&booth);
         let cam = booth.camera_calibration();
-        let (w, h) = (24usize, 16usize);
         // A patch of the camera image around its centre, scaled down to w x h.
         let points: Vec<Vector3<f64>> = (0..w * h)
             .map(|i| {
@@ -781,6 +907,56 @@ mod tests {
             layers,
             dipole: None,
         }
+    }
+
+    /// A scanline rendered from the band of rows `rows_reaching` names is the whole model's
+    /// (how the fit stage draws Fig. 10 without rendering the whole image twice); a band half
+    /// as wide is not, so the reach is not padding.
+    #[test]
+    fn a_band_of_rows_renders_its_scanline_as_the_whole_model_does() {
+        let (w, h, row) = (24, 140, 70);
+        let mut model = plane_model_sized(w, h);
+        model.layers = LayerModel::from_fn(w, h, |i, c| {
+            [(0.05, 0.4, 0.0), (0.03, 2.5, 0.6)].map(|(weight, sigma_mm, depth_mm)| SplatLayer {
+                index: 1,
+                weight: weight + 0.01 * c as f32 + 1e-5 * i as f32,
+                sigma_mm,
+                depth_mm,
+            })
+        });
+        model.header.view_ray = ViewRay::Refracted;
+        let opts = RenderOptions::default();
+        let band = model.rows_reaching(row..row + 1, Baseline::Mlsss, &opts);
+        assert!(band.start > 0 && band.end < h, "{band:?}");
+        let slit = Pattern::Slit {
+            axis: Axis::Y,
+            width: 2,
+            period: 6,
+            offset: 0,
+        };
+        let scanline = |m: &SubsurfaceModel, r: usize| -> Vec<[f32; 3]> {
+            let g = render_pattern_alone(m, 1, &slit, Baseline::Mlsss, &opts)
+                .unwrap()
+                .global;
+            g[r * w..(r + 1) * w].to_vec()
+        };
+        let whole = scanline(&model, row);
+        let peak = whole.iter().flatten().fold(0.0f32, |a, &b| a.max(b));
+        assert!(peak > 0.0);
+        let gap = |part: &[[f32; 3]]| {
+            whole
+                .iter()
+                .flatten()
+                .zip(part.iter().flatten())
+                .map(|(a, b)| (a - b).abs() / peak)
+                .fold(0.0f32, f32::max)
+        };
+        let banded = scanline(&model.rows(band.clone()), row - band.start);
+        assert!(gap(&banded) < 1e-5, "{}", gap(&banded));
+        let half = band.len() / 4;
+        let narrow = row - half..row + half;
+        let short = scanline(&model.rows(narrow.clone()), row - narrow.start);
+        assert!(gap(&short) > 1e-3, "{}", gap(&short));
     }
 
     #[test]

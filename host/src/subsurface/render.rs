@@ -21,6 +21,8 @@
 //! Conventions as in [`super::surface`]; output radiance per pixel is in the frames' units when
 //! `E` and the weights are.
 
+use std::collections::BTreeMap;
+
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
@@ -149,33 +151,99 @@ impl LayerModel {
     /// layer index, the mean weight over the pixels of `average_over` and the weight-averaged
     /// sigma and depth.
     pub fn homogeneous(&self, average_over: &[bool], apply_to: &[bool]) -> Self {
-        let mean = self.mean_layers(average_over);
-        Self::from_fn(self.width, self.height, |i, c| {
-            let layers: &[SplatLayer] = if apply_to.get(i).copied().unwrap_or(false) {
-                &mean[c]
+        Self::uniform(
+            self.width,
+            self.height,
+            &self.mean_layers(average_over),
+            apply_to,
+        )
+    }
+
+    /// The model giving every pixel of `apply_to` the same layers per channel, `layers`.
+    pub fn uniform(
+        width: usize,
+        height: usize,
+        layers: &[Vec<SplatLayer>; 3],
+        apply_to: &[bool],
+    ) -> Self {
+        Self::from_fn(width, height, |i, c| {
+            let own: &[SplatLayer] = if apply_to.get(i).copied().unwrap_or(false) {
+                &layers[c]
             } else {
                 &[]
             };
-            layers.iter().copied()
+            own.iter().copied()
         })
+    }
+
+    /// The model of rows `rows` alone (clamped to the image).
+    pub fn rows(&self, rows: std::ops::Range<usize>) -> Self {
+        let end = rows.end.min(self.height);
+        let start = rows.start.min(end);
+        let rows = start * self.width * 3..end * self.width * 3;
+        let (base, top) = (self.offsets[rows.start], self.offsets[rows.end]);
+        Self {
+            width: self.width,
+            height: end - start,
+            offsets: self.offsets[rows.start..=rows.end]
+                .iter()
+                .map(|o| o - base)
+                .collect(),
+            layers: self.layers[base as usize..top as usize].to_vec(),
+        }
+    }
+
+    /// Widest sigma and deepest layer (mm) of pixel `i`, over the channels.
+    pub fn extent(&self, i: usize) -> (f64, f64) {
+        (0..3)
+            .flat_map(|c| self.layers(i, c))
+            .fold((0.0, 0.0), |(s, d), l| {
+                (
+                    s.max(f64::from(l.sigma_mm)),
+                    d.max(f64::from(l.depth_mm).abs()),
+                )
+            })
     }
 
     /// Per channel and layer index, the mean weight over the pixels of `average_over` and the
     /// weight-averaged sigma and depth: the layers every pixel of [`LayerModel::homogeneous`]
     /// gets.
     pub fn mean_layers(&self, average_over: &[bool]) -> [Vec<SplatLayer>; 3] {
-        let mut acc: Vec<std::collections::BTreeMap<u16, (f64, f64, f64)>> =
-            vec![Default::default(); 3];
+        // Per channel, layer index -> (weight, weight * sigma, weight * depth) sums; runs of
+        // pixels summed in parallel, the runs' sums added in order (same result every run).
+        type Sums = [BTreeMap<u16, (f64, f64, f64)>; 3];
+        const RUN: usize = 1 << 14;
+        let runs: Vec<(Sums, usize)> = average_over
+            .par_chunks(RUN)
+            .enumerate()
+            .map(|(r, flags)| {
+                let mut sums: Sums = Default::default();
+                let mut count = 0usize;
+                for (i, _) in flags.iter().enumerate().filter(|m| *m.1) {
+                    count += 1;
+                    for (c, acc) in sums.iter_mut().enumerate() {
+                        for l in self.layers(r * RUN + i, c) {
+                            let e = acc.entry(l.index).or_insert((0.0, 0.0, 0.0));
+                            let w = f64::from(l.weight);
+                            e.0 += w;
+                            e.1 += w * f64::from(l.sigma_mm);
+                            e.2 += w * f64::from(l.depth_mm);
+                        }
+                    }
+                }
+                (sums, count)
+            })
+            .collect();
+        let mut acc: Sums = Default::default();
         let mut count = 0usize;
-        for (i, _) in average_over.iter().enumerate().filter(|m| *m.1) {
-            count += 1;
-            for (c, acc) in acc.iter_mut().enumerate() {
-                for l in self.layers(i, c) {
-                    let e = acc.entry(l.index).or_insert((0.0, 0.0, 0.0));
-                    let w = f64::from(l.weight);
+        for (sums, n) in runs {
+            count += n;
+            for (acc, sums) in acc.iter_mut().zip(sums) {
+                for (index, (w, ws, wd)) in sums {
+                    let e = acc.entry(index).or_insert((0.0, 0.0, 0.0));
                     e.0 += w;
-                    e.1 += w * f64::from(l.sigma_mm);
-                    e.2 += w * f64::from(l.depth_mm);
+                    e.1 += ws;
+                    e.2 += wd;
                 }
             }
         }
@@ -249,6 +317,23 @@ impl RenderOptions {
 
     fn bin_sigma(&self, bin: usize) -> f64 {
         self.min_sigma_px * self.sigma_bin_ratio.powi(bin as i32)
+    }
+
+    /// Farthest, in pixels, a render carries the light of a source whose layers are at most
+    /// `sigma_px` wide and shifted by at most `shift_px`: the truncated kernel of the bin above
+    /// `sigma_px`, plus the bilinear splat and read-back on that bin's pyramid level.
+    pub fn reach_px(&self, sigma_px: f64, shift_px: f64) -> f64 {
+        let sigma = self.bin_sigma(self.bin_position(sigma_px).floor() as usize + 1);
+        let f = self.level_factor(sigma_px);
+        self.truncate_sigmas * sigma + shift_px + 2.0 * f as f64 + 1.0
+    }
+
+    /// Downsampling factor of the coarsest pyramid level a layer of at most `sigma_px` uses:
+    /// a crop of the image that starts at a multiple of it samples every level as the whole
+    /// image does.
+    pub fn level_factor(&self, sigma_px: f64) -> usize {
+        let sigma = self.bin_sigma(self.bin_position(sigma_px).floor() as usize + 1);
+        1 << self.bin_level(sigma)
     }
 
     /// Downsampling factor `2^level` of the pyramid level a bin of `sigma_px` is blurred on.

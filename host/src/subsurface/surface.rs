@@ -113,6 +113,18 @@ impl Footprint {
         self.dx.cross(&self.dy).norm()
     }
 
+    /// Smallest surface length (mm) a displacement of one pixel can have: the smaller singular
+    /// value of `[dx dy]`, so a displacement of `d` mm is at most `d / stretch` pixels.
+    pub fn smallest_stretch(&self) -> f64 {
+        let (a, b, c) = (
+            self.dx.dot(&self.dx),
+            self.dx.dot(&self.dy),
+            self.dy.dot(&self.dy),
+        );
+        let half_gap = (((a - c) / 2.0).powi(2) + b * b).sqrt();
+        ((a + c) / 2.0 - half_gap).max(0.0).sqrt()
+    }
+
     /// Pixel offset `(dx, dy)` whose surface displacement is closest to `d` (least squares).
     pub fn pixels_for(&self, d: &Vector3<f64>) -> Option<Vector2<f64>> {
         let jtj = Matrix2::new(
@@ -127,6 +139,21 @@ impl Footprint {
 }
 
 impl Surface {
+    /// The surface of rows `rows` alone (clamped to the image).
+    pub fn rows(&self, rows: std::ops::Range<usize>) -> Self {
+        let end = rows.end.min(self.height);
+        let start = rows.start.min(end);
+        let span = start * self.width..end * self.width;
+        Self {
+            width: self.width,
+            height: end - start,
+            points: self.points[span.clone()].to_vec(),
+            normals: self.normals[span.clone()].to_vec(),
+            mask: self.mask[span].to_vec(),
+            camera_centre: self.camera_centre,
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.width * self.height
     }
