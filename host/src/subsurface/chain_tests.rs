@@ -26,16 +26,7 @@ const LAYERS: [(f64, f64, f64, f64); 2] = [(0.1, 0.3, 0.25, 0.25), (0.6, 0.7, 0.
 
 fn surface() -> Surface {
     let centre = Vector3::new(W as f64 * PITCH / 2.0, H as f64 * PITCH / 2.0, 0.0);
-    Surface {
-        width: W,
-        height: H,
-        points: (0..W * H)
-            .map(|i| Vector3::new((i % W) as f64 * PITCH, (i / W) as f64 * PITCH, 0.0))
-            .collect(),
-        normals: vec![Vector3::z(); W * H],
-        mask: vec![true; W * H],
-        camera_centre: centre + Vector3::new(0.0, 0.0, FAR),
-    }
+    Surface::flat(W, H, PITCH, centre + Vector3::new(0.0, 0.0, FAR))
 }
 
 fn projector_centre(k: usize) -> Vector3<f64> {

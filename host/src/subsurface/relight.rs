@@ -189,16 +189,7 @@ mod tests {
         let (w, h, pitch) = (160usize, 71usize, 0.1f64);
         let far = 1e5;
         let centre = Vector3::new(w as f64 * pitch / 2.0, h as f64 * pitch / 2.0, 0.0);
-        let surface = Surface {
-            width: w,
-            height: h,
-            points: (0..w * h)
-                .map(|i| Vector3::new((i % w) as f64 * pitch, (i / w) as f64 * pitch, 0.0))
-                .collect(),
-            normals: vec![Vector3::z(); w * h],
-            mask: vec![true; w * h],
-            camera_centre: centre + Vector3::new(0.0, 0.0, far),
-        };
+        let surface = Surface::flat(w, h, pitch, centre + Vector3::new(0.0, 0.0, far));
         let theta = 40f64.to_radians();
         let light = centre + far * Vector3::new(-theta.sin(), 0.0, theta.cos());
         // One projector pixel per camera pixel along x.

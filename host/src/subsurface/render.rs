@@ -637,16 +637,7 @@ mod tests {
 
     /// A flat patch z = 0 on a `pitch` mm grid, seen from far above.
     fn plane(w: usize, h: usize, pitch: f64) -> Surface {
-        Surface {
-            width: w,
-            height: h,
-            points: (0..w * h)
-                .map(|i| Vector3::new((i % w) as f64 * pitch, (i / w) as f64 * pitch, 0.0))
-                .collect(),
-            normals: vec![Vector3::z(); w * h],
-            mask: vec![true; w * h],
-            camera_centre: Vector3::new(0.0, 0.0, 1e4),
-        }
+        Surface::flat(w, h, pitch, Vector3::new(0.0, 0.0, 1e4))
     }
 
     fn normal_pdf(x: f64, sigma: f64) -> f64 {

@@ -1101,16 +1101,7 @@ mod tests {
         assert_eq!(kept, vec![shape[0], shape[2], shape[4]]);
 
         let (w, h, pitch) = (48, 40, 0.1);
-        let surface = Surface {
-            width: w,
-            height: h,
-            points: (0..w * h)
-                .map(|i| Vector3::new((i % w) as f64 * pitch, (i / w) as f64 * pitch, 0.0))
-                .collect(),
-            normals: vec![Vector3::z(); w * h],
-            mask: vec![true; w * h],
-            camera_centre: Vector3::new(0.0, 0.0, 1e4),
-        };
+        let surface = Surface::flat(w, h, pitch, Vector3::new(0.0, 0.0, 1e4));
         let mut rng = Pcg64::seed_from_u64(5);
         let irradiance: Vec<f32> = (0..w * h).map(|_| rng.gen_range(0.0..1.0)).collect();
         let amplitude: Vec<f32> = (0..w * h).map(|_| rng.gen_range(0.2..0.9)).collect();

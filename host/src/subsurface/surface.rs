@@ -154,6 +154,28 @@ impl Surface {
         }
     }
 
+    /// The flat patch z = 0 on a `pitch` mm grid (pixel `(x, y)` at `(x, y) * pitch`), all of
+    /// it skin, seen from `camera_centre`: the scene of the analytic tests.
+    #[cfg(test)]
+    pub(crate) fn flat(
+        width: usize,
+        height: usize,
+        pitch: f64,
+        camera_centre: Vector3<f64>,
+    ) -> Self {
+        let n = width * height;
+        Self {
+            width,
+            height,
+            points: (0..n)
+                .map(|i| Vector3::new((i % width) as f64 * pitch, (i / width) as f64 * pitch, 0.0))
+                .collect(),
+            normals: vec![Vector3::z(); n],
+            mask: vec![true; n],
+            camera_centre,
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.width * self.height
     }
