@@ -1185,8 +1185,7 @@ mod tests {
                 (-1..=1)
                     .map(|m| {
                         let d = s - f64::from(m) * f64::from(PERIOD);
-                        0.5 * (crate::special::erf((d + 0.5) / k)
-                            - crate::special::erf((d - 0.5) / k))
+                        0.5 * (libm::erf((d + 0.5) / k) - libm::erf((d - 0.5) / k))
                     })
                     .sum::<f64>()
                     * w
