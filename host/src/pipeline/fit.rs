@@ -53,7 +53,7 @@ use crate::subsurface::model_file::{
 };
 use crate::subsurface::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use crate::subsurface::relight::{direct_albedo, pattern_irradiance};
-use crate::subsurface::render::{LayerModel, RenderOptions, SplatLayer};
+use crate::subsurface::render::{LayerModel, RenderOptions, SplatLayer, extent};
 use crate::subsurface::shading_regression::refine_normals;
 use crate::subsurface::spatial_prior::regularise_in_place;
 
@@ -273,7 +273,8 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     let (regularised, dipole) = rayon::join(
         || -> Result<_, FitStageError> {
             let t = Instant::now();
-            let mut model = std::mem::replace(&mut fit.model, LayerModel::from_fn(0, 0, |_, _| []));
+            // Taken, so the unregularised model is freed once the filled copy exists.
+            let mut model = std::mem::take(&mut fit.model);
             let prior = regularise_in_place(
                 params.spatial_prior,
                 &mut model,
@@ -283,9 +284,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
                 block,
                 spacing,
             )?;
-            let fitted: Vec<bool> = (0..surface.len())
-                .map(|i| (0..3).any(|c| !model.layers(i, c).is_empty()))
-                .collect();
+            let fitted = model.fitted();
             let (layers, filled) = fill_unfitted(&model, &fitted, &surface.mask);
             Ok((prior, fitted, layers, filled, t.elapsed().as_secs_f64()))
         },
@@ -651,17 +650,24 @@ fn write_figures(
     // The measured and true curves are the slit's light alone (without the black level's).
     // Rendered from the band of rows whose light reaches the scanline: the same curve as from
     // the whole image, for a fraction of the work.
-    let [a, b] = [Baseline::Mlsss, Baseline::Homogeneous]
-        .map(|baseline| model.rows_reaching(row..row + 1, baseline, &opts));
-    let band = a.start.min(b.start)..a.end.max(b.end);
+    let mean = model.homogeneous_layers();
+    let mean_extent = extent(mean.iter().flatten());
+    let band = model.rows_reaching(
+        row..row + 1,
+        |i| {
+            let own = model.layers.extent(i);
+            let mean = if model.surface.mask[i] {
+                mean_extent
+            } else {
+                (0.0, 0.0)
+            };
+            (own.0.max(mean.0), own.1.max(mean.1))
+        },
+        &opts,
+    );
     let r = row - band.start;
     let mut crop = model.rows(band);
-    let homogeneous = LayerModel::uniform(
-        w,
-        crop.header.height,
-        &model.homogeneous_layers(),
-        &crop.surface.mask,
-    );
+    let homogeneous = LayerModel::uniform(w, crop.header.height, &mean, &crop.surface.mask);
     let ours_alone = render_pattern_alone(&crop, k, &slit, Baseline::Mlsss, &opts)?.global;
     crop.layers = homogeneous;
     let homogeneous_alone = render_pattern_alone(&crop, k, &slit, Baseline::Mlsss, &opts)?.global;

@@ -192,10 +192,7 @@ impl SubsurfaceModel {
     /// The layers every skin pixel of [`SubsurfaceModel::homogeneous`] gets, per channel: the
     /// mean over the fitted pixels.
     pub fn homogeneous_layers(&self) -> [Vec<SplatLayer>; 3] {
-        let fitted: Vec<bool> = (0..self.surface.len())
-            .map(|i| (0..3).any(|c| !self.layers.layers(i, c).is_empty()))
-            .collect();
-        self.layers.mean_layers(&fitted)
+        self.layers.mean_layers(&self.layers.fitted())
     }
 
     /// The model of image rows `rows` alone (clamped to the image): renders it gives agree with
@@ -222,15 +219,15 @@ impl SubsurfaceModel {
         }
     }
 
-    /// The rows a render of `baseline` with `opts` needs to get rows `rows` right: every source
-    /// whose light can reach them (per pixel: its widest and deepest layer, shifted by the
-    /// steepest refracted incidence `eta` allows plus its own view term, over its smallest
-    /// stretch), widened to the pyramid's grid so every level is sampled as on the whole image.
-    /// Serves figures that show a scanline.
+    /// The rows a render with `opts` needs to get rows `rows` right when pixel `i` is rendered
+    /// with layers of `extent(i)` (widest sigma, deepest layer; mm): every source whose light
+    /// can reach them (its widest layer, shifted by the steepest refracted incidence `eta`
+    /// allows plus its own view term, over its smallest stretch), widened to the pyramid's grid
+    /// so every level is sampled as on the whole image. Serves figures that show a scanline.
     pub fn rows_reaching(
         &self,
         rows: std::ops::Range<usize>,
-        baseline: Baseline,
+        extent: impl Fn(usize) -> (f64, f64) + Sync,
         opts: &RenderOptions,
     ) -> std::ops::Range<usize> {
         let height = self.header.height;
@@ -250,21 +247,6 @@ impl SubsurfaceModel {
                 ViewRay::Unrefracted => sin / cos,
                 ViewRay::Refracted => (sin / eta) / (1.0 - (sin / eta).powi(2)).sqrt(),
             }
-        };
-        // Widest sigma and deepest layer of pixel `i` under `baseline`.
-        let homogeneous = match baseline {
-            Baseline::Homogeneous => {
-                let layers = self.homogeneous_layers();
-                let uniform = LayerModel::uniform(1, 1, &layers, &[true]);
-                Some(uniform.extent(0))
-            }
-            _ => None,
-        };
-        let extent = |i: usize| match (baseline, &self.dipole) {
-            (Baseline::Mlsss, _) => self.layers.extent(i),
-            (Baseline::Dipole, Some(d)) => d.extent(i),
-            (Baseline::Homogeneous, _) => homogeneous.unwrap_or_default(),
-            (Baseline::Dipole, None) | (Baseline::Direct, _) => (0.0, 0.0),
         };
         let width = self.header.width;
         // Per image row: how far its sources' light can travel (0 without sources), and the
@@ -926,7 +908,7 @@ mod tests {
         });
         model.header.view_ray = ViewRay::Refracted;
         let opts = RenderOptions::default();
-        let band = model.rows_reaching(row..row + 1, Baseline::Mlsss, &opts);
+        let band = model.rows_reaching(row..row + 1, |i| model.layers.extent(i), &opts);
         assert!(band.start > 0 && band.end < h, "{band:?}");
         let slit = Pattern::Slit {
             axis: Axis::Y,

@@ -59,13 +59,23 @@ pub struct SplatLayer {
 }
 
 /// Per-pixel, per-channel layers (compressed rows: pixels carry only the layers they kept).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct LayerModel {
     pub width: usize,
     pub height: usize,
     /// `offsets[(i * 3 + c)]..offsets[i * 3 + c + 1]` indexes `layers` for pixel `i`, channel `c`.
     offsets: Vec<u32>,
     layers: Vec<SplatLayer>,
+}
+
+/// Widest sigma and deepest layer (mm) of `layers` (0 without layers).
+pub fn extent<'a>(layers: impl IntoIterator<Item = &'a SplatLayer>) -> (f64, f64) {
+    layers.into_iter().fold((0.0, 0.0), |(s, d), l| {
+        (
+            s.max(f64::from(l.sigma_mm)),
+            d.max(f64::from(l.depth_mm).abs()),
+        )
+    })
 }
 
 impl LayerModel {
@@ -195,14 +205,14 @@ impl LayerModel {
 
     /// Widest sigma and deepest layer (mm) of pixel `i`, over the channels.
     pub fn extent(&self, i: usize) -> (f64, f64) {
-        (0..3)
-            .flat_map(|c| self.layers(i, c))
-            .fold((0.0, 0.0), |(s, d), l| {
-                (
-                    s.max(f64::from(l.sigma_mm)),
-                    d.max(f64::from(l.depth_mm).abs()),
-                )
-            })
+        extent((0..3).flat_map(|c| self.layers(i, c)))
+    }
+
+    /// Pixels with layers in some channel.
+    pub fn fitted(&self) -> Vec<bool> {
+        (0..self.width * self.height)
+            .map(|i| (0..3).any(|c| !self.layers(i, c).is_empty()))
+            .collect()
     }
 
     /// Per channel and layer index, the mean weight over the pixels of `average_over` and the
@@ -323,17 +333,20 @@ impl RenderOptions {
     /// `sigma_px` wide and shifted by at most `shift_px`: the truncated kernel of the bin above
     /// `sigma_px`, plus the bilinear splat and read-back on that bin's pyramid level.
     pub fn reach_px(&self, sigma_px: f64, shift_px: f64) -> f64 {
-        let sigma = self.bin_sigma(self.bin_position(sigma_px).floor() as usize + 1);
         let f = self.level_factor(sigma_px);
-        self.truncate_sigmas * sigma + shift_px + 2.0 * f as f64 + 1.0
+        self.truncate_sigmas * self.bin_above(sigma_px) + shift_px + 2.0 * f as f64 + 1.0
     }
 
     /// Downsampling factor of the coarsest pyramid level a layer of at most `sigma_px` uses:
     /// a crop of the image that starts at a multiple of it samples every level as the whole
     /// image does.
     pub fn level_factor(&self, sigma_px: f64) -> usize {
-        let sigma = self.bin_sigma(self.bin_position(sigma_px).floor() as usize + 1);
-        1 << self.bin_level(sigma)
+        1 << self.bin_level(self.bin_above(sigma_px))
+    }
+
+    /// Sigma of the widest bin a layer of `sigma_px` is splatted into.
+    fn bin_above(&self, sigma_px: f64) -> f64 {
+        self.bin_sigma(self.bin_position(sigma_px).floor() as usize + 1)
     }
 
     /// Downsampling factor `2^level` of the pyramid level a bin of `sigma_px` is blurred on.
