@@ -19,8 +19,8 @@ use std::f64::consts::PI;
 use super::boxed_gaussian::{BoxedGaussian, walk_boxes};
 #[cfg(test)]
 use super::em_free::{self, Component};
-use super::mixture::NEGLIGIBLE_SIGMAS;
 use super::mixture::Profile;
+use super::mixture::image_reaches;
 use super::render::SplatLayer;
 
 /// Widths (units of `1/s_t'`) of the Gaussians representing the dipole.
@@ -380,11 +380,6 @@ impl<'a> PreparedProfiles<'a> {
                 Some(t) => [-t, 0.0, t],
                 None => [0.0, f64::NAN, f64::NAN],
             };
-            let reaches = |g: &BoxedGaussian, o: f64, s: f64| {
-                o == 0.0
-                    || (o.is_finite()
-                        && (s - o).abs() - 0.5 * g.width <= NEGLIGIBLE_SIGMAS * g.sigma)
-            };
             let gaussian = |width: f64| BoxedGaussian {
                 mean: 0.0,
                 sigma: width / ext,
@@ -400,7 +395,7 @@ impl<'a> PreparedProfiles<'a> {
                         o,
                         order,
                         |j| prof.samples[j].s,
-                        |s| reaches(&g, o, s),
+                        |s| image_reaches(&g, o, s),
                         false,
                         |j, lower, upper| densities[j] += weight * g.density_between(lower, upper),
                     );
@@ -422,7 +417,7 @@ impl<'a> PreparedProfiles<'a> {
                             let g = gaussian(width);
                             offsets
                                 .into_iter()
-                                .filter(move |&o| reaches(&g, o, sample.s))
+                                .filter(move |&o| image_reaches(&g, o, sample.s))
                                 .map(move |o| weight.ln() + g.ln_density(sample.s - o))
                         })
                         .collect();

@@ -143,11 +143,9 @@ pub(crate) fn pixel_amplitude(
     let (mut flux, mut ew) = (0.0, 0.0);
     for (geo, sweep) in geometries.iter().zip(sweeps) {
         let Some(g) = geo[i] else { continue };
-        for a in 0..2 {
-            if let Some((f, width)) = sweep.flux(i, c, a, &g) {
-                flux += f;
-                ew += g.irradiance * width;
-            }
+        for (f, e) in sweep.fluxes(i, c, &g) {
+            flux += f;
+            ew += e;
         }
     }
     if ew > 0.0 { flux / ew } else { 0.0 }

@@ -456,8 +456,9 @@ impl LinearTerms {
 }
 
 /// Whether the slit image at `offset` of component `g` reaches sample `s`: beyond
-/// NEGLIGIBLE_SIGMAS an image (never the central one) contributes nothing worth computing.
-fn image_reaches(g: &BoxedGaussian, offset: f64, s: f64) -> bool {
+/// NEGLIGIBLE_SIGMAS an image (never the central one) contributes nothing worth computing. A
+/// NaN offset (no such image) reaches nothing.
+pub(crate) fn image_reaches(g: &BoxedGaussian, offset: f64, s: f64) -> bool {
     let dist = (s - offset - g.mean).abs() - 0.5 * g.width;
     offset == 0.0 || dist <= NEGLIGIBLE_SIGMAS * g.sigma
 }

@@ -305,6 +305,20 @@ impl<'a> SlitSweep<'a> {
             f64::from(width) / px_per_mm,
         ))
     }
+
+    /// Per axis with slits, `(flux, E W)` of pixel `i`, channel `c` ([`SlitSweep::flux`] and its
+    /// irradiance times slit width): what an amplitude `sum F / sum E W` sums.
+    pub fn fluxes<'g>(
+        &'g self,
+        i: usize,
+        c: usize,
+        geo: &'g PixelGeometry,
+    ) -> impl Iterator<Item = (f64, f64)> + 'g {
+        (0..2).filter_map(move |a| {
+            let (flux, width) = self.flux(i, c, a, geo)?;
+            Some((flux, geo.irradiance * width))
+        })
+    }
 }
 
 #[cfg(test)]

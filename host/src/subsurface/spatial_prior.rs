@@ -305,9 +305,9 @@ fn projector_amplitudes(
         .filter_map(|(geo, sweep)| {
             let g = geo.get(i).copied().flatten()?;
             let (mut flux, mut ew, mut any) = (0.0, 0.0, false);
-            for (f, width) in (0..2).filter_map(|a| sweep.flux(i, c, a, &g)) {
+            for (f, e) in sweep.fluxes(i, c, &g) {
                 flux += f;
-                ew += g.irradiance * width;
+                ew += e;
                 any = true;
             }
             (any && ew > 0.0).then(|| flux / ew)
