@@ -178,16 +178,40 @@ impl Capture {
 
     /// Reads frame `index` as linear RGB in [0, 1].
     pub fn read_frame(&self, index: u32) -> Result<Rgb32FImage, CaptureError> {
+        let (path, codes) = self.read_codes(index)?;
+        let data = codes.samples().collect();
+        Rgb32FImage::from_raw(codes.width(), codes.height(), data).ok_or_else(|| {
+            CaptureError::BadFrame {
+                path,
+                reason: "buffer size mismatch".into(),
+            }
+        })
+    }
+
+    /// Frame `index` as linear RGB pixels in [0, 1], row-major: what the per-pixel stages index,
+    /// made in one pass from the sensor codes (no `Rgb32FImage` to copy from).
+    pub fn read_frame_pixels(&self, index: u32) -> Result<Vec<[f32; 3]>, CaptureError> {
+        let (_, codes) = self.read_codes(index)?;
+        Ok(codes.pixels().collect())
+    }
+
+    /// Frame `index`'s luminance, the mean of its linear RGB, row-major (what Gray-code decoding
+    /// compares), made in one pass from the sensor codes.
+    pub fn read_frame_luminance(&self, index: u32) -> Result<Vec<f32>, CaptureError> {
+        let (_, codes) = self.read_codes(index)?;
+        Ok(codes.pixels().map(|p| (p[0] + p[1] + p[2]) / 3.0).collect())
+    }
+
+    /// Path and sensor codes of frame `index`.
+    fn read_codes(&self, index: u32) -> Result<(PathBuf, FrameCodes), CaptureError> {
         let count = self.manifest.plan.len();
         if index as usize >= count {
             return Err(CaptureError::NoSuchFrame { index, count });
         }
         let cam = &self.manifest.booth.camera;
-        read_frame_png(
-            &self.root.join(frame_file(index)),
-            self.manifest.bit_depth,
-            (cam.width, cam.height),
-        )
+        let path = self.root.join(frame_file(index));
+        let codes = read_frame_codes(&path, self.manifest.bit_depth, (cam.width, cam.height))?;
+        Ok((path, codes))
     }
 
     /// Reads the frame described by `spec`.
@@ -196,12 +220,48 @@ impl Capture {
     }
 }
 
-/// Reads a 16-bit (or 8-bit) RGB PNG written by [`write_frame_png`] as linear RGB in [0, 1].
-pub fn read_frame_png(
+/// A frame's sensor codes as stored (MSB-aligned in 16 bits) and their scale to linear [0, 1].
+struct FrameCodes {
+    rgb16: image::ImageBuffer<image::Rgb<u16>, Vec<u16>>,
+    /// Right shift from the stored 16 bits to the sensor's `bit_depth`.
+    shift: u32,
+    /// One sensor code in linear units: `1 / (2^bit_depth - 1)`.
+    scale: f32,
+}
+
+impl FrameCodes {
+    fn width(&self) -> u32 {
+        self.rgb16.width()
+    }
+
+    fn height(&self) -> u32 {
+        self.rgb16.height()
+    }
+
+    /// Linear samples, R, G, B of each pixel in row-major order.
+    fn samples(&self) -> impl Iterator<Item = f32> + '_ {
+        self.rgb16.as_raw().iter().map(|&c| self.linear(c))
+    }
+
+    /// Linear RGB of each pixel in row-major order.
+    fn pixels(&self) -> impl Iterator<Item = [f32; 3]> + '_ {
+        self.rgb16
+            .as_raw()
+            .chunks_exact(3)
+            .map(|p| [self.linear(p[0]), self.linear(p[1]), self.linear(p[2])])
+    }
+
+    fn linear(&self, code: u16) -> f32 {
+        (code >> self.shift) as f32 * self.scale
+    }
+}
+
+/// Reads a 16-bit (or 8-bit) RGB PNG written by [`write_frame_png`] as sensor codes.
+fn read_frame_codes(
     path: &Path,
     bit_depth: u32,
     expected_size: (u32, u32),
-) -> Result<Rgb32FImage, CaptureError> {
+) -> Result<FrameCodes, CaptureError> {
     let img = image::open(path).map_err(|source| CaptureError::Image {
         path: path.to_owned(),
         source,
@@ -218,19 +278,10 @@ pub fn read_frame_png(
             ),
         });
     }
-    let rgb16 = img.into_rgb16();
-    let shift = 16 - bit_depth.min(16);
-    let scale = 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32;
-    let data = rgb16
-        .as_raw()
-        .iter()
-        .map(|&c| (c >> shift) as f32 * scale)
-        .collect();
-    Rgb32FImage::from_raw(rgb16.width(), rgb16.height(), data).ok_or_else(|| {
-        CaptureError::BadFrame {
-            path: path.to_owned(),
-            reason: "buffer size mismatch".into(),
-        }
+    Ok(FrameCodes {
+        rgb16: img.into_rgb16(),
+        shift: 16 - bit_depth.min(16),
+        scale: 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32,
     })
 }
 
@@ -397,6 +448,18 @@ mod tests {
                 );
             }
         }
+        // The per-pixel and luminance readers give the same numbers as the image reader.
+        let pixels = cap.read_frame_pixels(0).unwrap();
+        let luminance = cap.read_frame_luminance(0).unwrap();
+        assert_eq!(pixels.len(), 40);
+        for ((p, l), b) in pixels.iter().zip(&luminance).zip(back.pixels()) {
+            assert_eq!(*p, b.0);
+            assert_eq!(*l, (b.0[0] + b.0[1] + b.0[2]) / 3.0);
+        }
+        assert!(matches!(
+            cap.read_frame_pixels(999),
+            Err(CaptureError::NoSuchFrame { .. })
+        ));
         assert!(matches!(
             cap.read_frame(999),
             Err(CaptureError::NoSuchFrame { .. })

@@ -77,6 +77,11 @@ pub struct Args {
     /// `decoded` (the Gray-code coordinates; subsurface light moves them toward the light).
     #[arg(long, value_enum, default_value_t = CoordinatesArg::Projected)]
     slit_coordinates: CoordinatesArg,
+    /// Profiles stage, simulated captures: also extract the slit frames by the other rules
+    /// (hard slit edges, each `--direct` rule) and report each one's error against the truth
+    /// (`slit_global_rel_rmse_*`; decodes the slit frames again).
+    #[arg(long)]
+    compare_slit_variants: bool,
     /// Fit stage: fixed layer spacing D (mm) instead of the subject-wide estimate.
     #[arg(long)]
     depth_spacing: Option<f64>,
@@ -159,6 +164,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             CoordinatesArg::Projected => SlitCoordinates::Projected,
             CoordinatesArg::Decoded => SlitCoordinates::Decoded,
         },
+        compare_variants: args.compare_slit_variants,
         ..ProfilesParams::default()
     };
     pipeline.set_params("profiles", serde_json::to_value(&profiles)?);

@@ -120,10 +120,11 @@ pub fn plan(quick: bool, captures: usize) -> Vec<SweepConfig> {
     for &n in components {
         out.push(vary("components", n.to_string(), &|c| c.components = n));
     }
+    // Around the default tolerance (1e-4): looser, and tighter to check it leaves nothing.
     let em: &[(f64, usize)] = if quick {
-        &[(1e-4, 20)]
+        &[(1e-5, 200)]
     } else {
-        &[(1e-4, 20), (1e-5, 50), (1e-6, 100)]
+        &[(1e-3, 200), (1e-5, 200), (1e-6, 200)]
     };
     for &(tol, it) in em {
         out.push(vary("em", format!("tol {tol:e} / {it} it"), &|c| {

@@ -100,7 +100,7 @@ pub fn from_capture(capture: &Capture, k: usize) -> Result<GrayCodeFrames, CodeF
     }
     let mut frames: Vec<Vec<f32>> = wanted
         .par_iter()
-        .map(|&index| capture.read_frame(index).map(|img| luminance(&img)))
+        .map(|&index| capture.read_frame_luminance(index))
         .collect::<Result<_, CaptureError>>()?;
     let white = frames.remove(0);
     let black = black.map(|_| frames.remove(0));

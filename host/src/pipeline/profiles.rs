@@ -21,8 +21,9 @@
 //! Report fragment: per projector `pixels_with_profiles`, `slit_frames`, `blur_px`,
 //! `black_level`; `scanline_row`; with ground truth `slit_global_rel_rmse` (relative RMS error of
 //! the extracted global part against the simulator's, over the subject, for every slit frame with
-//! truth) and, for comparison, `slit_global_rel_rmse_hard_mask` (unblurred slit edges) and
-//! `slit_global_rel_rmse_direct_{separation,none,colourless}` (each rule of [`DirectPart`]).
+//! truth) and, with [`ProfilesParams::compare_variants`], `slit_global_rel_rmse_hard_mask`
+//! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless}` (each
+//! rule of [`DirectPart`]).
 
 use std::path::{Path, PathBuf};
 
@@ -75,6 +76,10 @@ pub struct ProfilesParams {
     pub direct: DirectPart,
     /// Which projector coordinates place the slits on the surface (see [`SlitCoordinates`]).
     pub coordinates: SlitCoordinates,
+    /// With ground truth, also extract every slit frame by the other rules ([`VARIANTS`]) and
+    /// compare them with the truth. A design check, off by default: it decodes every slit frame
+    /// again and extracts it four more times (about 4 s of the full-size booth's processing).
+    pub compare_variants: bool,
 }
 
 /// The projector coordinates of each camera pixel that the profiles measure distances in.
@@ -147,6 +152,7 @@ impl Default for ProfilesParams {
             scanline_projector: 0,
             direct: DirectPart::None,
             coordinates: SlitCoordinates::Projected,
+            compare_variants: false,
         }
     }
 }
@@ -538,7 +544,7 @@ fn slit_globals(
     frames
         .par_iter()
         .map(|&(index, pattern)| {
-            let frame = pixels(&ctx.capture.read_frame(index)?);
+            let frame = ctx.capture.read_frame_pixels(index)?;
             let global = slit_global(&frame, &pattern, &p.coords, &white).map_err(|source| {
                 ProfilesStageError::SlitGlobal {
                     projector: p.k,
@@ -704,7 +710,7 @@ fn run_profiles(ctx: &StageContext) -> Result<Value, ProfilesStageError> {
     });
     let truth_dir = ctx.truth_dir();
     if let Some(t) = &truth_dir {
-        let errors = truth_check(ctx, &inputs, t, size)?;
+        let errors = truth_check(ctx, &inputs, t, size, params.compare_variants)?;
         if let Some(v) = errors[0] {
             report["slit_global_rel_rmse"] = v.into();
         }
@@ -745,22 +751,25 @@ const VARIANTS: [(&str, Option<DirectPart>); 4] = [
     ("direct_colourless", Some(DirectPart::Colourless)),
 ];
 
-/// Relative RMS errors of the extracted slit globals against the truth: as configured, then the
-/// [`VARIANTS`]. `None` entries when the capture has no slit truth. The slit frames of a
-/// projector are checked in parallel; each projector's white truth is read once.
+/// Relative RMS errors of the extracted slit globals against the truth: as configured, then
+/// (with `variants`) the [`VARIANTS`]. `None` entries when the capture has no slit truth. The
+/// slit frames of a projector are checked in parallel; each projector's white truth is read
+/// once.
 fn truth_check(
     ctx: &StageContext,
     inputs: &ProfileInputs,
     truth_dir: &Path,
     size: (u32, u32),
+    variants: bool,
 ) -> Result<Vec<Option<f64>>, ProfilesStageError> {
-    let mut acc = vec![(0.0, 0.0); VARIANTS.len() + 1];
+    let rules = if variants { &VARIANTS[..] } else { &[] };
+    let mut acc = vec![(0.0, 0.0); rules.len() + 1];
     let mut compared = 0;
     for p in &inputs.projectors {
         let Some(white_truth) = true_white_global(truth_dir, p.k, size)? else {
             continue;
         };
-        let splits: Vec<WhiteSplit> = VARIANTS
+        let splits: Vec<WhiteSplit> = rules
             .iter()
             .map(|(_, rule)| match rule {
                 None => (p.direct_white.clone(), p.global_white.clone(), 0.0),
@@ -802,7 +811,8 @@ fn truth_check(
 }
 
 /// The error sums `(sum err^2, sum truth^2)` of one slit frame of projector `p`: its extracted
-/// global part, then each of `splits`; `None` without truth for that slit.
+/// global part, then each of `splits` (the frame is decoded again only for those); `None`
+/// without truth for that slit.
 #[allow(clippy::too_many_arguments)]
 fn check_slit(
     ctx: &StageContext,
@@ -823,10 +833,11 @@ fn check_slit(
     };
     let mut sums = vec![(0.0, 0.0); splits.len() + 1];
     accumulate(&mut sums[0], global, &truth, mask);
-    let Some(frame) = ctx.capture.manifest.plan.find(p.k as u8, pattern) else {
+    let frame = ctx.capture.manifest.plan.find(p.k as u8, pattern);
+    let Some(frame) = frame.filter(|_| !splits.is_empty()) else {
         return Ok(Some(sums));
     };
-    let frame = pixels(&ctx.capture.read_frame(frame.index)?);
+    let frame = ctx.capture.read_frame_pixels(frame.index)?;
     for (slot, (direct, global_white, blur_px)) in splits.iter().enumerate() {
         let white = WhiteSeparation {
             direct,

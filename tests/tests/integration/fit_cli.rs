@@ -14,7 +14,11 @@ fn fitted() -> &'static (PathBuf, serde_json::Value) {
     FITTED.get_or_init(|| {
         let capture = quick_capture("head", 1);
         let out = scratch_dir().join("fit-head");
-        let report = process(&capture, &out, &["--holdout", "3"]);
+        let report = process(
+            &capture,
+            &out,
+            &["--holdout", "3", "--compare-slit-variants"],
+        );
         (out, report)
     })
 }
@@ -53,6 +57,17 @@ fn slit_global_matches_the_simulator_truth() {
     let err = number(p, "slit_global_rel_rmse");
     eprintln!("slit global relative RMSE {err:.3} ({p})");
     assert!(err < 0.25, "global part of the slit frames: {err}");
+    // `--compare-slit-variants` decodes every slit frame again and extracts it by each rule;
+    // the default rule (`--direct none`) must reproduce the stage's own extraction.
+    let again = number(p, "slit_global_rel_rmse_direct_none");
+    assert!(
+        (again - err).abs() <= 1e-9 * err,
+        "re-extracted {again} against {err}"
+    );
+    for rule in ["hard_mask", "direct_separation", "direct_colourless"] {
+        let key = format!("slit_global_rel_rmse_{rule}");
+        assert!(number(p, &key).is_finite(), "{key}");
+    }
     for k in 0..4 {
         assert_eq!(p["projectors"][k]["slit_frames"], 20);
         assert!(p["projectors"][k]["pixels_with_profiles"].as_u64().unwrap() > 1000);
