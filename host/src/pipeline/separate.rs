@@ -7,7 +7,7 @@
 //!   scale), zero where a pixel is flagged (saturated, non-finite).
 //! - `projK_white.exr`: projector K's white frame without the stray light (what PS may use).
 //! - `separation.png`: per projector a row of direct, global and, with ground truth, the true
-//!   direct and global (same exposure).
+//!   direct and global (same exposure), at half the camera's resolution (2x2 means).
 //!
 //! Report fragment: per projector counts (`projectors[k]`), the black levels used and where they
 //! came from, and with ground truth `direct_rel_rmse`, `global_rel_rmse`, `total_rel_rmse`
@@ -196,9 +196,9 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
     let dir = ctx.dir();
     let mut per_projector = Vec::new();
     let mut outputs = Vec::new();
-    for (k, (white, hf, stripe)) in frames.iter().enumerate() {
+    for (k, (white, hf, stripe)) in frames.into_iter().enumerate() {
         let offset = stray.as_ref().map(|s| &s[k]);
-        let cleaned: Vec<Rgb32FImage> = hf.iter().map(|f| subtract(f, offset)).collect();
+        let cleaned: Vec<Rgb32FImage> = hf.into_iter().map(|f| subtract(f, offset)).collect();
         let refs: Vec<&Rgb32FImage> = cleaned.iter().collect();
         let blur = if params.blur_correction {
             stripe_blur(ctx, k)
@@ -208,7 +208,7 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
         let sep_params = SeparationParams {
             black_level: black[k] as f32,
             blur_px: blur,
-            stripe_px: *stripe,
+            stripe_px: stripe,
             ..SeparationParams::default()
         };
         let sep =
@@ -261,14 +261,14 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
     Ok(report)
 }
 
-fn subtract(frame: &Rgb32FImage, offset: Option<&Rgb32FImage>) -> Rgb32FImage {
-    let mut out = frame.clone();
+/// `frame` less the stray light `offset`, clamped at 0 (in place: each frame is used once).
+fn subtract(mut frame: Rgb32FImage, offset: Option<&Rgb32FImage>) -> Rgb32FImage {
     if let Some(o) = offset {
-        for (v, s) in out.iter_mut().zip(o.iter()) {
+        for (v, s) in frame.iter_mut().zip(o.iter()) {
             *v = (*v - s).max(0.0);
         }
     }
-    out
+    frame
 }
 
 /// The truth mask (non-zero = subject), if readable.
@@ -318,6 +318,22 @@ fn relative_errors(
 
 /// One row per projector: direct, global, [true direct, true global], scaled to the brightest
 /// white of the row.
+/// Pixel `(x, y)` of `img` at half resolution: the mean of its 2x2 block (of the pixels inside).
+fn half_size_pixel(img: &Rgb32FImage, x: u32, y: u32) -> [f32; 3] {
+    let (w, h) = img.dimensions();
+    let mut sum = [0.0f32; 3];
+    let mut count = 0.0f32;
+    for (px, py) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        let (sx, sy) = (2 * x + px, 2 * y + py);
+        if sx < w && sy < h {
+            let p = img.get_pixel(sx, sy).0;
+            (0..3).for_each(|c| sum[c] += p[c]);
+            count += 1.0;
+        }
+    }
+    sum.map(|v| v / count.max(1.0))
+}
+
 fn write_preview(
     path: &Path,
     outputs: &[crate::photometry::separation::Separation],
@@ -327,8 +343,9 @@ fn write_preview(
         return Ok(());
     };
     let (w, h) = first.direct.dimensions();
+    let (tw, th) = (w.div_ceil(2), h.div_ceil(2));
     let columns = if truth.is_some() { 4 } else { 2 };
-    let mut canvas = image::RgbImage::new(w * columns, h * outputs.len() as u32);
+    let mut canvas = image::RgbImage::new(tw * columns, th * outputs.len() as u32);
     for (k, sep) in outputs.iter().enumerate() {
         let mut tiles = vec![&sep.direct, &sep.global];
         if let Some(t) = truth.and_then(|t| t.get(k)) {
@@ -341,20 +358,21 @@ fn write_preview(
             .zip(sep.global.iter())
             .map(|(a, b)| a + b)
             .collect();
-        sums.sort_by(f32::total_cmp);
-        let white = sums
-            .get(sums.len() * 99 / 100)
-            .copied()
-            .unwrap_or(1.0)
-            .max(1e-6);
+        let white = if sums.is_empty() {
+            1.0
+        } else {
+            let at = sums.len() * 99 / 100;
+            *sums.select_nth_unstable_by(at, f32::total_cmp).1
+        }
+        .max(1e-6);
         for (col, tile) in tiles.iter().enumerate() {
             if tile.dimensions() != (w, h) {
                 continue;
             }
-            for (x, y, p) in tile.enumerate_pixels() {
-                let rgb =
-                    p.0.map(|v| (imageio::linear_to_srgb(v / white) * 255.0).round() as u8);
-                canvas.put_pixel(col as u32 * w + x, k as u32 * h + y, image::Rgb(rgb));
+            for (x, y) in (0..th).flat_map(|y| (0..tw).map(move |x| (x, y))) {
+                let rgb = half_size_pixel(tile, x, y)
+                    .map(|v| (imageio::linear_to_srgb(v / white) * 255.0).round() as u8);
+                canvas.put_pixel(col as u32 * tw + x, k as u32 * th + y, image::Rgb(rgb));
             }
         }
     }
