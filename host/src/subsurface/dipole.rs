@@ -520,33 +520,43 @@ impl DipoleTable {
     /// reduced extinction (e.g. fitted on a neighbour: the profile's shape, its own amplitude).
     /// `None` without light.
     pub fn with_extinction(&self, reflectance: f64, extinction: f64) -> Option<DipoleFit> {
-        if reflectance.is_nan() || reflectance <= 0.0 || extinction.is_nan() || extinction <= 0.0 {
-            return None;
-        }
-        let row = self.row_for_reflectance(reflectance);
-        let weights = &self.weights[row];
-        let total: f64 = weights.iter().sum();
-        if total <= 0.0 {
-            return None;
-        }
-        let layers = WIDTHS
-            .iter()
-            .zip(weights)
-            .filter(|(_, w)| **w > 0.0)
-            .enumerate()
-            .map(|(j, (&s, &w))| SplatLayer {
-                index: j as u16,
-                weight: (w / total * reflectance) as f32,
-                sigma_mm: (s / extinction) as f32,
-                depth_mm: 0.0,
-            })
-            .collect();
+        let layers = self.splat_layers(reflectance, extinction)?.collect();
         Some(DipoleFit {
-            albedo: self.albedos[row],
+            albedo: self.albedos[self.row_for_reflectance(reflectance)],
             extinction,
             reflectance,
             layers,
         })
+    }
+
+    /// The layers of [`DipoleTable::with_extinction`] alone, without allocating (a full-size
+    /// model asks for millions).
+    pub fn splat_layers(
+        &self,
+        reflectance: f64,
+        extinction: f64,
+    ) -> Option<impl Iterator<Item = SplatLayer> + '_> {
+        if reflectance.is_nan() || reflectance <= 0.0 || extinction.is_nan() || extinction <= 0.0 {
+            return None;
+        }
+        let weights = &self.weights[self.row_for_reflectance(reflectance)];
+        let total: f64 = weights.iter().sum();
+        if total <= 0.0 {
+            return None;
+        }
+        Some(
+            WIDTHS
+                .iter()
+                .zip(weights)
+                .filter(|(_, w)| **w > 0.0)
+                .enumerate()
+                .map(move |(j, (&s, &w))| SplatLayer {
+                    index: j as u16,
+                    weight: (w / total * reflectance) as f32,
+                    sigma_mm: (s / extinction) as f32,
+                    depth_mm: 0.0,
+                }),
+        )
     }
 }
 

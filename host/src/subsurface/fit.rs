@@ -461,24 +461,15 @@ pub fn fit_dipole_model(
             })
         })
         .collect();
-    let fits: Vec<[Vec<SplatLayer>; 3]> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let mut out: [Vec<SplatLayer>; 3] = Default::default();
-            if !lit(i) {
-                return out;
-            }
-            let tile = (i / w / block) * bw + (i % w) / block;
-            for (c, layers) in out.iter_mut().enumerate() {
-                let Some(ext) = extinctions[tile][c] else {
-                    continue;
-                };
-                if let Some(fit) = table.with_extinction(f64::from(amplitudes[i][c]), ext) {
-                    *layers = fit.layers;
-                }
-            }
-            out
-        })
-        .collect();
-    Ok(LayerModel::from_fn(w, h, |i, c| fits[i][c].clone()))
+    // Every lit pixel: its own amplitude with its tile's extinction, built straight into the
+    // model (no per-pixel vectors: ~4 million pixel-channels at full size).
+    let tile = |i: usize| (i / w / block) * bw + (i % w) / block;
+    Ok(LayerModel::from_fn(w, h, |i, c| {
+        lit(i)
+            .then(|| extinctions[tile(i)][c])
+            .flatten()
+            .and_then(|ext| table.splat_layers(f64::from(amplitudes[i][c]), ext))
+            .into_iter()
+            .flatten()
+    }))
 }
