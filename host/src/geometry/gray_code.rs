@@ -779,8 +779,12 @@ fn jump_limit(params: &DecodeParams) -> f64 {
 /// Falls back to the inliers' mean when they do not span a plane.
 fn robust_plane_at_centre(samples: &[(f64, f64, f64)], params: &DecodeParams) -> Option<f64> {
     let mut values: Vec<f64> = samples.iter().map(|s| s.2).collect();
-    values.sort_by(f64::total_cmp);
-    let median = *values.get(values.len() / 2)?;
+    if values.is_empty() {
+        return None;
+    }
+    // The element a full sort would put in the middle, found without sorting.
+    let middle = values.len() / 2;
+    let median = *values.select_nth_unstable_by(middle, f64::total_cmp).1;
     let limit = jump_limit(params);
     let mut inliers: Vec<(f64, f64, f64)> = samples
         .iter()
