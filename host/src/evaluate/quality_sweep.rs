@@ -120,11 +120,12 @@ pub fn plan(quick: bool, captures: usize) -> Vec<SweepConfig> {
     for &n in components {
         out.push(vary("components", n.to_string(), &|c| c.components = n));
     }
-    // Around the default tolerance (1e-4): looser, and tighter to check it leaves nothing.
+    // Around the default tolerance (1e-5). Looser costs little held-out error but some
+    // back-scatter (see `FitParams::tolerance`), which this table does not show.
     let em: &[(f64, usize)] = if quick {
-        &[(1e-5, 200)]
+        &[(1e-4, 200)]
     } else {
-        &[(1e-3, 200), (1e-5, 200), (1e-6, 200)]
+        &[(1e-4, 200), (3e-5, 200), (1e-6, 200)]
     };
     for &(tol, it) in em {
         out.push(vary("em", format!("tol {tol:e} / {it} it"), &|c| {
