@@ -316,8 +316,6 @@ fn relative_errors(
     )
 }
 
-/// One row per projector: direct, global, [true direct, true global], scaled to the brightest
-/// white of the row.
 /// Pixel `(x, y)` of `img` at half resolution: the mean of its 2x2 block (of the pixels inside).
 fn half_size_pixel(img: &Rgb32FImage, x: u32, y: u32) -> [f32; 3] {
     let (w, h) = img.dimensions();
@@ -334,6 +332,8 @@ fn half_size_pixel(img: &Rgb32FImage, x: u32, y: u32) -> [f32; 3] {
     sum.map(|v| v / count.max(1.0))
 }
 
+/// One row per projector: direct, global, [true direct, true global], scaled to the brightest
+/// white of the row.
 fn write_preview(
     path: &Path,
     outputs: &[crate::photometry::separation::Separation],
