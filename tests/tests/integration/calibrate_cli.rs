@@ -188,12 +188,12 @@ fn simulated_booth_calibration_recovers_the_true_rig() {
     assert_eq!(report["poses_used"], CALIBRATION_POSES, "{report}");
     assert!(report["camera_rms_px"].as_f64().unwrap() < 0.3, "{report}");
 
-    let read = |p: &Path| -> mlsss::calib::Calibration {
+    let read = |p: &Path| -> mlsss::calibration::Calibration {
         serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
     };
     let estimate = read(out);
     let truth = read(&poses[0].join("truth/calibration.json"));
-    let focal_error = |e: &mlsss::calib::Intrinsics, t: &mlsss::calib::Intrinsics| {
+    let focal_error = |e: &mlsss::calibration::Intrinsics, t: &mlsss::calibration::Intrinsics| {
         (e.fx / t.fx - 1.0).abs().max((e.fy / t.fy - 1.0).abs())
     };
     assert!(
@@ -215,7 +215,7 @@ fn simulated_booth_calibration_recovers_the_true_rig() {
             t.device.intrinsics
         );
         // Projector centre in the camera frame (the world frame of an estimate is arbitrary).
-        let centre_in_camera = |c: &mlsss::calib::Calibration, k: usize| {
+        let centre_in_camera = |c: &mlsss::calibration::Calibration, k: usize| {
             c.camera
                 .extrinsics
                 .world_to_device(&c.projectors[k].device.extrinsics.centre())

@@ -91,7 +91,7 @@ fn semi_infinite_slab_from_tau_inf_transmits_nothing() {
 fn layers_file_gives_one_absorbed_value_per_layer() {
     let file = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../host/tests/data/skin-layers.toml"
+        "/../host/monte-carlo/data/skin-layers.toml"
     );
     let v = run_json(&[
         "mc",

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use mlsss::calib::Calibration;
+use mlsss::calibration::Calibration;
 use mlsss::capture::{Capture, Pattern, truth};
 use mlsss::imageio::{read_exr_gray, read_exr_rgb};
 use mlsss::mc::{self, McConfig};

@@ -1,0 +1,185 @@
+//! `mlsss process`: run the processing pipeline on a capture up to a stage, printing the report.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use mlsss::layer_model::fit::EmVariant;
+use mlsss::layer_model::surface::ViewRay;
+use mlsss::pipeline::fit_stage::FitParams;
+use mlsss::pipeline::profiles_stage::{DirectPart, ProfilesParams, SlitCoordinates};
+use mlsss::pipeline::{self, CalibrationSource, Pipeline};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The capture folder (`capture.json` + `frames/`).
+    capture: PathBuf,
+    /// Calibration: a calibration JSON file, or `truth` for a simulated capture's
+    /// `truth/calibration.json`. Needed from the geometry stage on.
+    #[arg(long)]
+    calib: Option<String>,
+    /// Last stage to run (its inputs run first; cached stages are reused). Stages: decode,
+    /// geometry, separate, normals, profiles, fit.
+    #[arg(long, default_value = "geometry")]
+    until: String,
+    /// Fit stage: projector left out of training (for held-out evaluation); default none.
+    #[arg(long)]
+    holdout: Option<usize>,
+    /// Fit stage: EM variant, `layered` (means tied to layer depth, joint over projectors and
+    /// axes; ours) or `free` (free means per profile, averaged; the paper).
+    #[arg(long, value_enum, default_value_t = EmArg::Layered)]
+    em: EmArg,
+    /// Fit stage: Gaussian components per fit at the start (the paper: 20); BIC reduces them
+    /// per pixel where the profile does not support them.
+    #[arg(long, default_value_t = 20)]
+    components: usize,
+    /// Profiles stage: direct reflection removed from the slit frames, `separation` (the
+    /// separate stage's direct image), `colourless` (its smallest channel: skin's surface
+    /// reflection is colourless, the subsurface light that leaks into a coarse separation is
+    /// not) or `none` (all slit light counts as subsurface light).
+    #[arg(long, value_enum, default_value_t = DirectArg::None)]
+    direct: DirectArg,
+    /// Fit stage: fit one pixel per BLOCK x BLOCK tile (1 = every pixel; larger is faster and
+    /// coarser).
+    #[arg(long, default_value_t = 1)]
+    block: usize,
+    /// Fit stage: stop a fit's EM when one iteration gains less than this in log-likelihood per
+    /// unit weight.
+    #[arg(long, default_value_t = FitParams::default().tolerance)]
+    tolerance: f64,
+    /// Fit stage: EM iteration cap per fit.
+    #[arg(long, default_value_t = FitParams::default().max_iterations)]
+    max_iterations: usize,
+    /// Fit stage: skip the held-out check renders (`heldout_global_rel_rmse`; `mlsss eval`
+    /// renders the same).
+    #[arg(long)]
+    no_heldout_check: bool,
+    /// Fit stage: skip the per-pixel dipole baseline (Jensen 2001). It is an evaluation baseline,
+    /// not part of the MLSSS model; `mlsss eval` then reports no dipole numbers.
+    #[arg(long)]
+    no_dipole: bool,
+    /// Fit stage: keep each pixel's own fitted layers instead of the spatial prior (shapes pooled
+    /// over neighbouring tiles, amplitudes shrunk toward the subject's mean, both as far as
+    /// cross-validation on the training projectors says; `subsurface::spatial_prior`).
+    #[arg(long)]
+    no_spatial_prior: bool,
+    /// Fit stage: keep the normals stage's normals instead of correcting them by the shading
+    /// regression of the training projectors' subsurface amplitudes (strength chosen by
+    /// leave-one-projector-out cross-validation; `subsurface::shading_regression`).
+    #[arg(long)]
+    no_normal_refinement: bool,
+    /// Profiles stage: where the camera sees a layer at depth, `exit-point` (where the light
+    /// leaves the surface: no view term, diffuse emergence), `refracted` (along the refracted
+    /// view ray) or `unrefracted` (paper eq. 5). See `subsurface::layer_depth`.
+    #[arg(long, value_enum)]
+    view_ray: Option<ViewRayArg>,
+    /// Profiles stage: projector coordinates the slit distances are measured in, `projected`
+    /// (the surface point projected through the calibration, as every render places a light) or
+    /// `decoded` (the Gray-code coordinates; subsurface light moves them toward the light).
+    #[arg(long, value_enum, default_value_t = CoordinatesArg::Projected)]
+    slit_coordinates: CoordinatesArg,
+    /// Profiles stage, simulated captures: also extract the slit frames by the other rules
+    /// (hard slit edges, each `--direct` rule) and report each one's error against the truth
+    /// (`slit_global_rel_rmse_*`; decodes the slit frames again).
+    #[arg(long)]
+    compare_slit_variants: bool,
+    /// Fit stage: fixed layer spacing D (mm) instead of the subject-wide estimate.
+    #[arg(long)]
+    depth_spacing: Option<f64>,
+    /// Output folder: one sub-folder per stage, plus report.json.
+    #[arg(long)]
+    out: PathBuf,
+    /// Print the report as one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// EM variants (DESIGN section 5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum EmArg {
+    Layered,
+    Free,
+}
+
+/// View-ray models (`subsurface::surface::ViewRay`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ViewRayArg {
+    ExitPoint,
+    Refracted,
+    Unrefracted,
+}
+
+/// Slit coordinates (`pipeline::profiles_stage::SlitCoordinates`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum CoordinatesArg {
+    Projected,
+    Decoded,
+}
+
+/// Direct part of the slit frames (see `pipeline::profiles_stage::DirectPart`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum DirectArg {
+    Separation,
+    Colourless,
+    None,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let calib = match args.calib.as_deref() {
+        None => CalibrationSource::None,
+        Some("truth") => CalibrationSource::Truth,
+        Some(path) => CalibrationSource::File(PathBuf::from(path)),
+    };
+    let mut pipeline = Pipeline::new(&args.capture, &args.out, &calib)
+        .with_context(|| format!("opening {}", args.capture.display()))?;
+    let fit = FitParams {
+        holdout: args.holdout,
+        em: match args.em {
+            EmArg::Layered => EmVariant::Layered,
+            EmArg::Free => EmVariant::Free,
+        },
+        components: args.components,
+        block: args.block,
+        tolerance: args.tolerance,
+        max_iterations: args.max_iterations,
+        heldout_check: !args.no_heldout_check,
+        dipole: !args.no_dipole,
+        spatial_prior: !args.no_spatial_prior,
+        refine_normals: !args.no_normal_refinement,
+        depth_spacing_mm: args.depth_spacing,
+    };
+    pipeline.set_params("fit", serde_json::to_value(&fit)?);
+    let profiles = ProfilesParams {
+        direct: match args.direct {
+            DirectArg::Separation => DirectPart::Separation,
+            DirectArg::Colourless => DirectPart::Colourless,
+            DirectArg::None => DirectPart::None,
+        },
+        view_ray: match args.view_ray {
+            None => ProfilesParams::default().view_ray,
+            Some(ViewRayArg::ExitPoint) => ViewRay::ExitPoint,
+            Some(ViewRayArg::Refracted) => ViewRay::Refracted,
+            Some(ViewRayArg::Unrefracted) => ViewRay::Unrefracted,
+        },
+        coordinates: match args.slit_coordinates {
+            CoordinatesArg::Projected => SlitCoordinates::Projected,
+            CoordinatesArg::Decoded => SlitCoordinates::Decoded,
+        },
+        compare_variants: args.compare_slit_variants,
+        ..ProfilesParams::default()
+    };
+    pipeline.set_params("profiles", serde_json::to_value(&profiles)?);
+    pipeline.on_stage = Some(Box::new(|name, cached| {
+        eprintln!("{name}{}", if cached { " (cached)" } else { " ..." });
+    }));
+    let report = pipeline.run_until(&args.until)?;
+    if args.json {
+        println!("{report}");
+    } else {
+        eprintln!(
+            "report in {}",
+            args.out.join(pipeline::REPORT_FILE).display()
+        );
+        eprintln!("{}", serde_json::to_string_pretty(&report)?);
+    }
+    Ok(())
+}

@@ -1,0 +1,604 @@
+//! The end-to-end demonstration (`mlsss demo`): simulate a scan and chessboard calibration poses
+//! in the virtual booth, calibrate the booth from the poses, process the scan with one projector
+//! held out of the fit, relight that projector from the model and evaluate everything against the
+//! simulator's truth.
+//!
+//! Timing keys (wall clock, seconds): `simulate` (the scan, with the calibration poses simulated
+//! and calibrated beside it), of which `simulate_scan`, `simulate_calibration` and `calibrate`
+//! are each step's own time (the last two overlap the first, so they do not add up to
+//! `simulate`); one per pipeline stage (the `fit` stage includes its own figures and check
+//! renders), `eval` (the held-out evaluation: reading frames, rendering, metrics) of which
+//! `render` is the rendering, `total` (wall clock of everything).
+//!
+//! ```text
+//! OUT/
+//!   capture/              the simulated scan (frames + truth/)
+//!   calibration-poses/    pose00, pose01, ... (only with an estimated calibration)
+//!   calibration.json      the estimated calibration, in the truth's world frame (see below)
+//!   processed/            the pipeline's stage folders and report.json
+//!   demo.json             the report (what `--json` prints)
+//!   report.html           the HTML report (figures, metrics, timings)
+//! ```
+//!
+//! The estimated calibration lives in the camera's frame; it is re-expressed in the booth's world
+//! frame through the TRUE camera pose before processing
+//! ([`crate::evaluate::calibration_error::align_world_frame`]): the world frame is a free choice
+//! and the truth's maps (points, normals) are stored in the booth's frame. Nothing the calibration
+//! measured changes.
+
+pub mod html_report;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::Serialize;
+use serde_json::{Map, Value, json};
+
+use crate::evaluate::backscatter::{BackscatterError, evaluate_backscatter};
+use crate::evaluate::calibration_error::{
+    CalibrationErrorError, align_world_frame, calibration_errors,
+};
+use crate::evaluate::holdout::{HoldoutError, evaluate_holdout};
+use crate::pipeline::fit_stage::{FitParams, model_path};
+use crate::pipeline::{CalibrationSource, Pipeline, PipelineError};
+use mlsss_core::booth::Booth;
+use mlsss_core::calibration::{Calibration, CalibrationError};
+use mlsss_core::capture::{Capture, CaptureError, Pattern, truth};
+use mlsss_core::resources::peak_memory_mb;
+use mlsss_layer_model::model_file::{Baseline, ModelFileError, SubsurfaceModel};
+use mlsss_layer_model::render::RenderOptions;
+use mlsss_virtual_booth::{
+    NoProgress, Progress, ResponseCache, SimulationOptions, SkinPreset, SubjectKind,
+    VirtualBoothError, scaled_booth, simulate_calibration, simulate_scan,
+};
+use mlsss_vision::chessboard_calibration::local_homography::LocalHomographyOptions;
+use mlsss_vision::chessboard_calibration::pose_measurement::{
+    BoardCorners, PoseLayout, PoseMeasurementError, measure_pose,
+};
+use mlsss_vision::chessboard_calibration::procam::{
+    BoardSpec, ProcamError, ProcamOptions, calibrate_procam, distortion_term_names,
+};
+use mlsss_vision::photometry::response::{LevelFrames, ResponseError, estimate_responses};
+
+/// File name of the report in the output folder.
+pub const REPORT_FILE: &str = "demo.json";
+/// File name of the back-scatter plot in the processed folder.
+pub const BACKSCATTER_PLOT: &str = "backscatter.png";
+/// File name of the HTML report in the output folder.
+pub const HTML_FILE: &str = "report.html";
+
+/// Errors of the demonstration.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DemoError {
+    /// The virtual booth failed.
+    #[error("simulation failed")]
+    Simulation(#[from] VirtualBoothError),
+    /// A calibration pose could not be measured.
+    #[error("measuring a calibration pose failed")]
+    PoseMeasurement(#[from] PoseMeasurementError),
+    /// The calibration from the poses failed (typically: the board was not found in enough poses
+    /// because the camera is too small, as at `--scale-down 4`).
+    #[error(
+        "calibration from the chessboard poses failed (a camera shrunk by --scale-down 4 or more \
+         is too small to find the board: use --calib truth, or a smaller --scale-down)"
+    )]
+    Procam(#[from] ProcamError),
+    /// The projector responses could not be estimated.
+    #[error("projector response estimation failed")]
+    Response(#[from] ResponseError),
+    /// A calibration file could not be read or written.
+    #[error(transparent)]
+    CalibrationFile(#[from] CalibrationError),
+    /// The estimate and the truth describe different booths.
+    #[error("comparing the calibration with the truth failed")]
+    CalibrationComparison(#[from] CalibrationErrorError),
+    /// A capture could not be read.
+    #[error(transparent)]
+    Capture(#[from] CaptureError),
+    /// The processing pipeline failed.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// The fitted model could not be read.
+    #[error("reading the fitted model failed")]
+    Model(#[from] ModelFileError),
+    /// The held-out evaluation failed.
+    #[error("held-out evaluation failed")]
+    Holdout(#[from] HoldoutError),
+    /// The back-scatter evaluation failed.
+    #[error("back-scatter evaluation failed")]
+    Backscatter(#[from] BackscatterError),
+    /// A plot could not be written.
+    #[error("writing a plot failed")]
+    Plot(#[from] crate::report::plot::PlotError),
+    /// The HTML report could not be written.
+    #[error("writing the HTML report failed")]
+    Report(#[from] html_report::DemoReportError),
+    /// The output folder cannot be used.
+    #[error("{path}: {reason}")]
+    Output { path: PathBuf, reason: String },
+    /// A file of the output could not be written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// An option is out of range.
+    #[error("{option}: {reason}")]
+    InvalidOption {
+        option: &'static str,
+        reason: String,
+    },
+}
+
+/// Where the demonstration's calibration comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationMode {
+    /// Simulated chessboard poses, calibrated like real ones (the honest path).
+    Estimated { poses: usize },
+    /// The simulator's exact calibration (isolates the rest of the pipeline from calibration
+    /// error).
+    Truth,
+}
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct DemoOptions {
+    pub booth: Booth,
+    pub subject: SubjectKind,
+    pub skin: SkinPreset,
+    pub seed: u64,
+    /// Projector held out of the fit and relit for the evaluation.
+    pub holdout: usize,
+    pub calibration: CalibrationMode,
+    /// Fit stage parameters (`holdout` is set from [`Self::holdout`]).
+    pub fit: FitParams,
+    /// Renderer options of the held-out relighting.
+    pub render: RenderOptions,
+    /// Monte Carlo photons per response (`None`: the simulator's default for the booth).
+    pub photons: Option<u64>,
+    /// Monte Carlo response cache folder (`None`: the simulator's default).
+    pub cache: Option<PathBuf>,
+    pub out: PathBuf,
+}
+
+impl DemoOptions {
+    /// Defaults: the built-in booth (`quick` or full size) shrunk by `scale_down`, a light-skinned
+    /// head, seed 1, projector 3 held out, calibration estimated from 5 poses.
+    pub fn new(quick: bool, scale_down: u32, out: &Path) -> Self {
+        let mut booth = Booth::builtin(quick);
+        if scale_down > 1 {
+            booth = scaled_booth(&booth, scale_down);
+        }
+        Self {
+            booth,
+            subject: SubjectKind::Head,
+            skin: SkinPreset::Light,
+            seed: 1,
+            holdout: 3,
+            calibration: CalibrationMode::Estimated { poses: 5 },
+            fit: quick_fit_params(),
+            render: RenderOptions::default(),
+            photons: None,
+            cache: None,
+            out: out.to_owned(),
+        }
+    }
+}
+
+/// The fit knobs of the demonstration: 4 starting components per fit and one EM fit per 6x6
+/// pixel tile (each pixel keeps its own amplitude) — the operating point the `fit` engineer
+/// measured on the quick head (fit ~1 min in a dev build); the paper's 20 components per pixel
+/// cost minutes even on the tiny test scene. `mlsss bench` measures what the knobs cost and buy.
+pub fn quick_fit_params() -> FitParams {
+    FitParams {
+        components: 4,
+        block: 6,
+        heldout_check: false, // the demo's evaluation renders the held-out projector itself
+        ..FitParams::default()
+    }
+}
+
+/// What the demonstration produced.
+#[derive(Debug, Clone)]
+pub struct DemoOutcome {
+    /// The report (also in `OUT/demo.json`).
+    pub report: Value,
+    pub capture: PathBuf,
+    pub processed: PathBuf,
+}
+
+/// Wall-clock seconds per step, in the order they ran.
+#[derive(Debug, Default)]
+struct Timings(Map<String, Value>);
+
+impl Timings {
+    fn time<T>(&mut self, key: &str, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        self.add(key, start.elapsed().as_secs_f64());
+        out
+    }
+
+    fn add(&mut self, key: &str, seconds: f64) {
+        let prev = self.0.get(key).and_then(Value::as_f64).unwrap_or(0.0);
+        self.0.insert(key.to_owned(), json!(prev + seconds));
+    }
+}
+
+/// Checks the options and prepares the output folder: a folder that exists must be empty or a
+/// previous demonstration's (it holds `demo.json` or the demo's sub-folders), whose outputs are
+/// then replaced.
+fn prepare_output(opts: &DemoOptions) -> Result<(), DemoError> {
+    let projectors = opts.booth.projectors.len();
+    if projectors < 2 || opts.holdout >= projectors {
+        return Err(DemoError::InvalidOption {
+            option: "--holdout",
+            reason: format!(
+                "projector {} does not exist or leaves no training projector (the booth has {projectors})",
+                opts.holdout
+            ),
+        });
+    }
+    if let CalibrationMode::Estimated { poses } = opts.calibration
+        && poses < 3
+    {
+        return Err(DemoError::InvalidOption {
+            option: "--poses",
+            reason: format!("a calibration needs at least 3 chessboard poses, got {poses}"),
+        });
+    }
+    let out = &opts.out;
+    let io = |source| DemoError::Io {
+        path: out.clone(),
+        source,
+    };
+    let owned = [
+        "capture",
+        "calibration-poses",
+        "calibration.json",
+        "processed",
+        "report.html",
+    ];
+    if out.exists() {
+        let entries: Vec<_> = std::fs::read_dir(out)
+            .map_err(io)?
+            .filter_map(Result::ok)
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        let ours = |name: &str| name == REPORT_FILE || owned.contains(&name);
+        if !entries.is_empty() && !entries.iter().any(|n| ours(n)) {
+            return Err(DemoError::Output {
+                path: out.clone(),
+                reason: "exists and is not a demo output folder: choose an empty or new --out"
+                    .into(),
+            });
+        }
+        for name in owned.iter().chain([REPORT_FILE].iter()) {
+            let p = out.join(name);
+            let removed = if p.is_dir() {
+                std::fs::remove_dir_all(&p)
+            } else if p.exists() {
+                std::fs::remove_file(&p)
+            } else {
+                Ok(())
+            };
+            removed.map_err(|source| DemoError::Io { path: p, source })?;
+        }
+    }
+    std::fs::create_dir_all(out).map_err(io)
+}
+
+fn simulation_options(opts: &DemoOptions, subject: SubjectKind) -> SimulationOptions {
+    let mut sim = SimulationOptions::for_booth(&opts.booth, subject, opts.skin, opts.seed);
+    if let Some(p) = opts.photons {
+        sim.mc.photons = p;
+    }
+    if let Some(dir) = &opts.cache {
+        sim.cache = ResponseCache::new(dir);
+    }
+    sim
+}
+
+/// Chessboard layout of a simulated calibration pose (from its manifest).
+fn board_of(pose: &Path) -> Result<BoardSpec, DemoError> {
+    let capture = Capture::open(pose)?;
+    BoardSpec::from_manifest(&capture.manifest).ok_or_else(|| DemoError::Output {
+        path: pose.to_owned(),
+        reason: "capture.json has no source.board (inner_corners, square_mm)".into(),
+    })
+}
+
+/// The full-field levels a projector response is estimated from.
+fn response_level(pattern: &Pattern) -> Option<f64> {
+    match *pattern {
+        Pattern::White => Some(1.0),
+        Pattern::Black => Some(0.0),
+        Pattern::Grey { level_milli } => Some(f64::from(level_milli) / 1000.0),
+        _ => None,
+    }
+}
+
+fn level_frames(pose: &Path) -> Result<Vec<LevelFrames>, DemoError> {
+    let capture = Capture::open(pose)?;
+    (0..capture.manifest.booth.projectors.len())
+        .map(|k| {
+            let mut frames = LevelFrames::default();
+            for spec in capture.manifest.plan.for_projector(k as u8) {
+                if let Some(l) = response_level(&spec.pattern) {
+                    frames.frames.push((l, capture.read(spec)?));
+                }
+            }
+            Ok(frames)
+        })
+        .collect()
+}
+
+/// Calibrates the booth from the pose folders: geometry (`calibrate_procam`) and projector
+/// responses; returns the calibration (camera frame) and its report.
+fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoError> {
+    let board = board_of(&poses[0])?;
+    let corners = BoardCorners {
+        cols: board.cols,
+        rows: board.rows,
+    };
+    let measured = poses
+        .par_iter()
+        .map(|dir| {
+            measure_pose(
+                dir,
+                PoseLayout::Capture,
+                corners,
+                &LocalHomographyOptions::default(),
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let first = &measured[0];
+    let corner_sets: Vec<_> = measured.iter().map(|m| m.corners.clone()).collect();
+    let result = calibrate_procam(
+        &corner_sets,
+        &board,
+        first.camera_size,
+        &first.projector_sizes,
+        &ProcamOptions::default(),
+    )?;
+    // Reading the grey-level frames (PNG decoding) is most of this step: one pose per task.
+    let levels = poses
+        .par_iter()
+        .map(|p| level_frames(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let responses = estimate_responses(&levels)?;
+    let mut calibration = result.calibration.clone();
+    for (p, fit) in calibration.projectors.iter_mut().zip(&responses) {
+        p.response = Some(fit.response());
+    }
+    let report = json!({
+        "poses_used": result.poses.iter().filter(|p| p.used).count(),
+        "poses_total": result.poses.len(),
+        "camera_rms_px": result.camera_rms_px,
+        "projector_rms_px": result.projector_rms_px,
+        "stereo_rms_px": result.stereo_rms_px,
+        "distortion_terms": result
+            .distortion_terms
+            .iter()
+            .map(distortion_term_names)
+            .collect::<Vec<_>>(),
+        "responses": responses,
+    });
+    Ok((calibration, report))
+}
+
+/// A calibration estimated from simulated chessboard poses (camera frame), with its report and
+/// the wall-clock seconds of its two steps.
+struct PoseCalibration {
+    calibration: Calibration,
+    report: Value,
+    simulate_seconds: f64,
+    calibrate_seconds: f64,
+}
+
+/// Simulates `poses` chessboard poses into `OUT/calibration-poses` and calibrates the booth from
+/// them (no progress display: this runs beside the scan, which shows its own).
+fn calibrate_from_simulated_poses(
+    opts: &DemoOptions,
+    poses: usize,
+) -> Result<PoseCalibration, DemoError> {
+    let start = Instant::now();
+    let pose_root = opts.out.join("calibration-poses");
+    let pose_opts = simulation_options(opts, SubjectKind::Chessboard);
+    let sim = simulate_calibration(&opts.booth, &pose_opts, poses, &pose_root, &NoProgress)?;
+    let simulate_seconds = start.elapsed().as_secs_f64();
+    let start = Instant::now();
+    let (calibration, report) = calibrate_from_poses(&sim.captures)?;
+    Ok(PoseCalibration {
+        calibration,
+        report,
+        simulate_seconds,
+        calibrate_seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Errors of the estimated responses against the truth, percent.
+fn response_errors(estimate: &Calibration, truth: &Calibration) -> Value {
+    let rel = |a: f64, b: f64| 100.0 * (a - b) / b;
+    let per: Vec<Value> = estimate
+        .projectors
+        .iter()
+        .zip(&truth.projectors)
+        .filter_map(|(e, t)| {
+            let (e, t) = (e.response?, t.response?);
+            Some(json!({
+                "gamma_rel_pct": rel(e.gamma, t.gamma),
+                "black_level_rel_pct": rel(e.black_level, t.black_level),
+            }))
+        })
+        .collect();
+    Value::Array(per)
+}
+
+/// Mean of a numeric field over the entries of `report[section].projectors`.
+fn mean_over_projectors(report: &Value, section: &str, field: &str) -> Option<f64> {
+    let values: Vec<f64> = report[section]["projectors"]
+        .as_array()?
+        .iter()
+        .filter_map(|p| p[field].as_f64())
+        .collect();
+    (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+}
+
+/// Callbacks of a running demonstration (progress on stderr in the CLI).
+pub trait DemoProgress: Progress {
+    /// A new step starts (simulation steps report through [`Progress`] as well).
+    fn step(&self, name: &str);
+}
+
+/// Runs the demonstration.
+pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoOutcome, DemoError> {
+    let total = Instant::now();
+    prepare_output(opts)?;
+    let out = &opts.out;
+    let mut timing = Timings::default();
+
+    let capture = out.join("capture");
+    let scan_opts = simulation_options(opts, opts.subject);
+    let scan = |progress: &dyn Progress| -> Result<_, DemoError> {
+        let start = Instant::now();
+        let sim = simulate_scan(&opts.booth, &scan_opts, &capture, progress)?;
+        Ok((sim, start.elapsed().as_secs_f64()))
+    };
+    let simulate_start = Instant::now();
+    let (sim, calibrated) = match opts.calibration {
+        CalibrationMode::Truth => {
+            progress.step("simulating the scan");
+            (scan(progress)?, None)
+        }
+        CalibrationMode::Estimated { poses } => {
+            // The chessboard poses and their calibration need nothing from the scan: they run
+            // beside it and fill the cores whenever the scan leaves one idle (its Monte Carlo
+            // tail, frame and truth writing). Only the scan reports progress.
+            progress.step("simulating the scan (and calibrating beside it)");
+            let (scan, calibrated) = rayon::join(
+                || scan(progress),
+                || calibrate_from_simulated_poses(opts, poses),
+            );
+            (scan?, Some(calibrated?))
+        }
+    };
+    let (sim, scan_seconds) = sim;
+    timing.add("simulate_scan", scan_seconds);
+    let truth_dir = capture.join("truth");
+    let truth_calibration = Calibration::load(&truth::calibration(&truth_dir))?;
+
+    let (calib_source, calibration_report) = match calibrated {
+        None => (CalibrationSource::Truth, json!({ "source": "truth" })),
+        Some(calibrated) => {
+            timing.add("simulate_calibration", calibrated.simulate_seconds);
+            timing.add("calibrate", calibrated.calibrate_seconds);
+            let (estimate, mut report) = (calibrated.calibration, calibrated.report);
+            let aligned = align_world_frame(&estimate, &truth_calibration.camera.extrinsics);
+            let path = out.join("calibration.json");
+            aligned.save(&path)?;
+            report["source"] = json!("estimated");
+            report["file"] = json!(path);
+            report["errors"] =
+                serde_json::to_value(calibration_errors(&aligned, &truth_calibration)?)
+                    .unwrap_or(Value::Null);
+            report["response_errors"] = response_errors(&aligned, &truth_calibration);
+            (CalibrationSource::File(path), report)
+        }
+    };
+    timing.add("simulate", simulate_start.elapsed().as_secs_f64());
+
+    progress.step("processing (decode .. fit)");
+    let processed = out.join("processed");
+    let mut pipeline = Pipeline::new(&capture, &processed, &calib_source)?;
+    let fit_params = FitParams {
+        holdout: Some(opts.holdout),
+        ..opts.fit.clone()
+    };
+    pipeline.set_params(
+        "fit",
+        serde_json::to_value(&fit_params).unwrap_or(Value::Null),
+    );
+    let report = pipeline.run_until("fit")?;
+    for (stage, seconds) in report["timing_s"].as_object().into_iter().flatten() {
+        timing.add(stage, seconds.as_f64().unwrap_or(0.0));
+    }
+
+    progress.step("relighting the held-out projector");
+    let model = SubsurfaceModel::load(&model_path(&processed))?;
+    let mut renderers = vec![Baseline::Mlsss, Baseline::Homogeneous];
+    if model.dipole.is_some() {
+        renderers.push(Baseline::Dipole);
+    }
+    renderers.push(Baseline::Direct);
+    let scan = Capture::open(&capture)?;
+    let relight = timing.time("eval", || {
+        evaluate_holdout(&scan, &model, opts.holdout, &renderers, &opts.render)
+    })?;
+    timing.add("render", relight.render_seconds);
+    let mut relight_report = relight.report;
+    if scan.truth_dir().is_some() {
+        let found = timing.time("backscatter", || {
+            evaluate_backscatter(&model, opts.holdout, &relight.slits)
+        })?;
+        if let Some(b) = found {
+            b.plot.save_png(&processed.join(BACKSCATTER_PLOT))?;
+            relight_report["backscatter"] = b.report;
+        }
+    }
+
+    timing.add("total", total.elapsed().as_secs_f64());
+
+    let mut demo = json!({
+        "demo": {
+            "booth": opts.booth.name,
+            "camera": [opts.booth.camera.width, opts.booth.camera.height],
+            "subject": opts.subject,
+            "skin": opts.skin,
+            "seed": opts.seed,
+            "holdout_projector": opts.holdout,
+            "calibration": opts.calibration,
+            "monte_carlo": { "cached": sim.cache.hits, "computed": sim.cache.misses },
+            "out": out,
+        },
+        "calibration": calibration_report,
+        "decode": {
+            "exact_fraction": mean_over_projectors(&report, "decode", "exact_fraction"),
+            "valid_fraction": report["decode"]["valid_fraction"],
+            "wrong_fraction": mean_over_projectors(&report, "decode", "wrong_fraction"),
+            "projectors": report["decode"]["projectors"],
+        },
+        "depth_rmse_mm": report["geometry"]["depth_rmse_mm"],
+        "geometry": report["geometry"],
+        "separation": {
+            "global_rel_rmse": report["separate"]["global_rel_rmse"],
+            "direct_rel_rmse": report["separate"]["direct_rel_rmse"],
+            "total_rel_rmse": report["separate"]["total_rel_rmse"],
+        },
+        "normals": report["normals"],
+        "relight": relight_report,
+        "fit": report["fit"],
+        "profiles": report["profiles"],
+        "timing_s": Value::Object(timing.0),
+        "peak_memory_mb": peak_memory_mb(),
+    });
+    demo["report_json"] = json!(out.join(REPORT_FILE));
+    let html = out.join(HTML_FILE);
+    demo["report_html"] = json!(html);
+    let figures = html_report::RelightFigures {
+        images: relight.kept,
+        mask: relight.mask,
+    };
+    html_report::write_report(&html, &demo, Some(&figures), &processed)?;
+    let path = out.join(REPORT_FILE);
+    let text = serde_json::to_string_pretty(&demo).unwrap_or_default();
+    std::fs::write(&path, text).map_err(|source| DemoError::Io { path, source })?;
+    Ok(DemoOutcome {
+        report: demo,
+        capture,
+        processed,
+    })
+}

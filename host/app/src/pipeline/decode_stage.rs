@@ -1,0 +1,205 @@
+//! Stage `decode`: Gray-code decoding of every projector (`geometry::gray_code`).
+//!
+//! Artefacts in `OUT/decode/`, per projector `k`:
+//! - `proj{k}_coords.exr`: RGB = (u, v, valid) — sub-pixel projector column and row, and 1 where
+//!   decoded (0, 0, 0 elsewhere). Same layout as the simulator's `truth/proj{k}_coords.exr`.
+//! - `proj{k}_confidence.exr`: one channel, the decoder's confidence in [0, 1].
+//! - `proj{k}_codes.png`: false colour, red = u, green = v (scaled to the projector size), black
+//!   where not decoded.
+//!
+//! Report fragment: `projectors[k]` with `valid_fraction`, `flagged_fraction`, `repaired_fraction`
+//! and, with ground truth, `exact_fraction`, `wrong_fraction`, `mean_abs_error_px`,
+//! `missed_fraction`; plus `valid_fraction` (mean over projectors). A projector whose frames are
+//! all dark is skipped and reported (`skipped`), not fatal.
+
+use std::path::{Path, PathBuf};
+
+use image::Rgb32FImage;
+use serde_json::{Value, json};
+
+use super::{Stage, StageContext, StageFailure};
+use mlsss_core::capture::truth;
+use mlsss_core::imageio::{self, GrayF32, ImageIoError};
+use mlsss_vision::geometry::code_frames::{self, CodeFramesError};
+use mlsss_vision::geometry::gray_code::{
+    DecodeParams, GrayCodeError, ProjectorDecode, TruthComparison, decode,
+};
+
+/// The decode stage.
+pub const STAGE: Stage = Stage {
+    name: "decode",
+    version: 1,
+    inputs: &[],
+    uses_calibration: false,
+    run,
+};
+
+/// Errors of the decode stage.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DecodeStageError {
+    /// The frames of a projector could not be loaded.
+    #[error("projector {projector}: {source}")]
+    Frames {
+        projector: usize,
+        source: CodeFramesError,
+    },
+    /// The decoder rejected a projector's frames.
+    #[error("projector {projector}: {source}")]
+    Decode {
+        projector: usize,
+        source: GrayCodeError,
+    },
+    /// An artefact could not be written or read.
+    #[error(transparent)]
+    Image(#[from] ImageIoError),
+    /// A coordinate map has a different size than the camera.
+    #[error("{path} is {width}x{height}, the camera is {camera_width}x{camera_height}")]
+    Size {
+        path: PathBuf,
+        width: u32,
+        height: u32,
+        camera_width: u32,
+        camera_height: u32,
+    },
+}
+
+/// Path of projector `k`'s coordinate map in a decode folder.
+pub fn coords_path(dir: &Path, k: usize) -> PathBuf {
+    dir.join(format!("proj{k}_coords.exr"))
+}
+
+fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
+    let params: DecodeParams = ctx.params()?;
+    let capture = ctx.capture;
+    let booth = &capture.manifest.booth;
+    let truth_dir = ctx.truth_dir();
+    let mut projectors = Vec::new();
+    let mut valid_sum = 0.0;
+    let mut decoded_count = 0;
+    for (k, proj) in booth.projectors.iter().enumerate() {
+        let frames = code_frames::from_capture(capture, k).map_err(|source| {
+            StageFailure::new(DecodeStageError::Frames {
+                projector: k,
+                source,
+            })
+        })?;
+        let decoded = match decode(&frames, (proj.width, proj.height), &params) {
+            Ok(d) => d,
+            Err(err @ GrayCodeError::NothingLit { .. }) => {
+                projectors.push(json!({ "projector": k, "skipped": err.to_string() }));
+                continue;
+            }
+            Err(source) => {
+                return Err(StageFailure::new(DecodeStageError::Decode {
+                    projector: k,
+                    source,
+                }));
+            }
+        };
+        write_decode(&ctx.dir(), k, &decoded).map_err(StageFailure::new)?;
+        let truth = match &truth_dir {
+            Some(t) => Some(
+                load_coords(
+                    &truth::projector_coords(t, k),
+                    (decoded.width, decoded.height),
+                )
+                .map_err(StageFailure::new)?,
+            ),
+            None => None,
+        };
+        let entry = projector_report(k, &decoded, truth.as_deref());
+        valid_sum += decoded.summary().valid_fraction();
+        decoded_count += 1;
+        projectors.push(entry);
+    }
+    Ok(json!({
+        "projectors": projectors,
+        "valid_fraction": valid_sum / f64::from(decoded_count.max(1)),
+    }))
+}
+
+/// The report entry of one projector (used by the pipeline and by `mlsss decode --layout opencv`).
+pub fn projector_report(
+    k: usize,
+    decoded: &ProjectorDecode,
+    truth: Option<&[Option<(f64, f64)>]>,
+) -> Value {
+    let s = decoded.summary();
+    let mut entry = json!({
+        "projector": k,
+        "valid_fraction": s.valid_fraction(),
+        "flagged_fraction": s.flagged_fraction(),
+        "repaired_fraction": s.repaired as f64 / s.pixels.max(1) as f64,
+        "unlit_fraction": s.unlit as f64 / s.pixels.max(1) as f64,
+    });
+    if let (Some(truth), Some(obj)) = (truth, entry.as_object_mut()) {
+        let cmp = TruthComparison::new(decoded, truth);
+        if let Ok(Value::Object(extra)) = serde_json::to_value(cmp) {
+            obj.extend(extra);
+        }
+    }
+    entry
+}
+
+/// Writes projector `k`'s coordinate map, confidence and false-colour preview into `dir`.
+pub fn write_decode(dir: &Path, k: usize, d: &ProjectorDecode) -> Result<(), DecodeStageError> {
+    std::fs::create_dir_all(dir).map_err(|source| ImageIoError::Png {
+        path: dir.to_owned(),
+        source: image::ImageError::IoError(source),
+    })?;
+    let coords = Rgb32FImage::from_fn(d.width, d.height, |x, y| {
+        let i = (y * d.width + x) as usize;
+        match d.coords(i) {
+            Some((u, v)) => image::Rgb([u, v, 1.0]),
+            None => image::Rgb([0.0, 0.0, 0.0]),
+        }
+    });
+    imageio::write_exr_rgb(&coords_path(dir, k), &coords)?;
+    let confidence = GrayF32 {
+        width: d.width,
+        height: d.height,
+        data: d.confidence.clone(),
+    };
+    imageio::write_exr_gray(&dir.join(format!("proj{k}_confidence.exr")), &confidence)?;
+    let (pw, ph) = (
+        d.projector_width.max(1) as f32,
+        d.projector_height.max(1) as f32,
+    );
+    let preview = image::RgbImage::from_fn(d.width, d.height, |x, y| {
+        let p = coords.get_pixel(x, y).0;
+        if p[2] > 0.5 {
+            let c = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+            image::Rgb([c(p[0] / pw), c(p[1] / ph), 64])
+        } else {
+            image::Rgb([0, 0, 0])
+        }
+    });
+    let path = dir.join(format!("proj{k}_codes.png"));
+    preview
+        .save(&path)
+        .map_err(|source| ImageIoError::Png { path, source })?;
+    Ok(())
+}
+
+/// Reads a coordinate map (`(u, v, valid)` EXR, ours or the simulator's truth): `Some((u, v))`
+/// where valid/lit, per camera pixel, row-major.
+pub fn load_coords(
+    path: &Path,
+    camera_size: (u32, u32),
+) -> Result<Vec<Option<(f64, f64)>>, DecodeStageError> {
+    let img = imageio::read_exr_rgb(path)?;
+    if (img.width(), img.height()) != camera_size {
+        return Err(DecodeStageError::Size {
+            path: path.to_owned(),
+            width: img.width(),
+            height: img.height(),
+            camera_width: camera_size.0,
+            camera_height: camera_size.1,
+        });
+    }
+    Ok(img
+        .pixels()
+        .map(|p| (p.0[2] > 0.5).then_some((p.0[0] as f64, p.0[1] as f64)))
+        .collect())
+}

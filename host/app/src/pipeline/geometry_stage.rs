@@ -1,0 +1,192 @@
+//! Stage `geometry`: triangulation of the decoded coordinates of every projector and robust fusion
+//! (`geometry::triangulation`), mesh and previews (`geometry::grid_mesh`).
+//!
+//! Artefacts in `OUT/geometry/`:
+//! - `depth.exr`: one channel, camera-frame depth z in mm, 0 where not measured (as
+//!   `truth/depth.exr`).
+//! - `points.exr`: RGB = world-frame X, Y, Z in mm (as `truth/points.exr`).
+//! - `mesh.ply`: binary PLY of the pixel-grid mesh, world frame, mm.
+//! - `shaded.png`: Lambert-shaded preview of the surface.
+//!
+//! Report fragment: `valid_fraction`, `mean_projectors_used`, `outlier_fraction`, `triangles`, and
+//! with ground truth `depth_rmse_mm`, `depth_p95_abs_mm`, `depth_mean_abs_mm`, `coverage`,
+//! `spurious_fraction`.
+
+use std::path::PathBuf;
+
+use image::Rgb32FImage;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use super::decode_stage::{DecodeStageError, coords_path, load_coords};
+use super::{Stage, StageContext, StageFailure};
+use mlsss_core::capture::truth;
+use mlsss_core::imageio::{self, GrayF32, ImageIoError};
+use mlsss_vision::geometry::grid_mesh::{GridMesh, GridMeshError, shaded_preview};
+use mlsss_vision::geometry::triangulation::{
+    DepthErrors, DepthMap, ProjectorView, TriangulationParams, triangulate,
+};
+
+/// The geometry stage.
+pub const STAGE: Stage = Stage {
+    name: "geometry",
+    version: 1,
+    inputs: &["decode"],
+    uses_calibration: true,
+    run,
+};
+
+/// Parameters of the geometry stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct GeometryParams {
+    #[serde(flatten)]
+    pub triangulation: TriangulationParams,
+    /// Longest mesh edge, mm (longer edges are depth discontinuities).
+    pub max_edge_mm: f32,
+}
+
+impl Default for GeometryParams {
+    fn default() -> Self {
+        Self {
+            triangulation: TriangulationParams::default(),
+            max_edge_mm: 3.0,
+        }
+    }
+}
+
+/// Errors of the geometry stage.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GeometryStageError {
+    /// The calibration has fewer projectors than the capture.
+    #[error("the calibration has {calibrated} projectors, the capture {captured}")]
+    ProjectorCount { calibrated: usize, captured: usize },
+    /// The calibration's camera size differs from the capture's.
+    #[error(
+        "the calibration's camera is {calib_width}x{calib_height}, the capture's {width}x{height}"
+    )]
+    CameraSize {
+        calib_width: u32,
+        calib_height: u32,
+        width: u32,
+        height: u32,
+    },
+    /// No projector was decoded.
+    #[error("no projector has decoded coordinates in {0}")]
+    NothingDecoded(PathBuf),
+    /// Reading decoded coordinates or truth failed.
+    #[error(transparent)]
+    Decode(#[from] DecodeStageError),
+    /// An artefact could not be written.
+    #[error(transparent)]
+    Image(#[from] ImageIoError),
+    /// The mesh could not be written.
+    #[error(transparent)]
+    Mesh(#[from] GridMeshError),
+}
+
+fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
+    run_geometry(ctx).map_err(StageFailure::new)
+}
+
+fn run_geometry(ctx: &StageContext) -> Result<Value, GeometryStageError> {
+    let params: GeometryParams = ctx.params().unwrap_or_default();
+    let calib = ctx
+        .calibration
+        .ok_or(GeometryStageError::NothingDecoded(ctx.stage_dir("decode")))?;
+    let cam_spec = &ctx.capture.manifest.booth.camera;
+    let size = (cam_spec.width, cam_spec.height);
+    if (calib.camera.width, calib.camera.height) != size {
+        return Err(GeometryStageError::CameraSize {
+            calib_width: calib.camera.width,
+            calib_height: calib.camera.height,
+            width: size.0,
+            height: size.1,
+        });
+    }
+    let captured = ctx.capture.manifest.booth.projectors.len();
+    if calib.projectors.len() < captured {
+        return Err(GeometryStageError::ProjectorCount {
+            calibrated: calib.projectors.len(),
+            captured,
+        });
+    }
+    let decode_dir = ctx.stage_dir("decode");
+    let mut coords = Vec::new();
+    for k in 0..captured {
+        let path = coords_path(&decode_dir, k);
+        // A projector skipped by decode (all dark) has no map.
+        if path.is_file() {
+            coords.push((k, load_coords(&path, size)?));
+        }
+    }
+    if coords.is_empty() {
+        return Err(GeometryStageError::NothingDecoded(decode_dir));
+    }
+    let views: Vec<ProjectorView> = coords
+        .iter()
+        .map(|(k, c)| ProjectorView {
+            calibration: &calib.projectors[*k].device,
+            coords: c,
+        })
+        .collect();
+    let map = triangulate(&calib.camera, &views, &params.triangulation);
+    let mesh = GridMesh::from_depth_map(&map, params.max_edge_mm);
+    write_artefacts(
+        ctx,
+        &map,
+        &mesh,
+        calib.camera.extrinsics.centre().coords.into(),
+    )?;
+
+    let mut report = summary(&map);
+    report["triangles"] = json!(mesh.triangles.len());
+    if let Some(t) = ctx.truth_dir() {
+        let truth_depth = imageio::read_exr_gray(&truth::depth(&t))?;
+        let errors = DepthErrors::new(&map, &truth_depth.data);
+        if let (Some(obj), Ok(Value::Object(extra))) =
+            (report.as_object_mut(), serde_json::to_value(errors))
+        {
+            obj.extend(extra);
+        }
+    }
+    Ok(report)
+}
+
+fn summary(map: &DepthMap) -> Value {
+    let n = map.depth.len().max(1) as f64;
+    let valid = map.valid_count();
+    let used: usize = map.projectors_used.iter().map(|&u| u as usize).sum();
+    let candidates: usize = used + map.outliers.iter().map(|&o| o as usize).sum::<usize>();
+    json!({
+        "valid_fraction": valid as f64 / n,
+        "mean_projectors_used": used as f64 / valid.max(1) as f64,
+        "outlier_fraction": (candidates - used) as f64 / candidates.max(1) as f64,
+    })
+}
+
+fn write_artefacts(
+    ctx: &StageContext,
+    map: &DepthMap,
+    mesh: &GridMesh,
+    camera_centre: [f64; 3],
+) -> Result<(), GeometryStageError> {
+    let dir = ctx.dir();
+    let depth = GrayF32 {
+        width: map.width,
+        height: map.height,
+        data: map.depth.clone(),
+    };
+    imageio::write_exr_gray(&dir.join("depth.exr"), &depth)?;
+    let points = Rgb32FImage::from_fn(map.width, map.height, |x, y| {
+        image::Rgb(map.points[(y * map.width + x) as usize])
+    });
+    imageio::write_exr_rgb(&dir.join("points.exr"), &points)?;
+    mesh.write_ply(&dir.join("mesh.ply"))?;
+    let path = dir.join("shaded.png");
+    shaded_preview(map, camera_centre)
+        .save(&path)
+        .map_err(|source| ImageIoError::Png { path, source })?;
+    Ok(())
+}

@@ -1,0 +1,684 @@
+//! The processing pipeline (DESIGN section 4): stages from named artefacts to named artefacts,
+//! run on demand, cached on disk.
+//!
+//! ```text
+//! OUT/
+//!   report.json            the report object of the last run (what `--json` prints)
+//!   <stage>/stage.json     cache record: key, the stage's report fragment, its run time
+//!   <stage>/...            the stage's artefacts (EXR, PNG, PLY, JSON)
+//! ```
+//!
+//! - A [`Stage`] names the stages whose artefacts it reads (`inputs`). [`Pipeline::run_until`]
+//!   runs the requested stage and, first, only the stages it transitively needs.
+//! - Cache: a stage's key hashes its name and version, its parameters (JSON), the capture's
+//!   fingerprint (manifest + frame file sizes and modification times), the calibration when the
+//!   stage uses one, and the keys of its inputs. A stage whose `stage.json` holds the same key is
+//!   not run again; its report fragment is reused. Changing a parameter re-runs that stage and
+//!   everything downstream of it.
+//! - Hand-over: a stage may also leave an in-memory result for a later stage of the same run
+//!   ([`StageContext::hand_over`], [`StageContext::take_handed_over`]), which then need not read it
+//!   back from disk (e.g. the decoded slit frames, from `profiles` to `fit`). It is only taken
+//!   when it was made under the key the pipeline holds for that stage in this run, and whatever
+//!   is left is dropped when the run ends.
+//! - Report: one JSON object. Each stage returns a fragment (a JSON object) stored under its name
+//!   (e.g. `geometry.depth_rmse_mm`); run times go to `timing_s.<stage>` (wall) and
+//!   `timing_cpu_s.<stage>` (CPU, all threads), reused stages are listed in `cached`.
+//!
+//! # How to add a stage
+//! 1. Write the algorithm in its own library module (e.g. `mlsss_vision::photometry::nayar_separation`),
+//!    independent of the pipeline.
+//! 2. Add `pipeline/<stage>.rs` with `pub const STAGE: Stage = Stage { name, version, inputs,
+//!    uses_calibration, run }`. `run(&StageContext)` reads its inputs' artefacts from
+//!    `ctx.stage_dir(input)` (through loaders exported by the producing stage's file, e.g.
+//!    [`decode_stage::load_coords`]), writes its own under `ctx.dir()`, and returns its report fragment.
+//!    Parameters: `ctx.params::<MyParams>()` (a `Deserialize + Default` struct; the CLI fills them
+//!    with [`Pipeline::set_params`]). Bump `version` when the stage's output changes meaning.
+//! 3. Register it in [`STAGES`] (after its inputs) and add a variant to the CLI's `--until` help.
+//! 4. Errors: the stage's module has its own `thiserror` enum; return it boxed via
+//!    [`StageFailure::new`].
+
+pub mod decode_stage;
+pub mod fit_stage;
+pub mod geometry_stage;
+pub mod line_plot;
+pub mod normals_stage;
+pub mod profiles_stage;
+pub mod separate_stage;
+
+use std::any::Any;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use serde_json::{Map, Value};
+
+use mlsss_core::calibration::{Calibration, CalibrationError};
+use mlsss_core::capture::{Capture, CaptureError, truth};
+use mlsss_core::resources::cpu_seconds;
+
+/// Every stage, in an order where inputs come first.
+pub const STAGES: &[Stage] = &[
+    decode_stage::STAGE,
+    geometry_stage::STAGE,
+    separate_stage::STAGE,
+    normals_stage::STAGE,
+    profiles_stage::STAGE,
+    fit_stage::STAGE,
+];
+
+/// Name of the cache record in each stage folder.
+pub const STAGE_RECORD: &str = "stage.json";
+/// Name of the report file in the output folder.
+pub const REPORT_FILE: &str = "report.json";
+
+/// Errors of the pipeline itself (each stage's own errors arrive as [`StageFailure`]).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum PipelineError {
+    /// `--until` names no registered stage.
+    #[error("no stage named `{0}` (stages: {list})", list = stage_names().join(", "))]
+    NoSuchStage(String),
+    /// The capture folder could not be opened.
+    #[error(transparent)]
+    Capture(#[from] CaptureError),
+    /// The calibration could not be read.
+    #[error(transparent)]
+    Calibration(#[from] CalibrationError),
+    /// `--calib truth` on a capture without ground truth.
+    #[error("--calib truth: {0} has no truth/calibration.json (only simulated captures have one)")]
+    NoTruthCalibration(PathBuf),
+    /// A stage needs a calibration and none was given.
+    #[error("stage `{0}` needs a calibration: pass --calib calib.json (or --calib truth)")]
+    CalibrationRequired(&'static str),
+    /// A file or folder of the output could not be written or read.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// Stage parameters are not valid JSON for the stage.
+    #[error("parameters of stage `{stage}`: {source}")]
+    Params {
+        stage: &'static str,
+        source: serde_json::Error,
+    },
+    /// A stage failed.
+    #[error("stage `{stage}` failed: {source}")]
+    Stage {
+        stage: &'static str,
+        source: StageFailure,
+    },
+}
+
+/// A stage's own error, boxed so the pipeline does not depend on every stage's error type.
+#[derive(Debug)]
+pub struct StageFailure(Box<dyn std::error::Error + Send + Sync>);
+
+impl StageFailure {
+    pub fn new(err: impl std::error::Error + Send + Sync + 'static) -> Self {
+        Self(Box::new(err))
+    }
+}
+
+impl std::fmt::Display for StageFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Include the causes: stage errors wrap IO and image errors.
+        write!(f, "{}", self.0)?;
+        let mut source = self.0.source();
+        while let Some(s) = source {
+            write!(f, ": {s}")?;
+            source = s.source();
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for StageFailure {}
+
+/// One processing stage.
+#[derive(Debug, Clone, Copy)]
+pub struct Stage {
+    pub name: &'static str,
+    /// Bump when the meaning of the outputs changes: invalidates cached results.
+    pub version: u32,
+    /// Stages whose artefacts this stage reads.
+    pub inputs: &'static [&'static str],
+    /// True when the stage reads the calibration (it is then part of the cache key).
+    pub uses_calibration: bool,
+    /// Runs the stage: reads inputs, writes artefacts under `ctx.dir()`, returns its report
+    /// fragment (a JSON object).
+    pub run: fn(&StageContext) -> Result<Value, StageFailure>,
+}
+
+/// Names of the registered stages, in order.
+pub fn stage_names() -> Vec<&'static str> {
+    STAGES.iter().map(|s| s.name).collect()
+}
+
+/// Where the calibration comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CalibrationSource {
+    /// No calibration (stages that need one fail with a clear error).
+    None,
+    /// The simulator's true calibration, `CAPTURE/truth/calibration.json`.
+    Truth,
+    /// A calibration file.
+    File(PathBuf),
+}
+
+/// What a running stage can see.
+pub struct StageContext<'a> {
+    pub capture: &'a Capture,
+    pub calibration: Option<&'a Calibration>,
+    /// The output folder (`OUT`).
+    pub out: &'a Path,
+    stage: &'static str,
+    params: Option<&'a Value>,
+    /// This stage's cache key and those of the stages run before it in this run.
+    key: &'a str,
+    keys: &'a BTreeMap<&'static str, String>,
+    handed_over: &'a HandedOver,
+}
+
+/// In-memory results left by stages for later stages of the same run: stage name to (the
+/// stage's key when it made it, the value).
+#[derive(Default)]
+struct HandedOver(Mutex<BTreeMap<&'static str, KeyedValue>>);
+
+/// A handed-over value and the key of the stage run that made it.
+type KeyedValue = (String, Box<dyn Any + Send>);
+
+impl HandedOver {
+    fn put(&self, stage: &'static str, key: &str, value: Box<dyn Any + Send>) {
+        if let Ok(mut map) = self.0.lock() {
+            map.insert(stage, (key.to_owned(), value));
+        }
+    }
+
+    /// Removes and returns what `from` left, if it was made under `current_key` and is a `T`.
+    fn take<T: Any>(&self, from: &str, current_key: Option<&String>) -> Option<T> {
+        let mut map = self.0.lock().ok()?;
+        if map.get(from).map(|(key, _)| key) != current_key {
+            return None;
+        }
+        let (_, value) = map.remove(from)?;
+        value.downcast::<T>().ok().map(|b| *b)
+    }
+}
+
+impl StageContext<'_> {
+    /// This stage's artefact folder, `OUT/<stage>/` (created before the stage runs).
+    pub fn dir(&self) -> PathBuf {
+        self.out.join(self.stage)
+    }
+
+    /// Another stage's artefact folder.
+    pub fn stage_dir(&self, stage: &str) -> PathBuf {
+        self.out.join(stage)
+    }
+
+    /// This stage's parameters (defaults when none were set).
+    pub fn params<P: for<'de> Deserialize<'de> + Default>(&self) -> Result<P, StageFailure> {
+        match self.params {
+            None => Ok(P::default()),
+            Some(v) => serde_json::from_value(v.clone()).map_err(StageFailure::new),
+        }
+    }
+
+    /// The calibration, or an error naming this stage.
+    pub fn require_calibration(&self) -> Result<&Calibration, StageFailure> {
+        self.calibration
+            .ok_or_else(|| StageFailure::new(PipelineError::CalibrationRequired(self.stage)))
+    }
+
+    /// The capture's ground truth folder, if any.
+    pub fn truth_dir(&self) -> Option<PathBuf> {
+        self.capture.truth_dir()
+    }
+
+    /// Leaves `value` for a later stage of this run (see the module documentation); replaces
+    /// what this stage left before.
+    pub fn hand_over<T: Any + Send>(&self, value: T) {
+        self.handed_over.put(self.stage, self.key, Box::new(value));
+    }
+
+    /// Takes what stage `from` left with [`StageContext::hand_over`] in this run, if it is a `T`
+    /// made under the key the pipeline holds for `from` now. `None` otherwise (e.g. `from` came
+    /// from the cache): the caller reads `from`'s artefacts instead.
+    pub fn take_handed_over<T: Any + Send>(&self, from: &str) -> Option<T> {
+        self.handed_over.take(from, self.keys.get(from))
+    }
+}
+
+/// The cache record written beside a stage's artefacts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct StageRecord {
+    key: String,
+    report: Value,
+    seconds: f64,
+    /// CPU seconds (user + system, all threads) the stage used, where the platform tells.
+    #[serde(default)]
+    cpu_seconds: Option<f64>,
+}
+
+/// Progress callback: stage name, and true when its result is reused from the cache.
+pub type StageObserver = Box<dyn Fn(&str, bool)>;
+
+/// A pipeline over one capture, writing to one output folder.
+pub struct Pipeline {
+    capture: Capture,
+    out: PathBuf,
+    calibration: Option<Calibration>,
+    calibration_hash: String,
+    capture_fingerprint: String,
+    params: BTreeMap<String, Value>,
+    /// Called before each stage with its name and whether it comes from the cache (progress).
+    pub on_stage: Option<StageObserver>,
+}
+
+impl Pipeline {
+    /// Opens the capture and the calibration; nothing runs yet.
+    pub fn new(
+        capture_dir: &Path,
+        out: &Path,
+        calibration: &CalibrationSource,
+    ) -> Result<Self, PipelineError> {
+        let capture = Capture::open(capture_dir)?;
+        let calib_path = match calibration {
+            CalibrationSource::None => None,
+            CalibrationSource::File(p) => Some(p.clone()),
+            CalibrationSource::Truth => {
+                let p = capture
+                    .truth_dir()
+                    .map(|t| truth::calibration(&t))
+                    .filter(|p| p.is_file())
+                    .ok_or_else(|| PipelineError::NoTruthCalibration(capture_dir.to_owned()))?;
+                Some(p)
+            }
+        };
+        let (calibration, calibration_hash) = match calib_path {
+            None => (None, String::new()),
+            Some(p) => {
+                let c = Calibration::load(&p)?;
+                let bytes = std::fs::read(&p).map_err(|source| PipelineError::Io {
+                    path: p.clone(),
+                    source,
+                })?;
+                (Some(c), blake3::hash(&bytes).to_hex().to_string())
+            }
+        };
+        let capture_fingerprint = fingerprint(&capture)?;
+        Ok(Self {
+            capture,
+            out: out.to_owned(),
+            calibration,
+            calibration_hash,
+            capture_fingerprint,
+            params: BTreeMap::new(),
+            on_stage: None,
+        })
+    }
+
+    /// Sets the parameters of a stage (JSON for its params struct); part of the cache key.
+    pub fn set_params(&mut self, stage: &str, params: Value) {
+        self.params.insert(stage.to_owned(), params);
+    }
+
+    pub fn capture(&self) -> &Capture {
+        &self.capture
+    }
+
+    /// Runs `until` and every stage it needs (reusing cached results); returns the report.
+    pub fn run_until(&self, until: &str) -> Result<Value, PipelineError> {
+        let order = needed_stages(until)?;
+        create_dir(&self.out)?;
+        let mut report = Map::new();
+        let mut timing = Map::new();
+        let mut cpu = Map::new();
+        let mut cached = Vec::new();
+        let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
+        let handed_over = HandedOver::default();
+        for stage in order {
+            let key = self.stage_key(stage, &keys);
+            let dir = self.out.join(stage.name);
+            let record_path = dir.join(STAGE_RECORD);
+            let record = match read_record(&record_path).filter(|r| r.key == key) {
+                Some(r) => {
+                    if let Some(cb) = &self.on_stage {
+                        cb(stage.name, true);
+                    }
+                    cached.push(Value::from(stage.name));
+                    r
+                }
+                None => {
+                    if let Some(cb) = &self.on_stage {
+                        cb(stage.name, false);
+                    }
+                    self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?
+                }
+            };
+            timing.insert(stage.name.into(), Value::from(record.seconds));
+            if let Some(c) = record.cpu_seconds {
+                cpu.insert(stage.name.into(), Value::from(c));
+            }
+            report.insert(stage.name.into(), record.report);
+            keys.insert(stage.name, key);
+        }
+        report.insert("timing_s".into(), Value::Object(timing));
+        report.insert("timing_cpu_s".into(), Value::Object(cpu));
+        report.insert("cached".into(), Value::Array(cached));
+        let report = Value::Object(report);
+        let path = self.out.join(REPORT_FILE);
+        write_json(&path, &report)?;
+        Ok(report)
+    }
+
+    fn run_stage(
+        &self,
+        stage: &Stage,
+        dir: &Path,
+        key: String,
+        keys: &BTreeMap<&'static str, String>,
+        handed_over: &HandedOver,
+    ) -> Result<StageRecord, PipelineError> {
+        if stage.uses_calibration && self.calibration.is_none() {
+            return Err(PipelineError::CalibrationRequired(stage.name));
+        }
+        create_dir(dir)?;
+        // A half-written record must not survive a failed run.
+        let record_path = dir.join(STAGE_RECORD);
+        let _ = std::fs::remove_file(&record_path);
+        let ctx = StageContext {
+            capture: &self.capture,
+            calibration: self.calibration.as_ref(),
+            out: &self.out,
+            stage: stage.name,
+            params: self.params.get(stage.name),
+            key: &key,
+            keys,
+            handed_over,
+        };
+        let start = Instant::now();
+        let cpu_start = cpu_seconds();
+        let report = (stage.run)(&ctx).map_err(|source| PipelineError::Stage {
+            stage: stage.name,
+            source,
+        })?;
+        let record = StageRecord {
+            key,
+            report,
+            seconds: start.elapsed().as_secs_f64(),
+            cpu_seconds: cpu_start.zip(cpu_seconds()).map(|(a, b)| b - a),
+        };
+        write_json(
+            &record_path,
+            &serde_json::to_value(&record).unwrap_or(Value::Null),
+        )?;
+        Ok(record)
+    }
+
+    fn stage_key(&self, stage: &Stage, keys: &BTreeMap<&str, String>) -> String {
+        let mut h = blake3::Hasher::new();
+        h.update(stage.name.as_bytes());
+        h.update(&stage.version.to_le_bytes());
+        h.update(self.capture_fingerprint.as_bytes());
+        let params = self
+            .params
+            .get(stage.name)
+            .map(|p| p.to_string())
+            .unwrap_or_default();
+        h.update(params.as_bytes());
+        if stage.uses_calibration {
+            h.update(self.calibration_hash.as_bytes());
+        }
+        for input in stage.inputs {
+            h.update(keys.get(input).map(String::as_str).unwrap_or("").as_bytes());
+        }
+        h.finalize().to_hex().to_string()
+    }
+}
+
+/// The stages `until` needs, inputs first, in registry order.
+fn needed_stages(until: &str) -> Result<Vec<&'static Stage>, PipelineError> {
+    let find = |name: &str| STAGES.iter().find(|s| s.name == name);
+    let target = find(until).ok_or_else(|| PipelineError::NoSuchStage(until.to_owned()))?;
+    let mut needed = vec![target.name];
+    let mut frontier = vec![target];
+    while let Some(stage) = frontier.pop() {
+        for input in stage.inputs {
+            if !needed.contains(input) {
+                needed.push(input);
+                frontier.extend(find(input));
+            }
+        }
+    }
+    Ok(STAGES.iter().filter(|s| needed.contains(&s.name)).collect())
+}
+
+/// Hash of the capture: manifest bytes plus name, size and modification time of every frame.
+fn fingerprint(capture: &Capture) -> Result<String, PipelineError> {
+    let io = |path: &Path| {
+        let path = path.to_owned();
+        move |source| PipelineError::Io { path, source }
+    };
+    let manifest = capture
+        .root
+        .join(mlsss_core::capture::folder::MANIFEST_FILE);
+    let mut h = blake3::Hasher::new();
+    h.update(&std::fs::read(&manifest).map_err(io(&manifest))?);
+    let frames = capture.root.join("frames");
+    if let Ok(entries) = std::fs::read_dir(&frames) {
+        let mut files: Vec<_> = entries.filter_map(|e| e.ok()).collect();
+        files.sort_by_key(|e| e.file_name());
+        for e in files {
+            let meta = e.metadata().map_err(io(&e.path()))?;
+            h.update(e.file_name().as_encoded_bytes());
+            h.update(&meta.len().to_le_bytes());
+            if let Ok(t) = meta.modified()
+                && let Ok(d) = t.duration_since(std::time::UNIX_EPOCH)
+            {
+                h.update(&d.as_nanos().to_le_bytes());
+            }
+        }
+    }
+    Ok(h.finalize().to_hex().to_string())
+}
+
+fn read_record(path: &Path) -> Option<StageRecord> {
+    let text = std::fs::read_to_string(path).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+fn create_dir(path: &Path) -> Result<(), PipelineError> {
+    std::fs::create_dir_all(path).map_err(|source| PipelineError::Io {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+fn write_json(path: &Path, value: &Value) -> Result<(), PipelineError> {
+    let text = serde_json::to_string_pretty(value).unwrap_or_default();
+    std::fs::write(path, text).map_err(|source| PipelineError::Io {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use image::Rgb32FImage;
+    use mlsss_core::booth::Booth;
+    use mlsss_core::capture::FramePlan;
+    use mlsss_core::capture::folder::{CaptureKind, CaptureManifest, CaptureWriter};
+    use nalgebra::Point3;
+
+    /// A capture of the plane z = `z0` (world) by a 2-projector quick booth, rendered exactly
+    /// (point-sampled patterns, no noise), with the truth the simulator would write. Projector 1
+    /// is switched off (all frames dark) when `dark_projector_1`.
+    fn plane_capture(root: &Path, z0: f64, dark_projector_1: bool) -> PathBuf {
+        let mut booth = Booth::builtin(true);
+        booth.projectors.truncate(2);
+        let cam = booth.camera_calibration();
+        let calib = Calibration::from_booth(&booth);
+        let (w, h) = (cam.width, cam.height);
+        let surface: Vec<Point3<f64>> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let (o, d) = cam.ray(x as f64, y as f64);
+                o + d * ((z0 - o.z) / d.z)
+            })
+            .collect();
+        let coords: Vec<Vec<Option<(f64, f64)>>> = calib
+            .projectors
+            .iter()
+            .map(|p| {
+                surface
+                    .iter()
+                    .map(|s| {
+                        p.device.project(s).filter(|q| {
+                            q.x >= -0.5
+                                && q.y >= -0.5
+                                && q.x < p.device.width as f64 - 0.5
+                                && q.y < p.device.height as f64 - 0.5
+                        })
+                    })
+                    .map(|q| q.map(|q| (q.x, q.y)))
+                    .collect()
+            })
+            .collect();
+        let plan = FramePlan::scan(&booth.patterns, 2);
+        let manifest = CaptureManifest::new(CaptureKind::Scan, booth, plan.clone());
+        let target = root.join("plane");
+        let writer = CaptureWriter::create(&target, manifest).unwrap();
+        for f in &plan.frames {
+            let k = f.projector.unwrap() as usize;
+            let img = Rgb32FImage::from_fn(w, h, |x, y| {
+                let i = (y * w + x) as usize;
+                let lit = match coords[k][i] {
+                    Some((u, v)) if !(dark_projector_1 && k == 1) => {
+                        0.6 * f.pattern.value(u.round() as u32, v.round() as u32)
+                    }
+                    _ => 0.0,
+                };
+                image::Rgb([0.02 + lit; 3])
+            });
+            writer.write_frame(f.index, &img).unwrap();
+        }
+        let truth_dir = writer.staging_dir().join("truth");
+        std::fs::create_dir_all(&truth_dir).unwrap();
+        calib.save(&truth::calibration(&truth_dir)).unwrap();
+        let depth = mlsss_core::imageio::GrayF32 {
+            width: w,
+            height: h,
+            data: surface
+                .iter()
+                .map(|p| cam.extrinsics.world_to_device(p).z as f32)
+                .collect(),
+        };
+        mlsss_core::imageio::write_exr_gray(&truth::depth(&truth_dir), &depth).unwrap();
+        for (k, c) in coords.iter().enumerate() {
+            let img = Rgb32FImage::from_fn(w, h, |x, y| match c[(y * w + x) as usize] {
+                Some((u, v)) => image::Rgb([u as f32, v as f32, 1.0]),
+                None => image::Rgb([0.0; 3]),
+            });
+            mlsss_core::imageio::write_exr_rgb(&truth::projector_coords(&truth_dir, k), &img)
+                .unwrap();
+        }
+        writer.finish().unwrap()
+    }
+
+    #[test]
+    fn a_handed_over_value_is_taken_once_and_only_under_the_current_key() {
+        let handed = HandedOver::default();
+        let (k1, k2) = (String::from("k1"), String::from("k2"));
+        handed.put("profiles", "k1", Box::new(5u32));
+        assert_eq!(
+            handed.take::<u32>("profiles", Some(&k2)),
+            None,
+            "another run's key"
+        );
+        assert_eq!(handed.take::<u32>("profiles", None), None, "stage not run");
+        assert_eq!(
+            handed.take::<u64>("profiles", Some(&k1)),
+            None,
+            "another type"
+        );
+        handed.put("profiles", "k1", Box::new(5u32));
+        assert_eq!(handed.take::<u32>("profiles", Some(&k1)), Some(5));
+        assert_eq!(
+            handed.take::<u32>("profiles", Some(&k1)),
+            None,
+            "taken once"
+        );
+    }
+
+    #[test]
+    fn decode_and_geometry_measure_a_plane_and_reuse_cached_stages() {
+        let dir = tempfile::tempdir().unwrap();
+        let capture = plane_capture(dir.path(), 5.0, false);
+        let out = dir.path().join("out");
+        let pipeline = Pipeline::new(&capture, &out, &CalibrationSource::Truth).unwrap();
+        let report = pipeline.run_until("geometry").unwrap();
+        for p in report["decode"]["projectors"].as_array().unwrap() {
+            assert!(p["valid_fraction"].as_f64().unwrap() > 0.8, "{p}");
+            assert!(p["wrong_fraction"].as_f64().unwrap() < 0.002, "{p}");
+            assert!(p["mean_abs_error_px"].as_f64().unwrap() < 0.2, "{p}");
+        }
+        let g = &report["geometry"];
+        // Quick booth: ~0.6 mm projector pixels seen at ~40 degrees; sub-pixel codes give
+        // sub-millimetre depth.
+        assert!(g["depth_rmse_mm"].as_f64().unwrap() < 0.5, "{g}");
+        assert!(g["depth_p95_abs_mm"].as_f64().unwrap() < 1.0, "{g}");
+        assert!(g["coverage"].as_f64().unwrap() > 0.8, "{g}");
+        for f in ["depth.exr", "points.exr", "mesh.ply", "shaded.png"] {
+            assert!(out.join("geometry").join(f).is_file(), "{f}");
+        }
+        assert!(out.join("decode/proj1_codes.png").is_file());
+        assert!(report["timing_s"]["decode"].as_f64().unwrap() > 0.0);
+        assert_eq!(report["cached"], serde_json::json!([]));
+
+        // Same inputs: both stages come from the cache. New geometry parameters: only geometry.
+        let again = pipeline.run_until("geometry").unwrap();
+        assert_eq!(again["cached"], serde_json::json!(["decode", "geometry"]));
+        assert_eq!(again["geometry"], report["geometry"]);
+        let mut pipeline = pipeline;
+        pipeline.set_params("geometry", serde_json::json!({ "max_edge_mm": 2.0 }));
+        let third = pipeline.run_until("geometry").unwrap();
+        assert_eq!(third["cached"], serde_json::json!(["decode"]));
+    }
+
+    #[test]
+    fn a_dark_projector_is_skipped_and_reported_and_unknown_stages_are_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let capture = plane_capture(dir.path(), 0.0, true);
+        let out = dir.path().join("out");
+        let pipeline = Pipeline::new(&capture, &out, &CalibrationSource::None).unwrap();
+        let report = pipeline.run_until("decode").unwrap();
+        let p1 = &report["decode"]["projectors"][1];
+        assert!(
+            p1["skipped"]
+                .as_str()
+                .unwrap()
+                .contains("no camera pixel is lit"),
+            "{p1}"
+        );
+        assert!(
+            report["decode"]["projectors"][0]["valid_fraction"]
+                .as_f64()
+                .unwrap()
+                > 0.8
+        );
+        assert!(
+            report.get("geometry").is_none(),
+            "only what was asked for runs"
+        );
+
+        let err = pipeline.run_until("geometry").unwrap_err();
+        assert!(err.to_string().contains("--calib"), "{err}");
+        let err = pipeline.run_until("normals2").unwrap_err();
+        assert!(err.to_string().contains("decode, geometry"), "{err}");
+    }
+}

@@ -1,0 +1,301 @@
+//! Stage `normals`: 4-source near-light photometric stereo (`photometry::photometric_stereo`,
+//! Barsky & Petrou 2003) on the separated images, the projectors acting as calibrated point
+//! lights placed at their centres of projection.
+//!
+//! Conventions
+//! - World frame of the calibration, mm. Normals point out of the surface, towards the camera side.
+//! - Projector k at centre C_k with optical axis a_k lights a point X with irradiance
+//!   `s_k cos(incidence) / (r^2 cos^3(alpha))`, r = |C_k - X|, alpha the angle between a_k and the
+//!   ray: a projector's flat pixel grid puts more intensity off axis. `s_k = |C_k|^2` (the squared
+//!   distance to the world origin, the subject's nominal centre) so that white at the origin
+//!   facing the projector gets irradiance 1: the projectors are assumed equally bright.
+//!
+//! Artefacts in `OUT/normals/`: `normals.exr` (RGB = unit normal, 0 where flagged), `albedo.exr`
+//! (RGB), `lights_used.exr` (one channel: number of lights used, 0 where flagged), `normals.png`
+//! (0.5 n + 0.5 preview).
+//!
+//! Report fragment: `pixels`, `solved`, `lights_used_mean`, flagged counts, and with ground truth
+//! `mean_angular_error_deg`, `median_angular_error_deg`, `p95_angular_error_deg` over the solved
+//! pixels of the truth mask, plus `coverage` (solved fraction of the truth mask).
+
+use std::path::{Path, PathBuf};
+
+use image::Rgb32FImage;
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use super::separate_stage::{direct_path, white_path};
+use super::{Stage, StageContext, StageFailure};
+use mlsss_core::capture::truth;
+use mlsss_core::imageio::{self, GrayF32, ImageIoError};
+use mlsss_vision::photometry::photometric_stereo::{
+    LightModel, LightSample, Method, PhotometricStereoError, PsParams, angular_errors, solve_images,
+};
+
+/// The photometric-stereo stage.
+pub const STAGE: Stage = Stage {
+    name: "normals",
+    version: 1,
+    inputs: &["separate", "geometry"],
+    uses_calibration: true,
+    run,
+};
+
+/// Which images photometric stereo reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PsInput {
+    /// The direct components of the separation (DESIGN).
+    Direct,
+    /// The white frames without stray light (direct + global: subsurface light blurs the shading
+    /// but follows the cosine law on average).
+    White,
+}
+
+/// Where the surface points (light directions, falloff) come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PointSource {
+    /// The triangulated points of the geometry stage.
+    Geometry,
+    /// The simulator's true points (isolates photometric errors from geometric ones).
+    Truth,
+}
+
+/// Parameters of the normals stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct NormalsParams {
+    pub input: PsInput,
+    pub points: PointSource,
+    pub method: Method,
+}
+
+impl Default for NormalsParams {
+    fn default() -> Self {
+        Self {
+            input: PsInput::Direct,
+            points: PointSource::Geometry,
+            method: Method::Robust,
+        }
+    }
+}
+
+/// Errors of the normals stage.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum NormalsStageError {
+    /// An artefact could not be read or written.
+    #[error(transparent)]
+    Image(#[from] ImageIoError),
+    /// Photometric stereo refused its input.
+    #[error(transparent)]
+    PhotometricStereo(#[from] PhotometricStereoError),
+    /// The calibration has fewer projectors than the capture.
+    #[error("the calibration has {calibrated} projectors, the capture {captured}")]
+    ProjectorCount { calibrated: usize, captured: usize },
+    /// `points: truth` on a capture without ground truth.
+    #[error("points = truth needs a simulated capture with truth/points.exr")]
+    NoTruthPoints,
+    /// Points and images differ in size.
+    #[error("{path} is {got:?}, the images are {expected:?}")]
+    Size {
+        path: PathBuf,
+        got: (u32, u32),
+        expected: (u32, u32),
+    },
+    /// The preview could not be written.
+    #[error("{path}: {source}")]
+    Preview {
+        path: PathBuf,
+        source: image::ImageError,
+    },
+}
+
+/// Projectors as near point lights over a map of surface points.
+pub struct ProjectorLights {
+    pub centres: Vec<Point3<f64>>,
+    /// Unit optical axes, world frame.
+    pub axes: Vec<Vector3<f64>>,
+    /// Intensity scale per projector (see the module conventions).
+    pub scales: Vec<f64>,
+    pub camera_centre: Point3<f64>,
+    pub width: u32,
+    /// World point per camera pixel; zero or non-finite where unknown.
+    pub points: Vec<[f32; 3]>,
+}
+
+impl LightModel for ProjectorLights {
+    fn count(&self) -> usize {
+        self.centres.len()
+    }
+
+    fn at(&self, x: u32, y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>> {
+        let p = self.points.get((y * self.width + x) as usize)?;
+        if p.iter().any(|v| !v.is_finite()) || p.iter().all(|v| *v == 0.0) {
+            return None;
+        }
+        let point = Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        for (k, sample) in out.iter_mut().enumerate() {
+            let to_light = self.centres[k] - point;
+            let r2 = to_light.norm_squared();
+            let direction = to_light / r2.sqrt();
+            let cos_axis = (-direction).dot(&self.axes[k]);
+            let irradiance = if cos_axis > 0.0 && r2 > 0.0 {
+                self.scales[k] / (r2 * cos_axis.powi(3))
+            } else {
+                0.0
+            };
+            *sample = LightSample {
+                direction,
+                irradiance: [irradiance; 3],
+            };
+        }
+        (self.camera_centre - point).try_normalize(1e-12)
+    }
+}
+
+fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
+    run_normals(ctx).map_err(StageFailure::new)
+}
+
+fn run_normals(ctx: &StageContext) -> Result<Value, NormalsStageError> {
+    let params: NormalsParams = ctx.params().unwrap_or_default();
+    let calib = ctx.calibration.ok_or(NormalsStageError::ProjectorCount {
+        calibrated: 0,
+        captured: 1,
+    })?;
+    let captured = ctx.capture.manifest.booth.projectors.len();
+    if calib.projectors.len() < captured {
+        return Err(NormalsStageError::ProjectorCount {
+            calibrated: calib.projectors.len(),
+            captured,
+        });
+    }
+    let sep_dir = ctx.stage_dir("separate");
+    let images = (0..captured)
+        .map(|k| {
+            let path = match params.input {
+                PsInput::Direct => direct_path(&sep_dir, k),
+                PsInput::White => white_path(&sep_dir, k),
+            };
+            imageio::read_exr_rgb(&path)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let (width, height) = images.first().map_or((0, 0), |i| i.dimensions());
+    let points_path = match params.points {
+        PointSource::Geometry => ctx.stage_dir("geometry").join("points.exr"),
+        PointSource::Truth => ctx
+            .truth_dir()
+            .map(|t| truth::points(&t))
+            .filter(|p| p.is_file())
+            .ok_or(NormalsStageError::NoTruthPoints)?,
+    };
+    let points = imageio::read_exr_rgb(&points_path)?;
+    if points.dimensions() != (width, height) {
+        return Err(NormalsStageError::Size {
+            path: points_path,
+            got: points.dimensions(),
+            expected: (width, height),
+        });
+    }
+    let lights = ProjectorLights {
+        centres: (0..captured)
+            .map(|k| calib.projectors[k].device.extrinsics.centre())
+            .collect(),
+        axes: (0..captured)
+            .map(|k| {
+                calib.projectors[k]
+                    .device
+                    .extrinsics
+                    .device_to_world_dir(&Vector3::z())
+            })
+            .collect(),
+        scales: (0..captured)
+            .map(|k| {
+                calib.projectors[k]
+                    .device
+                    .extrinsics
+                    .centre()
+                    .coords
+                    .norm_squared()
+            })
+            .collect(),
+        camera_centre: calib.camera.extrinsics.centre(),
+        width,
+        points: points.pixels().map(|p| p.0).collect(),
+    };
+    let ps_params = PsParams {
+        method: params.method,
+        ..PsParams::default()
+    };
+    let refs: Vec<&Rgb32FImage> = images.iter().collect();
+    let map = solve_images(&refs, &lights, None, &ps_params)?;
+    let normals = map.normal_image();
+    let dir = ctx.dir();
+    imageio::write_exr_rgb(&dir.join("normals.exr"), &normals)?;
+    imageio::write_exr_rgb(&dir.join("albedo.exr"), &map.albedo_image())?;
+    imageio::write_exr_gray(
+        &dir.join("lights_used.exr"),
+        &GrayF32 {
+            width,
+            height,
+            data: map
+                .pixels
+                .iter()
+                .map(|p| {
+                    if p.normal == [0.0; 3] {
+                        0.0
+                    } else {
+                        p.lights_used() as f32
+                    }
+                })
+                .collect(),
+        },
+    )?;
+    write_preview(&dir.join("normals.png"), &normals)?;
+    let stats = map.stats();
+    let mut report = stats.report_json();
+    report["input"] = json!(params.input);
+    report["points"] = json!(params.points);
+    report["method"] = json!(params.method);
+    if let Some(t) = ctx.truth_dir() {
+        let truth_normals = imageio::read_exr_rgb(&truth::normals(&t))?;
+        let mask = image::open(truth::mask(&t)).ok().map(|m| {
+            m.to_luma8()
+                .into_raw()
+                .into_iter()
+                .map(|v| v > 0)
+                .collect::<Vec<bool>>()
+        });
+        if truth_normals.dimensions() == (width, height)
+            && let Some(errors) = angular_errors(&normals, &truth_normals, mask.as_deref())
+        {
+            let skin = mask
+                .as_ref()
+                .map_or(0, |m| m.iter().filter(|v| **v).count());
+            report["mean_angular_error_deg"] = errors.mean_deg.into();
+            report["median_angular_error_deg"] = errors.median_deg.into();
+            report["p95_angular_error_deg"] = errors.p95_deg.into();
+            report["compared_pixels"] = errors.pixels.into();
+            report["coverage"] = (errors.pixels as f64 / skin.max(1) as f64).into();
+        }
+    }
+    Ok(report)
+}
+
+fn write_preview(path: &Path, normals: &Rgb32FImage) -> Result<(), NormalsStageError> {
+    let img = image::RgbImage::from_fn(normals.width(), normals.height(), |x, y| {
+        let n = normals.get_pixel(x, y).0;
+        if n == [0.0; 3] {
+            image::Rgb([0, 0, 0])
+        } else {
+            image::Rgb(n.map(|v| ((0.5 * v + 0.5).clamp(0.0, 1.0) * 255.0).round() as u8))
+        }
+    });
+    img.save(path).map_err(|source| NormalsStageError::Preview {
+        path: path.to_owned(),
+        source,
+    })
+}

@@ -1,0 +1,911 @@
+//! Stage `profiles` (DESIGN stage 6): the global part of every projector's 20 slit frames
+//! (`subsurface::slit_global`) and the per-pixel geometry that turns them into 1-D radiance profiles
+//! against the signed distance in mm on the surface (`subsurface::profiles`).
+//!
+//! Why the profiles are not stored: a pixel's profile is its 20 slit-frame values per projector
+//! plus a few geometry numbers; stored for every pixel that is the slit frames themselves again
+//! (1.4 GB of f32 for the full-size booth). [`ProfileInputs::load`] rebuilds them on demand from
+//! the capture and the cached artefacts of decode, geometry, separate and normals (a subtraction
+//! per frame), and the fit stage calls it when this stage came from the cache; when this stage ran
+//! in the same `process` run it hands its inputs over in memory instead
+//! ([`ProfileInputs::take_or_load`]). What this stage stores is small: the parameters the
+//! profiles were built with, a scanline of measured global light for plots, and its checks.
+//!
+//! Artefacts in `OUT/profiles/`:
+//! - `profiles.json`: [`ProfilesRecord`] (parameters, scanline row and columns, per projector
+//!   counts).
+//! - `scanline.svg`, `scanline.png`: R channel of the global part of projector
+//!   `scanline_projector`'s first vertical slit frame along the scanline (a forehead row for a
+//!   head: a quarter down the subject), measured and, for a simulated capture, true.
+//!
+//! Report fragment: per projector `pixels_with_profiles`, `slit_frames`, `blur_px`,
+//! `black_level`; `scanline_row`; with ground truth `slit_global_rel_rmse` (relative RMS error of
+//! the extracted global part against the simulator's, over the subject, for every slit frame with
+//! truth) and, with [`ProfilesParams::compare_variants`], `slit_global_rel_rmse_hard_mask`
+//! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless}` (each
+//! rule of [`DirectPart`]).
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use super::decode_stage::{DecodeStageError, coords_path, load_coords};
+use super::line_plot::{LinePlot, LinePlotError, Mark, Series};
+use super::separate_stage::{direct_path, global_path, stripe_blur};
+use super::{Stage, StageContext, StageFailure};
+use mlsss_core::calibration::DeviceCalibration;
+use mlsss_core::capture::{Axis, CaptureError, Pattern, truth};
+use mlsss_core::imageio::{self, ImageIoError};
+use mlsss_layer_model::profiles::{
+    Falloff, PixelGeometry, ProfileError, ProjectorView, SlitFrame, SlitSweep, pixel_geometry,
+};
+use mlsss_layer_model::slit_global::{SlitGlobalError, WhiteSeparation, slit_global};
+use mlsss_layer_model::surface::{Surface, ViewRay};
+use mlsss_vision::photometry::response::stray_light;
+
+/// The profiles stage.
+pub const STAGE: Stage = Stage {
+    name: "profiles",
+    version: 1,
+    inputs: &["decode", "geometry", "separate", "normals"],
+    uses_calibration: true,
+    run,
+};
+
+/// Name of the record file in the stage folder.
+pub const RECORD_FILE: &str = "profiles.json";
+
+/// Parameters of the profiles stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ProfilesParams {
+    /// Refractive index of the skin (refraction of the light and view rays).
+    pub eta: f64,
+    /// View-ray model of DESIGN section 5. Default: the exit point (no view term; diffuse light
+    /// leaving the skin, as the virtual booth's truth: `subsurface::layer_depth`).
+    pub view_ray: ViewRay,
+    /// Blur the slit edges by the projector defocus and pixel footprint when removing the direct
+    /// reflection (see `subsurface::slit_global`).
+    pub blur_edges: bool,
+    /// Projector whose slit frame the scanline plot shows.
+    pub scanline_projector: usize,
+    /// Where the direct reflection on a lit slit comes from (see [`DirectPart`]).
+    pub direct: DirectPart,
+    /// Which projector coordinates place the slits on the surface (see [`SlitCoordinates`]).
+    pub coordinates: SlitCoordinates,
+    /// With ground truth, also extract every slit frame by the other rules ([`VARIANTS`]) and
+    /// compare them with the truth. A design check, off by default: it decodes every slit frame
+    /// again and extracts it four more times (about 4 s of the full-size booth's processing).
+    pub compare_variants: bool,
+}
+
+/// The projector coordinates of each camera pixel that the profiles measure distances in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SlitCoordinates {
+    /// The pixel's surface point projected into the projector through the calibration, where
+    /// the projector decoded it (elsewhere none): the coordinates every render places a light's
+    /// pattern with (`SubsurfaceModel::projector_coords`), so the fitted layers' shifts mean the
+    /// same thing in the fit and in a relit image.
+    #[default]
+    Projected,
+    /// The decoded Gray-code coordinates. Subsurface light blurs the stripes forward, away from
+    /// the projector, so a pixel decodes the column lit slightly toward the light (0.1 mm on
+    /// the quick demo's skin against the truth coordinates): measured in these coordinates the
+    /// slit profiles lose the forward shift that the layer depth should explain
+    /// (`subsurface::layer_depth`).
+    Decoded,
+}
+
+/// The direct (surface) reflection removed from a slit frame where the slit lands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DirectPart {
+    /// The separation stage's direct image (Nayar et al. from the high-frequency frames).
+    Separation,
+    /// None: all light of a slit frame counts as subsurface light, and renders get no direct
+    /// part. For booths whose stripes are too coarse for the separation (short-range subsurface
+    /// light then lands in the "direct" image and would be cut out of every profile's peak).
+    /// Default: on the quick booth the extracted slit light is 10x closer to the truth this way
+    /// (relative RMSE 0.105 against 0.95 with the separation, 0.71 colourless), and skin's
+    /// surface reflection is a few percent of its light.
+    #[default]
+    None,
+    /// The separation's direct image made colourless: its smallest channel in every channel.
+    /// Skin's surface reflection is a dielectric's, colourless under white light, while the
+    /// subsurface light that contaminates the separated direct image (stripes not fine enough)
+    /// is coloured and weakest in blue; the smallest channel bounds the surface reflection from
+    /// above and the rest goes back to the subsurface part.
+    Colourless,
+}
+
+impl DirectPart {
+    /// Splits a white frame's separation `(direct, global)` by this rule.
+    pub fn split(self, direct: &[[f32; 3]], global: &[[f32; 3]]) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+        direct
+            .iter()
+            .zip(global)
+            .map(|(d, g)| {
+                let keep = match self {
+                    DirectPart::Separation => return (*d, *g),
+                    DirectPart::None => 0.0,
+                    DirectPart::Colourless => d[0].min(d[1]).min(d[2]).max(0.0),
+                };
+                (
+                    [keep; 3],
+                    [d[0] + g[0] - keep, d[1] + g[1] - keep, d[2] + g[2] - keep],
+                )
+            })
+            .unzip()
+    }
+}
+
+impl Default for ProfilesParams {
+    fn default() -> Self {
+        Self {
+            eta: 1.4,
+            view_ray: ViewRay::ExitPoint,
+            blur_edges: true,
+            scanline_projector: 0,
+            direct: DirectPart::None,
+            coordinates: SlitCoordinates::Projected,
+            compare_variants: false,
+        }
+    }
+}
+
+/// Errors of the profiles stage (and of rebuilding profiles in later stages).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ProfilesStageError {
+    /// A frame could not be read.
+    #[error(transparent)]
+    Capture(#[from] CaptureError),
+    /// An artefact could not be read or written.
+    #[error(transparent)]
+    Image(#[from] ImageIoError),
+    /// Decoded coordinates could not be read.
+    #[error(transparent)]
+    Decode(#[from] DecodeStageError),
+    /// The global part of a slit frame could not be extracted.
+    #[error("projector {projector}: {source}")]
+    SlitGlobal {
+        projector: usize,
+        source: SlitGlobalError,
+    },
+    /// Profiles could not be built.
+    #[error(transparent)]
+    Profile(#[from] ProfileError),
+    /// A plot could not be written.
+    #[error(transparent)]
+    Plot(#[from] LinePlotError),
+    /// The calibration has fewer projectors than the capture.
+    #[error("the calibration has {calibrated} projectors, the capture {captured}")]
+    ProjectorCount { calibrated: usize, captured: usize },
+    /// An artefact's size differs from the camera's.
+    #[error("{path} is {got:?}; the camera is {expected:?}")]
+    Size {
+        path: PathBuf,
+        got: (u32, u32),
+        expected: (u32, u32),
+    },
+    /// No pixel has a surface point and a normal.
+    #[error("the geometry and normals stages left no surface pixel")]
+    NoSurface,
+    /// The record file could not be read or written.
+    #[error("{path}: {message}")]
+    Record { path: PathBuf, message: String },
+}
+
+/// What the stage stores about the profiles it built (read back by the fit stage).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProfilesRecord {
+    pub params: ProfilesParams,
+    /// Camera row of the plotted scanline and its first and last subject columns.
+    pub scanline_row: usize,
+    pub scanline_columns: (usize, usize),
+    /// Per projector: pixels with a profile geometry.
+    pub pixels_with_profiles: Vec<usize>,
+}
+
+impl ProfilesRecord {
+    /// Reads `OUT/profiles/profiles.json`.
+    pub fn load(dir: &Path) -> Result<Self, ProfilesStageError> {
+        let path = dir.join(RECORD_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| ProfilesStageError::Record {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        serde_json::from_str(&text).map_err(|e| ProfilesStageError::Record {
+            path,
+            message: e.to_string(),
+        })
+    }
+}
+
+/// A slit pattern and the global part of its frame (RGB per camera pixel).
+pub type SlitGlobal = (Pattern, Vec<[f32; 3]>);
+
+/// A white frame split into direct and global parts, and the slit-edge blur to use with it.
+type WhiteSplit = (Vec<[f32; 3]>, Vec<[f32; 3]>, f32);
+
+/// One projector's inputs to the profiles.
+#[derive(Debug, Clone)]
+pub struct ProjectorInputs {
+    pub k: usize,
+    /// Optical centre (world, mm) and falloff of the projector as a light.
+    pub centre: Vector3<f64>,
+    pub falloff: Falloff,
+    pub black_level: f32,
+    /// Decoded projector coordinates per camera pixel.
+    pub coords: Vec<Option<(f32, f32)>>,
+    /// Direct and global parts under white (separation stage), stray light removed; with
+    /// [`DirectPart::None`] the direct part is zero and the global part the whole white frame.
+    pub direct_white: Vec<[f32; 3]>,
+    pub global_white: Vec<[f32; 3]>,
+    /// The separation stage's images as read (the split above derives from them).
+    pub separation_direct: Vec<[f32; 3]>,
+    pub separation_global: Vec<[f32; 3]>,
+    /// Light of the other projectors' black level in every frame of this projector.
+    pub stray: Vec<[f32; 3]>,
+    pub blur_px: f32,
+    /// Global part of each slit frame, in capture order; empty when the slits were not asked
+    /// for.
+    pub slits: Vec<SlitGlobal>,
+    /// Per-pixel profile geometry (`None`: off the subject, undecoded, facing away).
+    pub geometry: Vec<Option<PixelGeometry>>,
+}
+
+impl ProjectorInputs {
+    /// The projector as the subsurface library sees it.
+    pub fn view(&self) -> ProjectorView<'_> {
+        ProjectorView {
+            centre: self.centre,
+            falloff: self.falloff,
+            coords: &self.coords,
+        }
+    }
+
+    /// The slit sweep over this projector's global slit frames.
+    pub fn sweep(&self) -> Result<SlitSweep<'_>, ProfileError> {
+        let frames: Vec<SlitFrame> = self
+            .slits
+            .iter()
+            .map(|(pattern, global)| SlitFrame {
+                pattern: *pattern,
+                global,
+            })
+            .collect();
+        SlitSweep::new(&frames, self.coords.len())
+    }
+}
+
+/// Everything the profiles of a capture are built from.
+#[derive(Debug, Clone)]
+pub struct ProfileInputs {
+    pub surface: Surface,
+    /// Every projector of the capture, index = projector number.
+    pub projectors: Vec<ProjectorInputs>,
+    pub params: ProfilesParams,
+}
+
+fn pixels(img: &image::Rgb32FImage) -> Vec<[f32; 3]> {
+    img.pixels().map(|p| p.0).collect()
+}
+
+fn read_rgb(path: &Path, size: (u32, u32)) -> Result<Vec<[f32; 3]>, ProfilesStageError> {
+    let img = imageio::read_exr_rgb(path)?;
+    if img.dimensions() != size {
+        return Err(ProfilesStageError::Size {
+            path: path.to_owned(),
+            got: img.dimensions(),
+            expected: size,
+        });
+    }
+    Ok(pixels(&img))
+}
+
+/// The surface from the geometry stage's points and the normals stage's normals; where
+/// photometric stereo flagged a pixel, the normal of the triangulated surface (facing the camera).
+pub fn load_surface(
+    ctx: &StageContext,
+    size: (u32, u32),
+    camera_centre: Vector3<f64>,
+) -> Result<Surface, ProfilesStageError> {
+    let geo = ctx.stage_dir("geometry");
+    let points = read_rgb(&geo.join("points.exr"), size)?;
+    let depth = imageio::read_exr_gray(&geo.join("depth.exr"))?;
+    let ps_normals = read_rgb(&ctx.stage_dir("normals").join("normals.exr"), size)?;
+    let (w, h) = (size.0 as usize, size.1 as usize);
+    let mask: Vec<bool> = (0..w * h)
+        .map(|i| {
+            depth.data.get(i).is_some_and(|d| *d > 0.0) && points[i].iter().all(|v| v.is_finite())
+        })
+        .collect();
+    let mut surface = Surface {
+        width: w,
+        height: h,
+        points: points
+            .iter()
+            .map(|p| Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
+            .collect(),
+        normals: vec![Vector3::zeros(); w * h],
+        mask,
+        camera_centre,
+    };
+    let normals: Vec<Vector3<f64>> = (0..w * h)
+        .map(|i| {
+            if !surface.mask[i] {
+                return Vector3::zeros();
+            }
+            let n = Vector3::new(
+                f64::from(ps_normals[i][0]),
+                f64::from(ps_normals[i][1]),
+                f64::from(ps_normals[i][2]),
+            );
+            if let Some(n) = n.try_normalize(1e-6) {
+                return n;
+            }
+            surface
+                .footprint(i)
+                .and_then(|fp| fp.dx.cross(&fp.dy).try_normalize(1e-12))
+                .map(|n| {
+                    let to_camera = camera_centre - surface.points[i];
+                    if n.dot(&to_camera) < 0.0 { -n } else { n }
+                })
+                .unwrap_or_else(Vector3::zeros)
+        })
+        .collect();
+    for (i, n) in normals.iter().enumerate() {
+        if n.norm_squared() == 0.0 {
+            surface.mask[i] = false;
+        }
+    }
+    surface.normals = normals;
+    if !surface.mask.iter().any(|m| *m) {
+        return Err(ProfilesStageError::NoSurface);
+    }
+    Ok(surface)
+}
+
+/// `decoded`'s pixels (on the subject) with the projection of their surface point instead.
+fn projected_coords(
+    surface: &Surface,
+    device: &DeviceCalibration,
+    decoded: &[Option<(f32, f32)>],
+) -> Vec<Option<(f32, f32)>> {
+    decoded
+        .par_iter()
+        .enumerate()
+        .map(|(i, c)| {
+            c.filter(|_| surface.mask[i])?;
+            let q = device.project(&Point3::from(surface.points[i]))?;
+            Some((q.x as f32, q.y as f32))
+        })
+        .collect()
+}
+
+impl ProfileInputs {
+    /// What the profiles stage of this run handed over (every projector's slits; those not in
+    /// `with_slits` are dropped), else [`ProfileInputs::load`].
+    pub fn take_or_load(
+        ctx: &StageContext,
+        params: &ProfilesParams,
+        with_slits: &[usize],
+    ) -> Result<Self, ProfilesStageError> {
+        match ctx.take_handed_over::<ProfileInputs>(STAGE.name) {
+            Some(mut inputs) if inputs.params == *params => {
+                for p in &mut inputs.projectors {
+                    if !with_slits.contains(&p.k) {
+                        p.slits = Vec::new();
+                    }
+                }
+                Ok(inputs)
+            }
+            _ => Self::load(ctx, params, with_slits),
+        }
+    }
+
+    /// Rebuilds the profiles' inputs from the cached artefacts: the surface, every projector's
+    /// geometry, and the global slit frames of the projectors in `with_slits`.
+    pub fn load(
+        ctx: &StageContext,
+        params: &ProfilesParams,
+        with_slits: &[usize],
+    ) -> Result<Self, ProfilesStageError> {
+        let calib = ctx.calibration.ok_or(ProfilesStageError::ProjectorCount {
+            calibrated: 0,
+            captured: ctx.capture.manifest.booth.projectors.len(),
+        })?;
+        let captured = ctx.capture.manifest.booth.projectors.len();
+        if calib.projectors.len() < captured {
+            return Err(ProfilesStageError::ProjectorCount {
+                calibrated: calib.projectors.len(),
+                captured,
+            });
+        }
+        let cam = &ctx.capture.manifest.booth.camera;
+        let size = (cam.width, cam.height);
+        let camera_centre = calib.camera.extrinsics.centre().coords;
+        let surface = load_surface(ctx, size, camera_centre)?;
+        let black: Vec<f64> = (0..captured)
+            .map(|k| calib.projectors[k].response.map_or(0.0, |r| r.black_level))
+            .collect();
+        let stray = stray_for_all(ctx, &black)?;
+        let sep = ctx.stage_dir("separate");
+        let decode = ctx.stage_dir("decode");
+        let mut projectors = Vec::with_capacity(captured);
+        for (k, stray) in stray.into_iter().enumerate() {
+            let device = &calib.projectors[k].device;
+            let centre = device.extrinsics.centre().coords;
+            let falloff = Falloff::Projector {
+                axis: device.extrinsics.device_to_world_dir(&Vector3::z()).into(),
+                scale: centre.norm_squared(),
+            };
+            let path = coords_path(&decode, k);
+            let coords: Vec<Option<(f32, f32)>> = if path.is_file() {
+                load_coords(&path, size)?
+                    .into_iter()
+                    .map(|c| c.map(|(u, v)| (u as f32, v as f32)))
+                    .collect()
+            } else {
+                vec![None; surface.len()]
+            };
+            let coords = match params.coordinates {
+                SlitCoordinates::Decoded => coords,
+                SlitCoordinates::Projected => projected_coords(&surface, device, &coords),
+            };
+            let view = ProjectorView {
+                centre,
+                falloff,
+                coords: &coords,
+            };
+            let geometry = pixel_geometry(&surface, &view, params.eta, params.view_ray)?;
+            let separation_direct = read_rgb(&direct_path(&sep, k), size)?;
+            let separation_global = read_rgb(&global_path(&sep, k), size)?;
+            let (direct_white, global_white) =
+                params.direct.split(&separation_direct, &separation_global);
+            let mut inputs = ProjectorInputs {
+                k,
+                centre,
+                falloff,
+                black_level: black[k] as f32,
+                direct_white,
+                global_white,
+                separation_direct,
+                separation_global,
+                stray,
+                blur_px: if params.blur_edges {
+                    stripe_blur(ctx, k)
+                } else {
+                    0.0
+                },
+                slits: Vec::new(),
+                coords,
+                geometry,
+            };
+            if with_slits.contains(&k) {
+                inputs.slits = slit_globals(ctx, &inputs, inputs.blur_px)?;
+            }
+            projectors.push(inputs);
+        }
+        Ok(Self {
+            surface,
+            projectors,
+            params: params.clone(),
+        })
+    }
+}
+
+/// Stray light of every projector's frames (zeros when it cannot be estimated). The white frames
+/// are decoded in parallel.
+fn stray_for_all(
+    ctx: &StageContext,
+    black: &[f64],
+) -> Result<Vec<Vec<[f32; 3]>>, ProfilesStageError> {
+    let plan = &ctx.capture.manifest.plan;
+    let cam = &ctx.capture.manifest.booth.camera;
+    let n = (cam.width * cam.height) as usize;
+    let indices: Option<Vec<u32>> = (0..black.len())
+        .map(|k| plan.find(k as u8, &Pattern::White).map(|f| f.index))
+        .collect();
+    let Some(indices) = indices else {
+        return Ok(vec![vec![[0.0; 3]; n]; black.len()]);
+    };
+    let whites = indices
+        .par_iter()
+        .map(|&index| ctx.capture.read_frame(index))
+        .collect::<Result<Vec<_>, _>>()?;
+    let refs: Vec<&image::Rgb32FImage> = whites.iter().collect();
+    Ok(match stray_light(&refs, black) {
+        Some(s) => s.iter().map(pixels).collect(),
+        None => vec![vec![[0.0; 3]; n]; black.len()],
+    })
+}
+
+/// The global parts of projector `p`'s slit frames, in capture order (frames decoded and
+/// extracted in parallel).
+fn slit_globals(
+    ctx: &StageContext,
+    p: &ProjectorInputs,
+    blur_px: f32,
+) -> Result<Vec<SlitGlobal>, ProfilesStageError> {
+    let white = WhiteSeparation {
+        direct: &p.direct_white,
+        global: &p.global_white,
+        stray: &p.stray,
+        black_level: p.black_level,
+        blur_px,
+    };
+    let frames: Vec<(u32, Pattern)> = slit_frames(ctx, p.k);
+    frames
+        .par_iter()
+        .map(|&(index, pattern)| {
+            let frame = ctx.capture.read_frame_pixels(index)?;
+            let global = slit_global(&frame, &pattern, &p.coords, &white).map_err(|source| {
+                ProfilesStageError::SlitGlobal {
+                    projector: p.k,
+                    source,
+                }
+            })?;
+            Ok((pattern, global))
+        })
+        .collect()
+}
+
+/// Frame index and pattern of projector `k`'s slit frames, in capture order.
+fn slit_frames(ctx: &StageContext, k: usize) -> Vec<(u32, Pattern)> {
+    ctx.capture
+        .manifest
+        .plan
+        .for_projector(k as u8)
+        .filter(|f| matches!(f.pattern, Pattern::Slit { .. }))
+        .map(|f| (f.index, f.pattern))
+        .collect()
+}
+
+/// The scanline of the plots: a quarter down the subject (the forehead of a head), over the
+/// subject's columns on that row.
+pub fn scanline(surface: &Surface) -> (usize, (usize, usize)) {
+    let rows: Vec<usize> = (0..surface.height)
+        .filter(|&y| (0..surface.width).any(|x| surface.mask[y * surface.width + x]))
+        .collect();
+    let (top, bottom) = (
+        rows.first().copied().unwrap_or(0),
+        rows.last().copied().unwrap_or(0),
+    );
+    let row = top + (bottom - top) / 4;
+    let cols: Vec<usize> = (0..surface.width)
+        .filter(|&x| surface.mask[row * surface.width + x])
+        .collect();
+    (
+        row,
+        (
+            cols.first().copied().unwrap_or(0),
+            cols.last().copied().unwrap_or(0),
+        ),
+    )
+}
+
+/// The first vertical slit (offset 0) of a sweep, the pattern the plots show.
+pub fn reference_slit(slits: &[SlitGlobal]) -> Option<&SlitGlobal> {
+    slits
+        .iter()
+        .find(|(p, _)| {
+            matches!(
+                p,
+                Pattern::Slit {
+                    axis: Axis::X,
+                    offset: 0,
+                    ..
+                }
+            )
+        })
+        .or_else(|| slits.first())
+}
+
+/// The simulator's global part of a slit alone at full level: `(G_slit - b G_white) / (1 - b)`
+/// (the truth's global images include the black level's light).
+pub fn true_slit_global(
+    truth_dir: &Path,
+    k: usize,
+    pattern: &Pattern,
+    black_level: f32,
+    size: (u32, u32),
+) -> Result<Option<Vec<[f32; 3]>>, ProfilesStageError> {
+    let Some(white) = true_white_global(truth_dir, k, size)? else {
+        return Ok(None);
+    };
+    true_slit_global_with(truth_dir, k, pattern, &white, black_level, size)
+}
+
+/// The simulator's global image of projector `k`'s white frame, if the truth has it.
+fn true_white_global(
+    truth_dir: &Path,
+    k: usize,
+    size: (u32, u32),
+) -> Result<Option<Vec<[f32; 3]>>, ProfilesStageError> {
+    let path = truth::global(truth_dir, k, &Pattern::White);
+    if !path.is_file() {
+        return Ok(None);
+    }
+    read_rgb(&path, size).map(Some)
+}
+
+/// [`true_slit_global`] with the white truth already read (it is the same for every slit of a
+/// projector).
+fn true_slit_global_with(
+    truth_dir: &Path,
+    k: usize,
+    pattern: &Pattern,
+    white: &[[f32; 3]],
+    black_level: f32,
+    size: (u32, u32),
+) -> Result<Option<Vec<[f32; 3]>>, ProfilesStageError> {
+    let slit_path = truth::global(truth_dir, k, pattern);
+    if !slit_path.is_file() {
+        return Ok(None);
+    }
+    let slit = read_rgb(&slit_path, size)?;
+    let b = black_level;
+    Ok(Some(
+        slit.iter()
+            .zip(white)
+            .map(|(s, w)| {
+                let mut o = [0.0f32; 3];
+                for c in 0..3 {
+                    o[c] = (s[c] - b * w[c]) / (1.0 - b);
+                }
+                o
+            })
+            .collect(),
+    ))
+}
+
+/// Accumulates `sum (a - t)^2` and `sum t^2` over the pixels of `mask`.
+fn accumulate(acc: &mut (f64, f64), a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool]) {
+    for ((a, t), m) in a.iter().zip(t).zip(mask) {
+        if !m {
+            continue;
+        }
+        for c in 0..3 {
+            acc.0 += (f64::from(a[c]) - f64::from(t[c])).powi(2);
+            acc.1 += f64::from(t[c]).powi(2);
+        }
+    }
+}
+
+fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
+    run_profiles(ctx).map_err(StageFailure::new)
+}
+
+fn run_profiles(ctx: &StageContext) -> Result<Value, ProfilesStageError> {
+    let params: ProfilesParams = ctx.params().unwrap_or_default();
+    let captured = ctx.capture.manifest.booth.projectors.len();
+    let all: Vec<usize> = (0..captured).collect();
+    let inputs = ProfileInputs::load(ctx, &params, &all)?;
+    let cam = &ctx.capture.manifest.booth.camera;
+    let size = (cam.width, cam.height);
+    let (row, cols) = scanline(&inputs.surface);
+    let mut per_projector = Vec::new();
+    for p in &inputs.projectors {
+        p.sweep()?; // checks the frames: slits only, camera-sized
+        per_projector.push(json!({
+            "projector": p.k,
+            "pixels_with_profiles": p.geometry.iter().filter(|g| g.is_some()).count(),
+            "slit_frames": p.slits.len(),
+            "blur_px": p.blur_px,
+            "black_level": p.black_level,
+        }));
+    }
+    let mut report = json!({
+        "projectors": per_projector,
+        "scanline_row": row,
+        "eta": params.eta,
+        "view_ray": params.view_ray,
+        "direct": params.direct,
+    });
+    let truth_dir = ctx.truth_dir();
+    if let Some(t) = &truth_dir {
+        let errors = truth_check(ctx, &inputs, t, size, params.compare_variants)?;
+        if let Some(v) = errors[0] {
+            report["slit_global_rel_rmse"] = v.into();
+        }
+        for ((suffix, _), value) in VARIANTS.iter().zip(&errors[1..]) {
+            if let Some(v) = value {
+                report[format!("slit_global_rel_rmse_{suffix}")] = (*v).into();
+            }
+        }
+    }
+    let record = ProfilesRecord {
+        params: params.clone(),
+        scanline_row: row,
+        scanline_columns: cols,
+        pixels_with_profiles: inputs
+            .projectors
+            .iter()
+            .map(|p| p.geometry.iter().filter(|g| g.is_some()).count())
+            .collect(),
+    };
+    let path = ctx.dir().join(RECORD_FILE);
+    let text = serde_json::to_string_pretty(&record).unwrap_or_default();
+    std::fs::write(&path, text).map_err(|e| ProfilesStageError::Record {
+        path,
+        message: e.to_string(),
+    })?;
+    write_scanline_plot(ctx, &inputs, &record, truth_dir.as_deref(), size)?;
+    // The fit stage of the same run starts from these instead of decoding the slit frames again.
+    ctx.hand_over(inputs);
+    Ok(report)
+}
+
+/// The truth check's variants besides the configured one: hard slit edges, and each rule for
+/// the direct part (report key suffixes).
+const VARIANTS: [(&str, Option<DirectPart>); 4] = [
+    ("hard_mask", None),
+    ("direct_separation", Some(DirectPart::Separation)),
+    ("direct_none", Some(DirectPart::None)),
+    ("direct_colourless", Some(DirectPart::Colourless)),
+];
+
+/// Relative RMS errors of the extracted slit globals against the truth: as configured, then
+/// (with `variants`) the [`VARIANTS`]. `None` entries when the capture has no slit truth. The
+/// slit frames of a projector are checked in parallel; each projector's white truth is read
+/// once.
+fn truth_check(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    truth_dir: &Path,
+    size: (u32, u32),
+    variants: bool,
+) -> Result<Vec<Option<f64>>, ProfilesStageError> {
+    let rules = if variants { &VARIANTS[..] } else { &[] };
+    let mut acc = vec![(0.0, 0.0); rules.len() + 1];
+    let mut compared = 0;
+    for p in &inputs.projectors {
+        let Some(white_truth) = true_white_global(truth_dir, p.k, size)? else {
+            continue;
+        };
+        let splits: Vec<WhiteSplit> = rules
+            .iter()
+            .map(|(_, rule)| match rule {
+                None => (p.direct_white.clone(), p.global_white.clone(), 0.0),
+                Some(r) => {
+                    let (d, g) = r.split(&p.separation_direct, &p.separation_global);
+                    (d, g, p.blur_px)
+                }
+            })
+            .collect();
+        let per_slit = p
+            .slits
+            .par_iter()
+            .map(|(pattern, global)| {
+                check_slit(
+                    ctx,
+                    inputs,
+                    p,
+                    &splits,
+                    pattern,
+                    global,
+                    &white_truth,
+                    truth_dir,
+                    size,
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        for sums in per_slit.into_iter().flatten() {
+            compared += 1;
+            for (a, s) in acc.iter_mut().zip(sums) {
+                a.0 += s.0;
+                a.1 += s.1;
+            }
+        }
+    }
+    Ok(acc
+        .into_iter()
+        .map(|a| (compared > 0 && a.1 > 0.0).then(|| (a.0 / a.1).sqrt()))
+        .collect())
+}
+
+/// The error sums `(sum err^2, sum truth^2)` of one slit frame of projector `p`: its extracted
+/// global part, then each of `splits` (the frame is decoded again only for those); `None`
+/// without truth for that slit.
+#[allow(clippy::too_many_arguments)]
+fn check_slit(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    p: &ProjectorInputs,
+    splits: &[WhiteSplit],
+    pattern: &Pattern,
+    global: &[[f32; 3]],
+    white_truth: &[[f32; 3]],
+    truth_dir: &Path,
+    size: (u32, u32),
+) -> Result<Option<Vec<(f64, f64)>>, ProfilesStageError> {
+    let mask = &inputs.surface.mask;
+    let Some(truth) =
+        true_slit_global_with(truth_dir, p.k, pattern, white_truth, p.black_level, size)?
+    else {
+        return Ok(None);
+    };
+    let mut sums = vec![(0.0, 0.0); splits.len() + 1];
+    accumulate(&mut sums[0], global, &truth, mask);
+    if splits.is_empty() {
+        return Ok(Some(sums));
+    }
+    let Some(frame) = ctx.capture.manifest.plan.find(p.k as u8, pattern) else {
+        return Ok(Some(sums));
+    };
+    let frame = ctx.capture.read_frame_pixels(frame.index)?;
+    for (slot, (direct, global_white, blur_px)) in splits.iter().enumerate() {
+        let white = WhiteSeparation {
+            direct,
+            global: global_white,
+            stray: &p.stray,
+            black_level: p.black_level,
+            blur_px: *blur_px,
+        };
+        let other = slit_global(&frame, pattern, &p.coords, &white).map_err(|source| {
+            ProfilesStageError::SlitGlobal {
+                projector: p.k,
+                source,
+            }
+        })?;
+        accumulate(&mut sums[slot + 1], &other, &truth, mask);
+    }
+    Ok(Some(sums))
+}
+
+fn write_scanline_plot(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    record: &ProfilesRecord,
+    truth_dir: Option<&Path>,
+    size: (u32, u32),
+) -> Result<(), ProfilesStageError> {
+    let Some(p) = inputs.projectors.get(record.params.scanline_projector) else {
+        return Ok(());
+    };
+    let Some((pattern, global)) = reference_slit(&p.slits) else {
+        return Ok(());
+    };
+    let (row, (c0, c1)) = (record.scanline_row, record.scanline_columns);
+    let w = inputs.surface.width;
+    let along = |img: &[[f32; 3]]| -> Vec<(f64, f64)> {
+        (c0..=c1)
+            .filter(|&x| inputs.surface.mask[row * w + x])
+            .map(|x| (x as f64, f64::from(img[row * w + x][0])))
+            .collect()
+    };
+    let mut series = vec![Series {
+        label: "measured global (R)".into(),
+        colour: [200, 30, 30],
+        mark: Mark::Line,
+        points: along(global),
+    }];
+    if let Some(t) = truth_dir
+        && let Some(truth) = true_slit_global(t, p.k, pattern, p.black_level, size)?
+    {
+        series.push(Series {
+            label: "true global (R)".into(),
+            colour: [40, 40, 40],
+            mark: Mark::Dashed,
+            points: along(&truth),
+        });
+    }
+    let plot = LinePlot {
+        title: format!(
+            "Global light of projector {}'s slit {} along row {row}",
+            p.k,
+            pattern.label()
+        ),
+        x_label: "camera column (px)".into(),
+        y_label: "radiance (camera units)".into(),
+        series,
+    };
+    plot.write(&ctx.dir().join("scanline"))?;
+    Ok(())
+}

@@ -1,0 +1,414 @@
+//! Slit radiance profiles (DESIGN stage 6): for each camera pixel, the global radiance under each
+//! slit frame of the sweep against the signed distance (mm, on the surface) from the pixel to the
+//! centre of the nearest lit slit, along x (vertical slits) and along y (horizontal slits).
+//!
+//! Conventions
+//! - As [`super::surface`]; projector coordinates `(u, v)` in projector pixels, centres at integers
+//!   (as `capture::patterns`), so a slit lighting columns `o .. o + w - 1` is centred at
+//!   `o + (w - 1) / 2`.
+//! - The profile axis on the surface is the surface gradient of the projector coordinate (`u` for
+//!   vertical slits, `v` for horizontal ones): `s = (u - u_slit) / |grad_s u|`, `s_hat` along
+//!   `grad_s u`. Slit width and period convert to mm the same way.
+//! - Irradiance of a projector at a point, in the model's units: `cos(theta_i) (r_ref / r)^2` with
+//!   `r_ref` = 1000 mm (a projector lighting a point head-on from 1 m gives 1); projectors are
+//!   assumed equally bright after photometric calibration.
+//!
+//! Profiles are built on demand per pixel (a full-size capture would need gigabytes to hold them
+//! all); the per-pixel geometry is computed once.
+
+use nalgebra::{Matrix2, Vector2, Vector3};
+use rayon::prelude::*;
+
+use super::mixture::{Profile, Sample};
+use super::surface::{Footprint, Surface, ViewRay, shift_per_depth};
+use mlsss_core::capture::{Axis, Pattern};
+
+/// Reference distance of the irradiance unit (mm).
+pub const IRRADIANCE_REFERENCE_MM: f64 = 1000.0;
+
+/// Errors building profiles.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[non_exhaustive]
+pub enum ProfileError {
+    /// A frame handed to the profile builder is not a slit pattern.
+    #[error("frame {index} is a {label} pattern, not a slit")]
+    NotASlit { index: usize, label: String },
+    /// A frame or coordinate map does not have the surface's size.
+    #[error("{what} has {got} pixels; the surface has {want}")]
+    SizeMismatch {
+        what: &'static str,
+        got: usize,
+        want: usize,
+    },
+}
+
+/// How a projector's irradiance falls off around it.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Falloff {
+    /// Isotropic point source: `cos(theta_i) (r_ref / r)^2`, `r_ref` =
+    /// [`IRRADIANCE_REFERENCE_MM`].
+    #[default]
+    Isotropic,
+    /// A projector's flat pixel grid (as the normals stage and the virtual booth): intensity
+    /// `scale / cos^3(alpha)` at angle `alpha` off the optical `axis` (unit, pointing out of the
+    /// lens), so `cos(theta_i) scale / (r^2 cos^3(alpha))`. `scale` = the squared distance to the
+    /// subject's nominal centre makes every projector give 1 there: they are assumed equally
+    /// bright after photometric calibration.
+    Projector { axis: [f64; 3], scale: f64 },
+}
+
+/// One projector as the profile stage sees it.
+#[derive(Debug, Clone, Copy)]
+pub struct ProjectorView<'a> {
+    /// Optical centre (world, mm).
+    pub centre: Vector3<f64>,
+    pub falloff: Falloff,
+    /// Projector coordinates of each camera pixel's surface point; `None` where unlit/undecoded.
+    pub coords: &'a [Option<(f32, f32)>],
+}
+
+/// One slit frame's global component (RGB per pixel).
+#[derive(Debug, Clone, Copy)]
+pub struct SlitFrame<'a> {
+    pub pattern: Pattern,
+    pub global: &'a [[f32; 3]],
+}
+
+/// Irradiance (model units) of a light at `centre` on a surface point; 0 when the point faces
+/// away or lies behind the projector.
+pub fn irradiance(
+    point: &Vector3<f64>,
+    normal: &Vector3<f64>,
+    centre: &Vector3<f64>,
+    falloff: &Falloff,
+) -> f64 {
+    let to_light = centre - point;
+    let r2 = to_light.norm_squared();
+    if r2 <= 0.0 {
+        return 0.0;
+    }
+    let dir = to_light / r2.sqrt();
+    let cos = dir.dot(normal);
+    if cos <= 0.0 {
+        return 0.0;
+    }
+    match *falloff {
+        Falloff::Isotropic => cos * IRRADIANCE_REFERENCE_MM * IRRADIANCE_REFERENCE_MM / r2,
+        Falloff::Projector { axis, scale } => {
+            let cos_axis = -dir.dot(&Vector3::from(axis));
+            if cos_axis <= 1e-6 {
+                0.0
+            } else {
+                cos * scale / (r2 * cos_axis.powi(3))
+            }
+        }
+    }
+}
+
+/// Geometry of one pixel for one projector and axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisGeometry {
+    /// Projector pixels per mm along the profile axis on the surface (`|grad_s u|`).
+    pub px_per_mm: f64,
+    /// `(t_i + t_o) . s_hat`.
+    pub shift_per_depth: f64,
+}
+
+/// Geometry of one pixel for one projector.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelGeometry {
+    pub coords: (f64, f64),
+    pub irradiance: f64,
+    /// Index 0: profile along x (vertical slits, coordinate u); 1: along y (v).
+    pub axes: [AxisGeometry; 2],
+    /// `t_i + t_o` (3-D, tangent to the surface).
+    pub shift: Vector3<f64>,
+}
+
+fn coord_at(view: &ProjectorView, surface: &Surface, x: i64, y: i64) -> Option<Vector2<f64>> {
+    if x < 0 || y < 0 || x as usize >= surface.width || y as usize >= surface.height {
+        return None;
+    }
+    let i = y as usize * surface.width + x as usize;
+    if !surface.mask[i] {
+        return None;
+    }
+    view.coords[i].map(|(u, v)| Vector2::new(f64::from(u), f64::from(v)))
+}
+
+/// `d(u, v)/d(x, y)` at pixel `i` by central (or one-sided) differences.
+fn coord_jacobian(view: &ProjectorView, surface: &Surface, i: usize) -> Option<Matrix2<f64>> {
+    let (x, y) = ((i % surface.width) as i64, (i / surface.width) as i64);
+    let here = coord_at(view, surface, x, y)?;
+    let diff = |dx: i64, dy: i64| -> Option<Vector2<f64>> {
+        match (
+            coord_at(view, surface, x - dx, y - dy),
+            coord_at(view, surface, x + dx, y + dy),
+        ) {
+            (Some(a), Some(b)) => Some((b - a) * 0.5),
+            (None, Some(b)) => Some(b - here),
+            (Some(a), None) => Some(here - a),
+            (None, None) => None,
+        }
+    };
+    let gx = diff(1, 0)?;
+    let gy = diff(0, 1)?;
+    // Columns: derivative along x, along y; rows: u, v.
+    Some(Matrix2::new(gx.x, gy.x, gx.y, gy.y))
+}
+
+/// Surface gradient of a scalar with image partials `g` on footprint `fp`: `J G^-1 g`.
+fn surface_gradient(fp: &Footprint, g: Vector2<f64>) -> Option<Vector3<f64>> {
+    let gram = Matrix2::new(
+        fp.dx.dot(&fp.dx),
+        fp.dx.dot(&fp.dy),
+        fp.dy.dot(&fp.dx),
+        fp.dy.dot(&fp.dy),
+    );
+    let a = gram.try_inverse()? * g;
+    Some(fp.dx * a.x + fp.dy * a.y)
+}
+
+/// Per-pixel geometry of a projector: `None` where the pixel is off the subject, undecoded,
+/// shadowed or at grazing incidence.
+pub fn pixel_geometry(
+    surface: &Surface,
+    view: &ProjectorView,
+    eta: f64,
+    view_ray: ViewRay,
+) -> Result<Vec<Option<PixelGeometry>>, ProfileError> {
+    if view.coords.len() != surface.len() {
+        return Err(ProfileError::SizeMismatch {
+            what: "projector coordinates",
+            got: view.coords.len(),
+            want: surface.len(),
+        });
+    }
+    // Pixels are independent: split them across threads.
+    Ok((0..surface.len())
+        .into_par_iter()
+        .map(|i| {
+            let (u, v) = view.coords[i]?;
+            let fp = surface.footprint(i)?;
+            let jac = coord_jacobian(view, surface, i)?;
+            let (p, n) = (&surface.points[i], &surface.normals[i]);
+            let shift = shift_per_depth(p, n, &view.centre, &surface.camera_centre, eta, view_ray)?;
+            let e = irradiance(p, n, &view.centre, &view.falloff);
+            if e <= 0.0 {
+                return None;
+            }
+            let axis = |row: usize| -> Option<AxisGeometry> {
+                let grad = surface_gradient(&fp, Vector2::new(jac[(row, 0)], jac[(row, 1)]))?;
+                let norm = grad.norm();
+                (norm > 1e-9).then(|| AxisGeometry {
+                    px_per_mm: norm,
+                    shift_per_depth: shift.dot(&(grad / norm)),
+                })
+            };
+            Some(PixelGeometry {
+                coords: (f64::from(u), f64::from(v)),
+                irradiance: e,
+                axes: [axis(0)?, axis(1)?],
+                shift,
+            })
+        })
+        .collect())
+}
+
+/// Signed distance (projector px) from `coord` to the centre of the nearest slit of a comb with
+/// slits `width` px wide every `period` px starting at `offset`, in `[-period/2, period/2)`.
+pub fn slit_distance_px(coord: f64, width: u32, period: u32, offset: u32) -> f64 {
+    let centre = f64::from(offset) + (f64::from(width) - 1.0) / 2.0;
+    let p = f64::from(period);
+    (coord - centre + p / 2.0).rem_euclid(p) - p / 2.0
+}
+
+/// One checked slit frame: width, period, offset (projector px) and the global image.
+type SweepFrame<'a> = (u32, u32, u32, &'a [[f32; 3]]);
+
+/// The slit frames of one projector, checked, split by axis.
+#[derive(Debug, Clone)]
+pub struct SlitSweep<'a> {
+    frames: [Vec<SweepFrame<'a>>; 2],
+}
+
+impl<'a> SlitSweep<'a> {
+    pub fn new(frames: &[SlitFrame<'a>], pixels: usize) -> Result<Self, ProfileError> {
+        let mut out: [Vec<_>; 2] = Default::default();
+        for (index, f) in frames.iter().enumerate() {
+            let Pattern::Slit {
+                axis,
+                width,
+                period,
+                offset,
+            } = f.pattern
+            else {
+                return Err(ProfileError::NotASlit {
+                    index,
+                    label: f.pattern.label(),
+                });
+            };
+            if f.global.len() != pixels {
+                return Err(ProfileError::SizeMismatch {
+                    what: "slit frame",
+                    got: f.global.len(),
+                    want: pixels,
+                });
+            }
+            let a = match axis {
+                Axis::X => 0,
+                Axis::Y => 1,
+            };
+            out[a].push((width, period, offset, f.global));
+        }
+        Ok(Self { frames: out })
+    }
+
+    /// The profile of pixel `i`, channel `c`, along axis `a` (0 = x, 1 = y), or `None` when this
+    /// projector swept no slit along that axis.
+    pub fn profile(&self, i: usize, c: usize, a: usize, geo: &PixelGeometry) -> Option<Profile> {
+        let frames = &self.frames[a];
+        let &(width, period, _, _) = frames.first()?;
+        let ax = geo.axes[a];
+        let coord = if a == 0 { geo.coords.0 } else { geo.coords.1 };
+        let samples = frames
+            .iter()
+            .map(|&(w, p, o, img)| Sample {
+                s: slit_distance_px(coord, w, p, o) / ax.px_per_mm,
+                y: f64::from(img[i][c]),
+            })
+            .collect();
+        Some(Profile {
+            samples,
+            slit_width: f64::from(width) / ax.px_per_mm,
+            period: Some(f64::from(period) / ax.px_per_mm),
+            shift_per_depth: ax.shift_per_depth,
+        })
+    }
+
+    /// `(flux, slit width)` (radiance x mm, mm) of [`SlitSweep::profile`]'s profile, the same
+    /// numbers as its [`Profile::flux`] and `slit_width`, without building the samples: the
+    /// amplitudes of every pixel need them, and building ~25 million profiles at full size for
+    /// that was a measurable part of the fit.
+    pub fn flux(&self, i: usize, c: usize, a: usize, geo: &PixelGeometry) -> Option<(f64, f64)> {
+        let frames = &self.frames[a];
+        let &(width, period, _, _) = frames.first()?;
+        let px_per_mm = geo.axes[a].px_per_mm;
+        let total: f64 = frames
+            .iter()
+            .map(|&(_, _, _, img)| f64::from(img[i][c]).max(0.0))
+            .sum();
+        let period_mm = f64::from(period) / px_per_mm;
+        Some((
+            total / frames.len() as f64 * period_mm,
+            f64::from(width) / px_per_mm,
+        ))
+    }
+
+    /// Per axis with slits, `(flux, E W)` of pixel `i`, channel `c` ([`SlitSweep::flux`] and its
+    /// irradiance times slit width): what an amplitude `sum F / sum E W` sums.
+    pub fn fluxes<'g>(
+        &'g self,
+        i: usize,
+        c: usize,
+        geo: &'g PixelGeometry,
+    ) -> impl Iterator<Item = (f64, f64)> + 'g {
+        (0..2).filter_map(move |a| {
+            let (flux, width) = self.flux(i, c, a, geo)?;
+            Some((flux, geo.irradiance * width))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sweep_flux_is_the_profile_flux_bit_for_bit() {
+        let n = 4;
+        let frames_x: Vec<Vec<[f32; 3]>> = (0..10)
+            .map(|j| {
+                (0..n)
+                    .map(|i| [j as f32 * 0.1 - 0.3, i as f32, 1.0])
+                    .collect()
+            })
+            .collect();
+        let frames: Vec<SlitFrame> = frames_x
+            .iter()
+            .enumerate()
+            .map(|(j, g)| SlitFrame {
+                pattern: Pattern::Slit {
+                    axis: Axis::X,
+                    width: 3,
+                    period: 30,
+                    offset: 3 * j as u32,
+                },
+                global: g,
+            })
+            .collect();
+        let sweep = SlitSweep::new(&frames, n).unwrap();
+        let axis = AxisGeometry {
+            px_per_mm: 1.7,
+            shift_per_depth: 0.3,
+        };
+        let geo = PixelGeometry {
+            coords: (12.3, 4.0),
+            irradiance: 0.8,
+            axes: [axis; 2],
+            shift: Vector3::zeros(),
+        };
+        for c in 0..3 {
+            let p = sweep.profile(2, c, 0, &geo).unwrap();
+            assert_eq!(sweep.flux(2, c, 0, &geo), Some((p.flux(), p.slit_width)));
+        }
+        assert_eq!(sweep.flux(2, 0, 1, &geo), None, "no slit along y");
+    }
+
+    #[test]
+    fn slit_distance_wraps_into_half_periods() {
+        // Slit on columns 6, 7, 8 (centre 7), period 30.
+        assert_eq!(slit_distance_px(7.0, 3, 30, 6), 0.0);
+        assert_eq!(slit_distance_px(10.0, 3, 30, 6), 3.0);
+        assert_eq!(slit_distance_px(4.0, 3, 30, 6), -3.0);
+        assert_eq!(slit_distance_px(22.0, 3, 30, 6), -15.0);
+        assert_eq!(slit_distance_px(21.5, 3, 30, 6), 14.5);
+        assert_eq!(slit_distance_px(37.0 + 300.0, 3, 30, 6), 0.0);
+    }
+
+    #[test]
+    fn plane_geometry_gives_mm_per_projector_pixel_and_the_shift() {
+        // Plane z = 0 seen on a 0.2 mm grid; the projector maps u = 2 x_mm... i.e. u = 0.4 x_px.
+        let (w, h) = (20, 10);
+        let surface = Surface {
+            width: w,
+            height: h,
+            points: (0..w * h)
+                .map(|i| Vector3::new((i % w) as f64 * 0.2, (i / w) as f64 * 0.2, 0.0))
+                .collect(),
+            normals: vec![Vector3::z(); w * h],
+            mask: vec![true; w * h],
+            camera_centre: Vector3::new(2.0, 1.0, 1000.0),
+        };
+        let coords: Vec<Option<(f32, f32)>> = (0..w * h)
+            .map(|i| Some((0.4 * (i % w) as f32, 0.5 * (i / w) as f32)))
+            .collect();
+        let view = ProjectorView {
+            centre: Vector3::new(-998.0, 1.0, 1000.0),
+            falloff: Falloff::Isotropic,
+            coords: &coords,
+        };
+        let geo = pixel_geometry(&surface, &view, 1.4, ViewRay::Refracted).unwrap();
+        let g = geo[5 * w + 10].unwrap();
+        // u changes 0.4 px per 0.2 mm = 2 px/mm; v 0.5 px per 0.2 mm = 2.5 px/mm.
+        assert!((g.axes[0].px_per_mm - 2.0).abs() < 1e-6);
+        assert!((g.axes[1].px_per_mm - 2.5).abs() < 1e-6);
+        // Light from -x at 45 degrees, camera overhead: shift along +x is tan(asin(sin45/1.4)).
+        let want = ((45f64.to_radians().sin() / 1.4).asin()).tan();
+        assert!((g.axes[0].shift_per_depth - want).abs() < 1e-3, "{g:?}");
+        assert!(g.axes[1].shift_per_depth.abs() < 1e-3);
+        // Irradiance at 45 degrees from sqrt(2) m: cos 45 / 2.
+        assert!((g.irradiance - 45f64.to_radians().cos() / 2.0).abs() < 1e-3);
+    }
+}

@@ -1,0 +1,265 @@
+//! Noise-free rendering of the camera image under one projector: per sub-sample illumination
+//! (projector coordinates, irradiance, shadows), the direct component (surface reflection) and
+//! the global component (subsurface transport), in linear camera values.
+//!
+//! Conventions
+//! - Camera values: linear, 1 = saturation, before noise and quantisation (`camera::GAIN`).
+//! - Direct light is colourless (specular reflection of white light, or a grey print); global
+//!   light has three channels.
+//! - A sub-sample is lit when it faces the projector, projects inside its image and the segment to
+//!   the projector centre is free (shadow rays are traced per sub-sample only near shadow edges).
+
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use super::camera::{CameraModel, GAIN};
+use super::projector::{EmissionField, ProjectorModel};
+use super::scene::GeometryBuffer;
+use super::skin_optics::SKIN_INDEX;
+use super::subjects::Subject;
+use super::subsurface_transport::{EntrySample, SubsurfaceKernel, SubsurfaceOperator};
+use super::surface_reflection::{DiffuseExit, SKIN_ROUGHNESS, lambert_brdf, specular_brdf};
+
+/// Everything fixed for a capture: booth devices, subject and what the camera sees.
+pub struct Scene {
+    pub camera: CameraModel,
+    pub projectors: Vec<ProjectorModel>,
+    pub subject: Subject,
+    pub geometry: GeometryBuffer,
+}
+
+/// Noise-free camera values of one frame.
+#[derive(Debug, Clone)]
+pub struct FrameRadiance {
+    /// Direct (surface) component, one value per pixel.
+    pub direct: Vec<f32>,
+    /// Global (subsurface) component, RGB per pixel.
+    pub global: Vec<[f32; 3]>,
+}
+
+impl FrameRadiance {
+    /// A black frame of `pixels` pixels.
+    pub fn zeros(pixels: usize) -> Self {
+        Self {
+            direct: vec![0.0; pixels],
+            global: vec![[0.0; 3]; pixels],
+        }
+    }
+
+    /// Direct + global, RGB.
+    pub fn total(&self, i: usize) -> [f32; 3] {
+        let g = self.global[i];
+        [0, 1, 2].map(|c| self.direct[i] + g[c])
+    }
+}
+
+/// One projector's view of the scene: precomputed illumination geometry and transport.
+pub struct ProjectorView<'a> {
+    pub k: usize,
+    scene: &'a Scene,
+    sub_uv: Vec<[f64; 2]>,
+    /// Irradiance per unit emitted level (0 when unlit).
+    sub_irradiance: Vec<f32>,
+    /// Camera value per unit irradiance reflected at the surface.
+    sub_reflect: Vec<f32>,
+    /// Truth: (u, v, lit) of each pixel centre.
+    pub coords: Vec<[f32; 3]>,
+    /// Camera value per unit exitance at each pixel.
+    exit_factor: Vec<f32>,
+    operator: Option<SubsurfaceOperator<'a>>,
+}
+
+impl<'a> ProjectorView<'a> {
+    /// Prepares projector `k`; `kernel` is the subsurface transport (skin subjects only).
+    pub fn new(scene: &'a Scene, k: usize, kernel: Option<&'a SubsurfaceKernel>) -> Self {
+        let geo = &scene.geometry;
+        let proj = &scene.projectors[k];
+        let (w, h) = (geo.width as usize, geo.height as usize);
+        let spp = geo.spp();
+        // Shadows at pixel centres first; sub-samples are traced only where these disagree.
+        let centre_shadow: Vec<bool> = geo
+            .centre
+            .par_iter()
+            .map(|hit| {
+                hit.is_some_and(|hit| {
+                    scene
+                        .subject
+                        .shadowed(&hit.point, &hit.normal, &proj.centre)
+                })
+            })
+            .collect();
+        let uniform_shadow = |i: usize| -> Option<bool> {
+            let (x, y) = (i % w, i / w);
+            let s = centre_shadow[i];
+            for ny in y.saturating_sub(1)..(y + 2).min(h) {
+                for nx in x.saturating_sub(1)..(x + 2).min(w) {
+                    if centre_shadow[ny * w + nx] != s {
+                        return None;
+                    }
+                }
+            }
+            Some(s)
+        };
+        let skin = scene.subject.is_skin();
+        let per_pixel: Vec<_> = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let known = uniform_shadow(i);
+                let mut uv = Vec::with_capacity(spp);
+                let mut irr = Vec::with_capacity(spp);
+                let mut refl = Vec::with_capacity(spp);
+                for (s, sample) in geo.subs_of(i).iter().enumerate() {
+                    let lit = sample.and_then(|sample| {
+                        let ill = proj.illuminate(&sample.point, &sample.normal)?;
+                        if ill.irradiance_per_level <= 0.0 || !proj.in_image(ill.u, ill.v) {
+                            return None;
+                        }
+                        let shadowed = known.unwrap_or_else(|| {
+                            scene
+                                .subject
+                                .shadowed(&sample.point, &sample.normal, &proj.centre)
+                        });
+                        let brdf = if skin {
+                            specular_brdf(
+                                &sample.normal,
+                                &ill.to_light,
+                                &sample.to_camera,
+                                SKIN_INDEX,
+                                SKIN_ROUGHNESS,
+                            )
+                        } else {
+                            lambert_brdf(geo.albedo[i * spp + s] as f64)
+                        };
+                        (!shadowed).then_some((ill, brdf))
+                    });
+                    match lit {
+                        Some((ill, brdf)) => {
+                            uv.push([ill.u, ill.v]);
+                            irr.push(ill.irradiance_per_level as f32);
+                            refl.push((GAIN * brdf) as f32);
+                        }
+                        None => {
+                            uv.push([0.0; 2]);
+                            irr.push(0.0);
+                            refl.push(0.0);
+                        }
+                    }
+                }
+                let coords = match &geo.centre[i] {
+                    Some(hit) => match proj.illuminate(&hit.point, &hit.normal) {
+                        Some(ill) => {
+                            let lit = ill.irradiance_per_level > 0.0
+                                && proj.in_image(ill.u, ill.v)
+                                && !centre_shadow[i];
+                            [ill.u as f32, ill.v as f32, if lit { 1.0 } else { 0.0 }]
+                        }
+                        None => [0.0; 3],
+                    },
+                    None => [0.0; 3],
+                };
+                (uv, irr, refl, coords)
+            })
+            .collect();
+        let mut view = Self {
+            k,
+            scene,
+            sub_uv: Vec::with_capacity(w * h * spp),
+            sub_irradiance: Vec::with_capacity(w * h * spp),
+            sub_reflect: Vec::with_capacity(w * h * spp),
+            coords: Vec::with_capacity(w * h),
+            exit_factor: vec![0.0; w * h],
+            operator: None,
+        };
+        for (uv, irr, refl, coords) in per_pixel {
+            view.sub_uv.extend(uv);
+            view.sub_irradiance.extend(irr);
+            view.sub_reflect.extend(refl);
+            view.coords.push(coords);
+        }
+        if let (true, Some(kernel)) = (skin, kernel) {
+            let exit = DiffuseExit::new(SKIN_INDEX);
+            let eye = scene.camera.calib.extrinsics.centre();
+            let entries: Vec<Option<EntrySample>> = (0..w * h)
+                .into_par_iter()
+                .map(|i| {
+                    let (point, normal, area) = geo.pixel_surface(i)?;
+                    let to_light = (proj.centre - point).normalize();
+                    let m = geo.materials[i];
+                    Some(EntrySample {
+                        point,
+                        normal,
+                        to_light,
+                        area_mm2: area,
+                        materials: [1.0 - m[0] - m[1] - m[2], m[0], m[1], m[2]],
+                    })
+                })
+                .collect();
+            view.exit_factor = entries
+                .iter()
+                .enumerate()
+                .map(|(i, e)| {
+                    e.map_or(0.0, |e| {
+                        let to_camera: Vector3<f64> = (eye - e.point).normalize();
+                        (GAIN * geo.coverage[i] as f64 * exit.factor(e.normal.dot(&to_camera)))
+                            as f32
+                    })
+                })
+                .collect();
+            view.operator = Some(SubsurfaceOperator::new(kernel, w, h, &entries));
+        }
+        view
+    }
+
+    /// Renders a batch of emitted light fields (one per frame).
+    pub fn render(&self, emissions: &[EmissionField]) -> Vec<FrameRadiance> {
+        let geo = &self.scene.geometry;
+        let (n, spp, frames) = (geo.pixels(), geo.spp(), emissions.len());
+        let mut direct = vec![0.0f32; n * frames];
+        let mut flux = vec![0.0f32; n * frames];
+        direct
+            .par_chunks_mut(frames)
+            .zip(flux.par_chunks_mut(frames))
+            .enumerate()
+            .for_each(|(i, (d, phi))| {
+                let Some(first) = emissions.first() else {
+                    return;
+                };
+                for s in i * spp..(i + 1) * spp {
+                    let irr = self.sub_irradiance[s];
+                    if irr <= 0.0 {
+                        continue;
+                    }
+                    let [u, v] = self.sub_uv[s];
+                    // Located once, read for every frame (all fields share one layout).
+                    let position = first.position(u, v);
+                    let refl = self.sub_reflect[s] / spp as f32;
+                    let area = geo.subs[s].map_or(0.0, |x| x.area_mm2) as f32;
+                    for (f, emission) in emissions.iter().enumerate() {
+                        let e = irr * emission.at_position(&position);
+                        d[f] += refl * e;
+                        phi[f] += area * e;
+                    }
+                }
+            });
+        let exitance = self.operator.as_ref().map(|op| op.apply(&flux, frames));
+        (0..frames)
+            .into_par_iter()
+            .map(|f| {
+                let mut frame = FrameRadiance::zeros(n);
+                for i in 0..n {
+                    frame.direct[i] = direct[i * frames + f];
+                    if let Some(ex) = &exitance {
+                        let k = self.exit_factor[i];
+                        frame.global[i] = [0, 1, 2].map(|c| k * ex[(i * 3 + c) * frames + f]);
+                    }
+                }
+                frame
+            })
+            .collect()
+    }
+
+    /// The projector this view belongs to.
+    pub fn projector(&self) -> &ProjectorModel {
+        &self.scene.projectors[self.k]
+    }
+}

@@ -1,0 +1,796 @@
+//! Simulating whole captures: a scan of a skin subject (every frame of `FramePlan::scan`) or a
+//! set of chessboard calibration poses (`FramePlan::calibration`), each written as a capture
+//! folder with its `truth/`.
+//!
+//! Conventions
+//! - Frames are lit by one projector; the others show black and still emit their black level
+//!   (`stray_black`), which the truth records separately (`capture::truth::stray_light`).
+//! - Noise of frame `i` comes from its own random stream (seed, i): the capture does not depend on
+//!   the number of threads.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use image::Rgb32FImage;
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::VirtualBoothError;
+use super::camera::CameraModel;
+use super::frame_render::{FrameRadiance, ProjectorView, Scene};
+use super::material_maps::MaterialMaps;
+use super::projector::ProjectorModel;
+use super::response_cache::{CacheStats, McSettings, ResponseCache};
+use super::scene::GeometryBuffer;
+use super::skin_optics::{CHANNEL_WAVELENGTHS_NM, SkinPreset};
+use super::subjects::{Chessboard, Subject, SubjectKind};
+use super::subsurface_transport::SubsurfaceKernel;
+use super::surface_reflection::SKIN_ROUGHNESS;
+use super::truth_writer;
+use mlsss_core::booth::Booth;
+use mlsss_core::capture::folder::CaptureKind;
+use mlsss_core::capture::{
+    CaptureManifest, CaptureWriter, FramePlan, FrameSpec, Pattern, TriggerRecord,
+};
+
+/// Receives progress (the CLI shows it as a bar).
+pub trait Progress: Sync {
+    /// A new stage with `total` steps.
+    fn stage(&self, name: &str, total: u64);
+    /// `n` more steps of the current stage are done.
+    fn advance(&self, n: u64);
+}
+
+/// A [`Progress`] that ignores everything.
+pub struct NoProgress;
+
+impl Progress for NoProgress {
+    fn stage(&self, _: &str, _: u64) {}
+    fn advance(&self, _: u64) {}
+}
+
+/// What to simulate and how.
+#[derive(Debug, Clone)]
+pub struct SimulationOptions {
+    pub subject: SubjectKind,
+    pub skin: SkinPreset,
+    pub seed: u64,
+    /// Camera sub-samples per pixel along each axis.
+    pub supersampling: u32,
+    /// Spatial variation of the skin (freckles, vessels, stubble); off = uniform base skin.
+    pub material_maps: bool,
+    /// Other projectors emit their black level while one is lit.
+    pub stray_black: bool,
+    pub mc: McSettings,
+    pub cache: ResponseCache,
+}
+
+impl SimulationOptions {
+    /// Defaults scaled to the booth's camera resolution on the subject.
+    pub fn for_booth(booth: &Booth, subject: SubjectKind, skin: SkinPreset, seed: u64) -> Self {
+        let pixel_mm = nominal_pixel_mm(booth);
+        // Response grid: a few cells per pixel footprint, out to 10 mm (red light in skin
+        // decays by e^-5 over ~10 mm).
+        let cell_mm = (pixel_mm / 3.0 * 1000.0).round() / 1000.0;
+        let cells = (2.0 * 10.0 / cell_mm).round() as usize | 1;
+        let small = booth.camera.width <= 640;
+        Self {
+            subject,
+            skin,
+            seed,
+            supersampling: 2,
+            material_maps: true,
+            stray_black: true,
+            mc: McSettings {
+                // Small booths: 10k photons per response. Measured on the quick head scan
+                // against 20k (truth global images: white, slits, high frequency): the Monte
+                // Carlo difference is 0.07-0.15 of one frame's camera noise RMS (99th percentile
+                // 0.39), i.e. invisible to the camera, for half the Monte Carlo time (it was ~44 %
+                // of the quick scan's CPU). Full size: not measured, kept.
+                photons: if small { 10_000 } else { 200_000 },
+                seed: 1,
+                angles_deg: if small {
+                    vec![0.0, 30.0, 55.0, 80.0]
+                } else {
+                    vec![0.0, 20.0, 40.0, 60.0, 80.0]
+                },
+                cell_mm,
+                cells,
+            },
+            cache: ResponseCache::new(ResponseCache::default_dir()),
+        }
+    }
+}
+
+/// Camera pixel footprint at the look-at distance, mm.
+fn nominal_pixel_mm(booth: &Booth) -> f64 {
+    let c = &booth.camera;
+    let d = (nalgebra::Vector3::from(c.look_at_mm) - nalgebra::Vector3::from(c.position_mm)).norm();
+    d / c.fx
+}
+
+/// A booth scaled down by `factor` (camera and projector resolutions and focal lengths), with
+/// Gray code bits reduced to fit: for fast tests.
+pub fn scaled_booth(booth: &Booth, factor: u32) -> Booth {
+    let f = factor as f64;
+    let mut b = booth.clone();
+    b.name = format!("{}-div{factor}", booth.name);
+    let c = &mut b.camera;
+    c.width /= factor;
+    c.height /= factor;
+    c.fx /= f;
+    c.fy /= f;
+    c.cx = (c.cx + 0.5) / f - 0.5;
+    c.cy = (c.cy + 0.5) / f - 0.5;
+    for p in &mut b.projectors {
+        p.width /= factor;
+        p.height /= factor;
+        p.fx /= f;
+        p.fy /= f;
+        p.cx = (p.cx + 0.5) / f - 0.5;
+        p.cy = (p.cy + 0.5) / f - 0.5;
+    }
+    let bits = |n: u32| u32::BITS - n.saturating_sub(1).leading_zeros();
+    let max_w = b.projectors.iter().map(|p| p.width).max().unwrap_or(1);
+    let max_h = b.projectors.iter().map(|p| p.height).max().unwrap_or(1);
+    b.patterns.gray_bits_x = bits(max_w);
+    b.patterns.gray_bits_y = bits(max_h);
+    b
+}
+
+/// What a simulation did.
+#[derive(Debug, Clone, Serialize)]
+pub struct SimulationReport {
+    pub captures: Vec<PathBuf>,
+    pub frames: usize,
+    pub seconds: f64,
+    pub cache: CacheStats,
+    pub camera: [u32; 2],
+    /// Fraction of the camera pixels that see the subject.
+    pub coverage: f64,
+}
+
+fn build_scene(booth: &Booth, subject: Subject, ss: u32) -> Scene {
+    let camera = CameraModel::new(booth);
+    let projectors = (0..booth.projectors.len())
+        .filter_map(|k| ProjectorModel::new(booth, k))
+        .collect();
+    let geometry = GeometryBuffer::trace(&camera, &subject, ss);
+    Scene {
+        camera,
+        projectors,
+        subject,
+        geometry,
+    }
+}
+
+fn make_subject(kind: SubjectKind, booth: &Booth) -> Subject {
+    let field_mm = nominal_pixel_mm(booth) * booth.camera.width as f64;
+    match kind {
+        SubjectKind::Plane => Subject::Plane,
+        SubjectKind::Sphere => Subject::Sphere {
+            radius_mm: (0.3 * field_mm).round(),
+        },
+        SubjectKind::Head => Subject::Head(super::head::Head),
+        SubjectKind::Chessboard => Subject::Chessboard(board_for_pose(booth, 0, 0)),
+    }
+}
+
+/// Square size: about 13 squares across the camera's field.
+fn board_for_pose(booth: &Booth, pose: usize, seed: u64) -> Chessboard {
+    let field_mm = nominal_pixel_mm(booth) * booth.camera.width as f64;
+    let square = (field_mm / 13.0 * 2.0).round() / 2.0;
+    if pose == 0 {
+        return Chessboard::posed([9, 7], square, 0.0, 0.0, 0.0, [0.0; 3]);
+    }
+    let mut rng = Pcg64::seed_from_u64(seed ^ (pose as u64).wrapping_mul(0x9e37_79b9));
+    use rand::Rng;
+    // Alternate the tilt directions so every pose set spans both axes.
+    let sx = if pose.is_multiple_of(2) { 1.0 } else { -1.0 };
+    let sy = if (pose / 2).is_multiple_of(2) {
+        1.0
+    } else {
+        -1.0
+    };
+    Chessboard::posed(
+        [9, 7],
+        square,
+        sx * rng.gen_range(20.0..35.0),
+        sy * rng.gen_range(20.0..35.0),
+        rng.gen_range(-10.0..10.0),
+        [
+            rng.gen_range(-0.04..0.04) * field_mm,
+            rng.gen_range(-0.04..0.04) * field_mm,
+            rng.gen_range(-20.0..20.0),
+        ],
+    )
+}
+
+fn trigger_log(booth: &Booth, plan: &FramePlan) -> Vec<TriggerRecord> {
+    let slot = booth.timing.slot_us() as u64;
+    plan.frames
+        .iter()
+        .map(|f| {
+            let t = f.index as u64 * slot + booth.timing.trigger_phase_us as u64;
+            let refresh = f
+                .projector
+                .and_then(|k| booth.projectors.get(k as usize))
+                .map_or(booth.timing.refresh_hz, |p| p.refresh_hz);
+            TriggerRecord {
+                frame_index: f.index,
+                timestamp_us: t,
+                vsync_count: (t as f64 * refresh / 1e6).floor() as u32,
+                retries: 0,
+                late: false,
+            }
+        })
+        .collect()
+}
+
+/// Simulates a scan of a skin subject into the capture folder `out` (must not exist).
+pub fn simulate_scan(
+    booth: &Booth,
+    opts: &SimulationOptions,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<SimulationReport, VirtualBoothError> {
+    simulate_scan_holding(booth, opts, out, progress, HOLD_BUDGET_BYTES)
+}
+
+/// [`simulate_scan`] holding at most `hold_budget` bytes of noise-free frames (see
+/// [`render_frames`]); the capture does not depend on it.
+fn simulate_scan_holding(
+    booth: &Booth,
+    opts: &SimulationOptions,
+    out: &Path,
+    progress: &dyn Progress,
+    hold_budget: usize,
+) -> Result<SimulationReport, VirtualBoothError> {
+    let start = Instant::now();
+    if opts.subject == SubjectKind::Chessboard {
+        return Err(VirtualBoothError::InvalidOption {
+            option: "subject",
+            reason: "the chessboard is a calibration target: use --calibration".into(),
+        });
+    }
+    progress.stage("tracing camera rays", 1);
+    let mut scene = build_scene(booth, make_subject(opts.subject, booth), opts.supersampling);
+    let extent = scene
+        .geometry
+        .extent()
+        .ok_or(VirtualBoothError::EmptyView)?;
+    let maps = if opts.material_maps {
+        MaterialMaps::generate(opts.subject, extent, opts.seed)
+    } else {
+        MaterialMaps::uniform()
+    };
+    scene.geometry.assign_materials(&maps);
+    progress.advance(1);
+
+    let materials = opts.skin.materials();
+    progress.stage(
+        "Monte Carlo responses",
+        (materials.len() * opts.mc.angles_deg.len()) as u64,
+    );
+    let (responses, cache_stats) = opts
+        .cache
+        .response_set(&materials, &opts.mc, &|_| progress.advance(1))?;
+    let geo = &scene.geometry;
+    let min_pixel_mm = 0.8
+        * geo
+            .centre
+            .iter()
+            .flatten()
+            .map(|h| h.t)
+            .fold(f64::INFINITY, f64::min)
+        / scene
+            .camera
+            .calib
+            .intrinsics
+            .fx
+            .max(scene.camera.calib.intrinsics.fy);
+    let kernel = SubsurfaceKernel::new(
+        &responses,
+        geo.mean_pixel_size_mm(),
+        min_pixel_mm,
+        geo.width.max(geo.height) as usize,
+    );
+
+    let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
+    let mut manifest = CaptureManifest::new(CaptureKind::Scan, booth.clone(), plan.clone());
+    manifest.trigger_log = trigger_log(booth, &plan);
+    manifest.source = serde_json::json!({
+        "simulator": "mlsss virtual booth",
+        "subject": opts.subject,
+        "skin": opts.skin,
+        "seed": opts.seed,
+        "supersampling": opts.supersampling,
+        "material_maps": opts.material_maps,
+        "stray_black": opts.stray_black,
+        "monte_carlo": opts.mc,
+    });
+    let writer = CaptureWriter::create(out, manifest)?;
+    let truth_dir = writer.staging_dir().join("truth");
+    std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
+        path: truth_dir.clone(),
+        source,
+    })?;
+    truth_writer::write_geometry(&truth_dir, booth, &scene)?;
+    write_optics(&truth_dir, opts, &materials)?;
+
+    let frames = render_frames(
+        &scene,
+        Some(&kernel),
+        &plan,
+        opts,
+        &writer,
+        &truth_dir,
+        progress,
+        hold_budget,
+        // Slits: the first shift of each axis, the reference of the slit profiles' global part.
+        |p| {
+            matches!(
+                p,
+                Pattern::White | Pattern::HighFrequency { .. } | Pattern::Slit { offset: 0, .. }
+            )
+        },
+    )?;
+    let contact: Vec<Rgb32FImage> = frames;
+    truth_writer::write_contact_sheet(
+        &writer.staging_dir().join("contact_sheet.png"),
+        &contact,
+        4,
+        360,
+    )?;
+    let path = writer.finish()?;
+    Ok(SimulationReport {
+        captures: vec![path],
+        frames: plan.len(),
+        seconds: start.elapsed().as_secs_f64(),
+        cache: cache_stats,
+        camera: [booth.camera.width, booth.camera.height],
+        coverage: coverage(&scene),
+    })
+}
+
+fn coverage(scene: &Scene) -> f64 {
+    let g = &scene.geometry;
+    g.centre.iter().filter(|h| h.is_some()).count() as f64 / g.pixels() as f64
+}
+
+/// Simulates `poses` calibration captures of a chessboard into `out/pose00`, `out/pose01`, ...
+pub fn simulate_calibration(
+    booth: &Booth,
+    opts: &SimulationOptions,
+    poses: usize,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<SimulationReport, VirtualBoothError> {
+    let start = Instant::now();
+    if out.exists() {
+        return Err(VirtualBoothError::Capture(
+            mlsss_core::capture::CaptureError::Exists(out.to_owned()),
+        ));
+    }
+    let plan = FramePlan::calibration(&booth.patterns, booth.projectors.len());
+    let mut captures = Vec::new();
+    let mut sheet = Vec::new();
+    let mut cov = 0.0;
+    for pose in 0..poses {
+        progress.stage(&format!("pose {}/{poses}: tracing", pose + 1), 1);
+        let board = board_for_pose(booth, pose, opts.seed);
+        let scene = build_scene(
+            booth,
+            Subject::Chessboard(board.clone()),
+            opts.supersampling,
+        );
+        cov += coverage(&scene) / poses as f64;
+        progress.advance(1);
+        let mut manifest =
+            CaptureManifest::new(CaptureKind::Calibration, booth.clone(), plan.clone());
+        manifest.trigger_log = trigger_log(booth, &plan);
+        manifest.source = serde_json::json!({
+            "simulator": "mlsss virtual booth",
+            "subject": "chessboard",
+            "pose": pose,
+            "seed": opts.seed,
+            "board": board,
+            "stray_black": opts.stray_black,
+        });
+        let target = out.join(format!("pose{pose:02}"));
+        let writer = CaptureWriter::create(&target, manifest)?;
+        let truth_dir = writer.staging_dir().join("truth");
+        std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
+            path: truth_dir.clone(),
+            source,
+        })?;
+        truth_writer::write_geometry(&truth_dir, booth, &scene)?;
+        truth_writer::write_target(&truth_dir, &scene, &board)?;
+        let pose_opts = SimulationOptions {
+            seed: opts.seed.wrapping_add(1000 * pose as u64),
+            ..opts.clone()
+        };
+        let frames = render_frames(
+            &scene,
+            None,
+            &plan,
+            &pose_opts,
+            &writer,
+            &truth_dir,
+            progress,
+            HOLD_BUDGET_BYTES,
+            |p| matches!(p, Pattern::White),
+        )?;
+        if let Some(first) = frames.into_iter().next() {
+            sheet.push(first);
+        }
+        captures.push(writer.finish()?);
+    }
+    truth_writer::write_contact_sheet(&out.join("contact_sheet.png"), &sheet, 4, 360)?;
+    Ok(SimulationReport {
+        captures,
+        frames: plan.len() * poses,
+        seconds: start.elapsed().as_secs_f64(),
+        cache: CacheStats::default(),
+        camera: [booth.camera.width, booth.camera.height],
+        coverage: cov,
+    })
+}
+
+/// Budget for the buffers of one render batch (flux, direct, exitance and the frames built from
+/// them: about [`BATCH_BYTES_PER_PIXEL_FRAME`] per pixel and frame). Every batch gathers the
+/// subsurface pairs once, so larger batches are faster; 1 GB keeps a full-size capture (1379 x
+/// 1029) at ~22 frames per batch on a machine shared by several jobs.
+const BATCH_BUDGET_BYTES: usize = 1 << 30;
+/// Peak bytes per pixel and frame of a render batch: flux 4, direct 4 and exitance 12 while the
+/// operator runs, then the frames (direct 4 + global 12) built from them.
+const BATCH_BYTES_PER_PIXEL_FRAME: usize = 32;
+/// Budget for noise-free frames held until every projector's white is known (12 bytes per
+/// pixel and frame). Holding frames lets each projector's white come from its own frame batch
+/// instead of a separate render (one pair gathering less per projector); a quick capture holds
+/// three projectors' frames in ~340 MB, a full-size one holds none and pre-renders the whites.
+const HOLD_BUDGET_BYTES: usize = 1 << 30;
+
+/// Frames rendered per batch: bounded so the per-batch buffers stay under the budget.
+fn batch_size(pixels: usize, frames: usize) -> usize {
+    (BATCH_BUDGET_BYTES / (pixels * BATCH_BYTES_PER_PIXEL_FRAME).max(1)).clamp(1, frames.max(1))
+}
+
+/// How many leading projectors' frames are held (their stray light needs the whites of
+/// projectors rendered after them): as many as fit in `budget` bytes, at most all but the last
+/// projector.
+fn held_projectors(frames_per_projector: &[usize], pixels: usize, budget: usize) -> usize {
+    let frame_bytes = pixels * 12;
+    let mut held = 0;
+    let mut bytes = 0;
+    for &frames in frames_per_projector
+        .iter()
+        .take(frames_per_projector.len().saturating_sub(1))
+    {
+        bytes += frames * frame_bytes;
+        if bytes > budget {
+            break;
+        }
+        held += 1;
+    }
+    held
+}
+
+/// Noise-free camera values (direct + global, RGB) of every pixel of a frame.
+fn frame_totals(frame: &FrameRadiance) -> Vec<[f32; 3]> {
+    (0..frame.direct.len()).map(|i| frame.total(i)).collect()
+}
+
+/// The light the black level of every projector but `k` adds to `k`'s frames; `whites[j]` is
+/// projector `j`'s noise-free white (needed for every `j != k`).
+fn stray_light(
+    scene: &Scene,
+    whites: &[Option<Vec<[f32; 3]>>],
+    k: usize,
+    pixels: usize,
+) -> Result<Vec<[f32; 3]>, VirtualBoothError> {
+    let mut stray = vec![[0.0f32; 3]; pixels];
+    for (j, white) in whites.iter().enumerate().filter(|(j, _)| *j != k) {
+        let white = white.as_ref().ok_or(VirtualBoothError::Internal(
+            "a projector's white is needed for stray light before it was rendered",
+        ))?;
+        let b = scene.projectors[j].black_level as f32;
+        for (s, t) in stray.iter_mut().zip(white) {
+            for c in 0..3 {
+                s[c] += b * t[c];
+            }
+        }
+    }
+    Ok(stray)
+}
+
+/// Adds stray light and camera noise to a frame's noise-free values and writes it.
+struct FrameFinisher<'a> {
+    scene: &'a Scene,
+    seed: u64,
+    writer: &'a CaptureWriter,
+    progress: &'a dyn Progress,
+    sheet_patterns: Vec<u32>,
+    sheet: Mutex<Vec<(usize, Rgb32FImage)>>,
+}
+
+impl FrameFinisher<'_> {
+    fn finish(
+        &self,
+        spec: &FrameSpec,
+        totals: &[[f32; 3]],
+        stray: &[[f32; 3]],
+    ) -> Result<(), VirtualBoothError> {
+        let geo = &self.scene.geometry;
+        let mut values: Vec<f32> = totals
+            .iter()
+            .zip(stray)
+            .flat_map(|(t, s)| [t[0] + s[0], t[1] + s[1], t[2] + s[2]])
+            .collect();
+        let mut rng = Pcg64::seed_from_u64(self.seed ^ (0x5eed_0000 + spec.index as u64) << 8);
+        self.scene.camera.add_noise(&mut values, &mut rng);
+        let img = Rgb32FImage::from_raw(geo.width, geo.height, values)
+            .ok_or(VirtualBoothError::Internal("frame buffer size mismatch"))?;
+        self.writer.write_frame(spec.index, &img)?;
+        if let Some(pos) = self.sheet_patterns.iter().position(|&i| i == spec.index) {
+            let clamped = Rgb32FImage::from_fn(img.width(), img.height(), |x, y| {
+                image::Rgb(img.get_pixel(x, y).0.map(|v| v.clamp(0.0, 1.0)))
+            });
+            self.sheet
+                .lock()
+                .map_err(|_| VirtualBoothError::Internal("contact sheet lock poisoned"))?
+                .push((pos, clamped));
+        }
+        self.progress.advance(1);
+        Ok(())
+    }
+
+    fn into_sheet(self) -> Result<Vec<Rgb32FImage>, VirtualBoothError> {
+        let mut tiles = self
+            .sheet
+            .into_inner()
+            .map_err(|_| VirtualBoothError::Internal("contact sheet lock poisoned"))?;
+        tiles.sort_by_key(|(pos, _)| *pos);
+        Ok(tiles.into_iter().map(|(_, img)| img).collect())
+    }
+}
+
+/// Renders every frame of `plan`, writes it (with noise) and the truth of the patterns selected
+/// by `truth_for`; returns a few frames for the contact sheet.
+///
+/// Every frame of projector `k` carries the stray light of the other projectors' black level,
+/// i.e. their whites. Projectors are rendered in order, each in batches of frames; each white is
+/// taken from its projector's own batch, so the frames of the first projectors are held
+/// (noise-free) until the last white is known. Whites of projectors whose frames cannot be held
+/// (memory budget) are rendered alone beforehand.
+#[allow(clippy::too_many_arguments)]
+fn render_frames(
+    scene: &Scene,
+    kernel: Option<&SubsurfaceKernel>,
+    plan: &FramePlan,
+    opts: &SimulationOptions,
+    writer: &CaptureWriter,
+    truth_dir: &Path,
+    progress: &dyn Progress,
+    hold_budget: usize,
+    truth_for: impl Fn(&Pattern) -> bool + Sync,
+) -> Result<Vec<Rgb32FImage>, VirtualBoothError> {
+    let geo = &scene.geometry;
+    let dims = (geo.width, geo.height);
+    let n = geo.pixels();
+    let count = scene.projectors.len();
+    let specs: Vec<Vec<FrameSpec>> = (0..count)
+        .map(|k| plan.for_projector(k as u8).copied().collect())
+        .collect();
+    let shows_white = |k: usize| specs[k].iter().any(|f| f.pattern == Pattern::White);
+    let held = if opts.stray_black {
+        held_projectors(
+            &specs.iter().map(Vec::len).collect::<Vec<_>>(),
+            n,
+            hold_budget,
+        )
+    } else {
+        0
+    };
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
+    if opts.stray_black {
+        let alone: Vec<usize> = (0..count)
+            .filter(|&k| k > held || !shows_white(k))
+            .collect();
+        progress.stage("white frames", alone.len() as u64);
+        for &k in &alone {
+            let view = ProjectorView::new(scene, k, kernel);
+            let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
+            whites[k] = Some(
+                white
+                    .first()
+                    .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
+            );
+            progress.advance(1);
+        }
+    }
+
+    progress.stage("frames", plan.len() as u64);
+    let finisher = FrameFinisher {
+        scene,
+        seed: opts.seed,
+        writer,
+        progress,
+        sheet_patterns: contact_sheet_frames(plan),
+        sheet: Mutex::new(Vec::new()),
+    };
+    let no_stray = vec![[0.0f32; 3]; n];
+    let mut strays: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
+    let mut held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)> = Vec::new();
+    for (k, specs) in specs.iter().enumerate() {
+        let view = ProjectorView::new(scene, k, kernel);
+        truth_writer::write_projector_coords(truth_dir, &view, dims)?;
+        let hold = k < held;
+        if opts.stray_black && !hold {
+            strays[k] = Some(stray_light(scene, &whites, k, n)?);
+        }
+        for batch in specs.chunks(batch_size(n, specs.len())) {
+            let emissions: Vec<_> = batch
+                .iter()
+                .map(|f| scene.projectors[k].emission(&f.pattern))
+                .collect();
+            let rendered = view.render(&emissions);
+            let totals: Vec<Vec<[f32; 3]>> = batch
+                .par_iter()
+                .zip(rendered.par_iter())
+                .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
+                    if truth_for(&spec.pattern) {
+                        truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
+                    }
+                    Ok(frame_totals(frame))
+                })
+                .collect::<Result<_, _>>()?;
+            drop(rendered);
+            if whites[k].is_none()
+                && let Some(i) = batch.iter().position(|f| f.pattern == Pattern::White)
+            {
+                whites[k] = Some(totals[i].clone());
+            }
+            if hold {
+                held_frames.extend(batch.iter().zip(totals).map(|(s, t)| (k, *s, t)));
+                continue;
+            }
+            let stray = strays[k].as_deref().unwrap_or(&no_stray);
+            batch
+                .par_iter()
+                .zip(totals.par_iter())
+                .try_for_each(|(spec, t)| finisher.finish(spec, t, stray))?;
+        }
+    }
+    if opts.stray_black {
+        for (k, stray) in strays.iter_mut().enumerate().take(held) {
+            *stray = Some(stray_light(scene, &whites, k, n)?);
+        }
+    }
+    held_frames.par_iter().try_for_each(|(k, spec, t)| {
+        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(&no_stray))
+    })?;
+    drop(held_frames);
+    for (k, stray) in strays.iter().enumerate() {
+        truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
+    }
+    finisher.into_sheet()
+}
+
+/// Frames shown on the contact sheet: every projector's white, then projector 0 under a
+/// middle Gray-code bit, a slit, a high-frequency pattern and a row Gray-code bit.
+fn contact_sheet_frames(plan: &FramePlan) -> Vec<u32> {
+    let mut out: Vec<u32> = plan
+        .frames
+        .iter()
+        .filter(|f| f.pattern == Pattern::White)
+        .map(|f| f.index)
+        .collect();
+    let first = |pred: &dyn Fn(&Pattern) -> bool| {
+        plan.for_projector(0)
+            .find(|f| pred(&f.pattern))
+            .map(|f| f.index)
+    };
+    use mlsss_core::capture::Axis;
+    let picks: [&dyn Fn(&Pattern) -> bool; 4] = [
+        &|p| {
+            matches!(
+                p,
+                Pattern::Gray {
+                    axis: Axis::X,
+                    bit: 4,
+                    inverted: false
+                }
+            )
+        },
+        &|p| matches!(p, Pattern::Slit { axis: Axis::X, .. }),
+        &|p| matches!(p, Pattern::HighFrequency { .. }),
+        &|p| {
+            matches!(
+                p,
+                Pattern::Gray {
+                    axis: Axis::Y,
+                    bit: 4,
+                    inverted: false
+                }
+            )
+        },
+    ];
+    out.extend(picks.iter().filter_map(|p| first(*p)));
+    out
+}
+
+/// The optical parameters of the materials (truth `optics.json`).
+fn write_optics(
+    dir: &Path,
+    opts: &SimulationOptions,
+    materials: &[super::skin_optics::Material],
+) -> Result<(), VirtualBoothError> {
+    let value = serde_json::json!({
+        "skin": opts.skin,
+        "channel_wavelengths_nm": CHANNEL_WAVELENGTHS_NM,
+        "materials": materials,
+        "material_maps": "truth/materials.exr: RGB = weights of materials[1], [2], [3]; the rest is materials[0]",
+        "surface": {
+            "model": "GGX microfacet specular with Fresnel (rough dielectric)",
+            "roughness_alpha": SKIN_ROUGHNESS,
+            "index": super::skin_optics::SKIN_INDEX,
+        },
+        "camera_gain": super::camera::GAIN,
+        "monte_carlo": opts.mc,
+        "sources": [
+            "Jacques 1998, Skin optics (OMLC news): melanin, baseline absorption, reduced scattering",
+            "Prahl 1999, haemoglobin molar extinction (OMLC)",
+            "van Gemert et al. 1989, IEEE TBME 36:1146: anisotropy g(lambda)",
+            "Meglinski & Matcher 2002, Physiol. Meas. 23:741: layer thicknesses",
+            "Weyrich et al. 2006: skin specular roughness",
+        ],
+    });
+    truth_writer::write_json(&mlsss_core::capture::truth::optics(dir), &value)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mlsss_core::capture::Capture;
+
+    #[test]
+    fn held_projectors_fit_the_budget_and_never_include_the_last() {
+        let frames = [10, 10, 10, 10];
+        assert_eq!(held_projectors(&frames, 100, 0), 0);
+        assert_eq!(held_projectors(&frames, 100, 12_000), 1);
+        assert_eq!(held_projectors(&frames, 100, 23_999), 1);
+        assert_eq!(held_projectors(&frames, 100, 1 << 30), 3);
+        assert_eq!(held_projectors(&[], 100, 1 << 30), 0);
+    }
+
+    /// Whites taken from the projectors' own frame batches (frames held until every white is
+    /// known) give exactly the capture of whites rendered alone beforehand (nothing held).
+    #[test]
+    fn holding_frames_gives_the_same_capture_as_rendering_whites_alone() {
+        let booth = scaled_booth(&Booth::builtin(true), 8);
+        let cache = tempfile::tempdir().unwrap();
+        let mut opts =
+            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, 3);
+        opts.mc.photons = 300;
+        opts.mc.angles_deg = vec![0.0, 60.0];
+        opts.cache = ResponseCache::new(cache.path());
+        let out = tempfile::tempdir().unwrap();
+        let capture = |name: &str, budget: usize| {
+            let dir = out.path().join(name);
+            simulate_scan_holding(&booth, &opts, &dir, &NoProgress, budget).unwrap();
+            Capture::open(&dir).unwrap()
+        };
+        let held = capture("held", 1 << 30);
+        let alone = capture("alone", 0);
+        let frames = held.manifest.plan.len();
+        assert!(frames > 100);
+        for i in 0..frames as u32 {
+            let (a, b) = (held.read_frame(i).unwrap(), alone.read_frame(i).unwrap());
+            assert!(a == b, "frame {i} differs");
+        }
+    }
+}
