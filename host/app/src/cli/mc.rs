@@ -16,7 +16,7 @@ enum McCommand {
     /// A single homogeneous slab given by albedo and optical thickness (mu_t = 1/mm, so lengths
     /// are in mean free paths).
     Slab(SlabArgs),
-    /// A layered medium described in a TOML file (format: host/src/mc/layers_file.rs).
+    /// A layered medium described in a TOML file (format: host/monte-carlo/src/layers_file.rs).
     Layers(LayersArgs),
     /// Measure photons per second per core for a semi-infinite skin layer (use a release build).
     Bench(BenchArgs),

@@ -2,16 +2,16 @@
 //! frames (1379x1029 RGB), and, in the same run, the numpy implementation of the same formulas in
 //! `photometry_numpy.py` (skipped with a note when python3/numpy are missing).
 //!
-//! Run: `cargo bench -p mlsss --bench photometry`
+//! Run: `cargo bench -p mlsss-vision --bench photometry`
 
 use std::process::Command;
 
 use criterion::{Criterion, criterion_group};
 use image::Rgb32FImage;
-use mlsss::photometry::photometric_stereo::{
+use mlsss_vision::photometry::photometric_stereo::{
     DirectionalLights, LightSample, Method, PsParams, solve_images,
 };
-use mlsss::photometry::separation::{SeparationParams, separate};
+use mlsss_vision::photometry::separation::{SeparationParams, separate};
 use nalgebra::Vector3;
 
 const WIDTH: u32 = 1379;

@@ -3,16 +3,16 @@
 //! each channel, 30 degrees incidence, with the quick booth's exit grid (cells of a third of a
 //! pixel out to +-10 mm), and the semi-infinite skin of `mlsss mc bench` for comparison.
 //!
-//!     cargo bench -p mlsss --bench mc
+//!     cargo bench -p mlsss-virtual-booth --bench mc
 //!
 //! Criterion reports time per batch of photons and photons per second (throughput in
 //! "elements"). The quick booth traces 20 000 photons per material, angle and channel.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
-use mlsss::booth::Booth;
-use mlsss::mc::{GridSpec, Layer, McConfig, Medium, run};
-use mlsss::virtual_booth::response_cache::material_medium;
-use mlsss::virtual_booth::{SimulationOptions, SkinPreset, SubjectKind};
+use mlsss_core::booth::Booth;
+use mlsss_mc::{GridSpec, Layer, McConfig, Medium, run};
+use mlsss_virtual_booth::response_cache::material_medium;
+use mlsss_virtual_booth::{SimulationOptions, SkinPreset, SubjectKind};
 
 const PHOTONS: u64 = 20_000;
 

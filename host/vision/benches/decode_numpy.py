@@ -5,7 +5,7 @@ frame count; then white, black, x pairs MSB first, y pairs MSB first), decodes t
 way (lit mask from white - black, each bit = pattern > inverse, Gray to binary by prefix XOR), and
 prints one JSON object with frames per second (decode only, best of N runs).
 
-    python3 host/benches/decode_numpy.py FRAMES.f32 [RUNS]
+    python3 host/vision/benches/decode_numpy.py FRAMES.f32 [RUNS]
 """
 
 import json

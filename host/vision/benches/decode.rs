@@ -3,7 +3,7 @@
 //! second, and in the same run a straightforward numpy vectorised decode of the same frames
 //! (`benches/decode_numpy.py`, skipped with a note when python3/numpy are missing).
 //!
-//!     cargo bench -p mlsss --bench decode
+//!     cargo bench -p mlsss-vision --bench decode
 //!
 //! A booth capture takes 53.6 s (268 frames at 5 fps); decoding its 160 Gray-code frames must take
 //! a small part of that.
@@ -13,8 +13,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use mlsss::geometry::gray_code::{DecodeParams, GrayCodeFrames, decode};
-use mlsss::geometry::synthetic::SyntheticGrayScene;
+use mlsss_vision::geometry::gray_code::{DecodeParams, GrayCodeFrames, decode};
+use mlsss_vision::geometry::synthetic::SyntheticGrayScene;
 
 const CAMERA: (u32, u32) = (1379, 1029);
 const PROJECTOR: (u32, u32) = (1024, 768);
