@@ -111,6 +111,7 @@ pub fn scanline_plot(
         plot = plot.with_series(name, series(px), Style::Line);
     }
     plot.width = 720;
+    plot.y_from_zero = true;
     plot.render()?;
     Ok(Some(plot))
 }

@@ -1,5 +1,5 @@
-//! Reports: PNG plots drawn with the `image` crate and a built-in bitmap font, and a
-//! self-contained HTML document that embeds them.
+//! Reports: figures drawn by [`plot`] (the crate's one plotting stack, `plotters` with an embedded
+//! font) and a self-contained HTML document that embeds them.
 
 pub mod figures;
 pub mod font;

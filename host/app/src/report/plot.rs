@@ -1,14 +1,22 @@
-//! Line and scatter plots rendered to PNG with the `image` crate and the built-in bitmap font.
+//! The one plotting stack of the crate: line and scatter plots drawn with `plotters`, as PNG
+//! (`plotters`' bitmap backend with the text of [`super::font::Raster`], encoded by `image`) or
+//! SVG, text in the embedded DejaVu Sans. Every figure of the crate goes through [`Plot`].
 //!
-//! Conventions: data coordinates are mapped linearly (or log10 on an axis marked `log`) into a
-//! plot frame; image pixel (0, 0) is the top-left corner. Ticks are at 1, 2 or 5 x 10^k steps.
+//! Conventions: axes are linear; the x range is the data's widened by 3 % on each side, the y range
+//! the data's widened by 5 % (from 0 when [`Plot::y_from_zero`]); non-finite points are dropped.
+//! Image pixel (0, 0) is the top-left corner. The legend goes in whichever corner of the plot area
+//! covers the fewest data points.
 
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
-use image::{ImageFormat, Rgb, RgbImage};
+use image::{ImageFormat, RgbImage};
+use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
+use plotters::element::MultiLineText;
+use plotters::prelude::*;
 
-use super::font;
+use super::font::{self as embedded, FAMILY, Raster};
 
 /// Errors of plot rendering.
 #[derive(Debug, thiserror::Error)]
@@ -17,28 +25,40 @@ pub enum PlotError {
     /// No series holds a finite point (nothing to scale the axes to).
     #[error("plot `{0}` has no finite data point")]
     NoData(String),
-    /// A log axis got a non-positive value.
-    #[error("plot `{0}`: a logarithmic axis needs positive values")]
-    NonPositiveOnLogAxis(String),
+    /// `plotters` failed to draw (a font or backend error).
+    #[error("drawing plot `{title}`: {message}")]
+    Draw { title: String, message: String },
     /// The PNG could not be encoded or written.
     #[error("{path}: {source}")]
     Png {
         path: PathBuf,
         source: image::ImageError,
     },
+    /// The SVG could not be written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
 }
 
 /// How a series is drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Style {
+    /// Connected line.
     Line,
+    /// Dashed connected line.
+    Dashed,
+    /// A dot per point.
     Points,
+    /// A line with a dot on each point.
     LineAndPoints,
 }
 
 /// One data series.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Series {
+    /// Legend text; an empty label keeps the series out of the legend.
     pub label: String,
     pub points: Vec<(f64, f64)>,
     pub color: [u8; 3],
@@ -54,8 +74,8 @@ pub struct Plot {
     pub series: Vec<Series>,
     pub width: u32,
     pub height: u32,
-    pub log_x: bool,
-    pub log_y: bool,
+    /// The y axis starts at 0 (or below, for negative data): radiance and profile plots.
+    pub y_from_zero: bool,
 }
 
 /// Colours that stay apart on white, for series in order.
@@ -68,16 +88,47 @@ pub const PALETTE: [[u8; 3]; 6] = [
     [90, 90, 90],
 ];
 
-const MARGIN_LEFT: u32 = 78;
-const MARGIN_RIGHT: u32 = 16;
-const MARGIN_TOP: u32 = 34;
-const MARGIN_BOTTOM: u32 = 52;
-const WHITE: Rgb<u8> = Rgb([255, 255, 255]);
-const BLACK: Rgb<u8> = Rgb([0, 0, 0]);
-const GRID: Rgb<u8> = Rgb([225, 225, 225]);
+const TITLE_PX: f64 = 20.0;
+const AXIS_DESC_PX: f64 = 15.0;
+const TICK_PX: f64 = 13.0;
+const LEGEND_PX: f64 = 13.0;
+/// Left of the y tick labels: room for the rotated y label.
+const Y_LABEL_AREA: u32 = 72;
+const X_LABEL_AREA: u32 = 48;
+const MARGIN: u32 = 14;
+const GRID: RGBColor = RGBColor(225, 225, 225);
+const LINE_WIDTH: u32 = 2;
+const DOT_RADIUS: i32 = 3;
+
+fn font(px: f64) -> FontDesc<'static> {
+    (FAMILY, px).into_font()
+}
+
+/// The axis ranges of the plot's finite data: `(x0, x1, y0, y1)`.
+fn ranges(plot: &Plot) -> Option<(f64, f64, f64, f64)> {
+    let mut range = None::<(f64, f64, f64, f64)>;
+    for (x, y) in plot.finite_points() {
+        range = Some(match range {
+            None => (x, x, y, y),
+            Some((a, b, c, d)) => (a.min(x), b.max(x), c.min(y), d.max(y)),
+        });
+    }
+    let (x0, x1, mut y0, y1) = range?;
+    let (x0, x1) = padded(x0, x1, 0.03);
+    if plot.y_from_zero {
+        y0 = y0.min(0.0);
+    }
+    let (py0, y1) = padded(y0, y1, 0.05);
+    let y0 = if plot.y_from_zero && y0 == 0.0 {
+        0.0
+    } else {
+        py0
+    };
+    Some((x0, x1, y0, y1))
+}
 
 impl Plot {
-    /// An empty 640x400 linear plot.
+    /// An empty 640x400 plot.
     pub fn new(title: &str, x_label: &str, y_label: &str) -> Self {
         Self {
             title: title.to_owned(),
@@ -86,8 +137,7 @@ impl Plot {
             series: Vec::new(),
             width: 640,
             height: 400,
-            log_x: false,
-            log_y: false,
+            y_from_zero: false,
         }
     }
 
@@ -104,145 +154,199 @@ impl Plot {
     }
 
     fn finite_points(&self) -> impl Iterator<Item = (f64, f64)> + '_ {
-        self.series
+        self.series.iter().flat_map(|s| finite(&s.points))
+    }
+
+    fn draw_error(&self, e: impl std::fmt::Display) -> PlotError {
+        PlotError::Draw {
+            title: self.title.clone(),
+            message: e.to_string(),
+        }
+    }
+
+    /// Draws the plot onto a backend's root area; returns where the legend went (none without
+    /// labelled series).
+    fn draw<'r, DB: DrawingBackend + 'r>(
+        &self,
+        root: &'r DrawingArea<DB, Shift>,
+    ) -> Result<Option<SeriesLabelPosition>, PlotError> {
+        let (x0, x1, y0, y1) = ranges(self).ok_or_else(|| PlotError::NoData(self.title.clone()))?;
+        embedded::register();
+        let err = |e: DrawingAreaErrorKind<DB::ErrorType>| self.draw_error(e);
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(root)
+            .caption(&self.title, font(TITLE_PX))
+            .margin(MARGIN)
+            .x_label_area_size(X_LABEL_AREA)
+            .y_label_area_size(Y_LABEL_AREA)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(&self.x_label)
+            .y_desc(&self.y_label)
+            .axis_desc_style(font(AXIS_DESC_PX))
+            .label_style(font(TICK_PX))
+            .x_labels(10)
+            .y_labels(10)
+            .x_label_formatter(&|v| tick_label(*v))
+            .y_label_formatter(&|v| tick_label(*v))
+            .bold_line_style(GRID)
+            .light_line_style(TRANSPARENT)
+            .axis_style(BLACK)
+            .draw()
+            .map_err(err)?;
+        for s in &self.series {
+            let color = RGBColor(s.color[0], s.color[1], s.color[2]);
+            let line = color.stroke_width(LINE_WIDTH);
+            let pts: Vec<(f64, f64)> = finite(&s.points).collect();
+            let anno = match s.style {
+                Style::Line | Style::LineAndPoints => chart
+                    .draw_series(LineSeries::new(pts.iter().copied(), line))
+                    .map_err(err)?,
+                Style::Dashed => chart
+                    .draw_series(DashedLineSeries::new(pts.iter().copied(), 7, 4, line))
+                    .map_err(err)?,
+                Style::Points => chart
+                    .draw_series(
+                        pts.iter()
+                            .map(|&p| Circle::new(p, DOT_RADIUS, color.filled())),
+                    )
+                    .map_err(err)?,
+            };
+            if !s.label.is_empty() {
+                // One element type for every style: the parts a style lacks are transparent (no
+                // backend draws those).
+                let (a, b, dot) = legend_parts(s.style);
+                let none = ShapeStyle::from(&TRANSPARENT);
+                let piece = move |span: Option<(i32, i32)>| {
+                    let (x0, x1) = span.unwrap_or((0, 0));
+                    PathElement::new(
+                        vec![(x0, 0), (x1, 0)],
+                        if span.is_some() { line } else { none },
+                    )
+                };
+                let dot = if dot { color.filled() } else { none };
+                anno.label(&s.label).legend(move |(x, y)| {
+                    EmptyElement::at((x, y))
+                        + piece(a)
+                        + piece(b)
+                        + Circle::new((10, 0), DOT_RADIUS, dot)
+                });
+            }
+            if s.style == Style::LineAndPoints {
+                chart
+                    .draw_series(
+                        pts.iter()
+                            .map(|&p| Circle::new(p, DOT_RADIUS, color.filled())),
+                    )
+                    .map_err(err)?;
+            }
+        }
+        let mut legend = None;
+        if self.series.iter().any(|s| !s.label.is_empty()) {
+            let position = self.legend_position(&chart)?;
+            legend = Some(position.clone());
+            chart
+                .configure_series_labels()
+                .position(position)
+                .label_font(font(LEGEND_PX))
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK.mix(0.4))
+                .draw()
+                .map_err(err)?;
+        }
+        root.present().map_err(err)?;
+        Ok(legend)
+    }
+
+    /// The upper or lower corner (or middle) of the plot area where the legend box covers the
+    /// fewest data points and line pieces; the upper right on a tie.
+    fn legend_position<DB: DrawingBackend>(
+        &self,
+        chart: &ChartContext<DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    ) -> Result<SeriesLabelPosition, PlotError> {
+        let style = font(LEGEND_PX).into_text_style(chart.plotting_area());
+        let mut text = MultiLineText::<_, &str>::new((0, 0), &style);
+        for s in self.series.iter().filter(|s| !s.label.is_empty()) {
+            text.push_line(s.label.as_str());
+        }
+        let (w, h) = text.estimate_dimension().map_err(|e| self.draw_error(e))?;
+        // The box plotters draws: 30 px for the marks, 10 px margins (see SeriesLabelStyle).
+        let (w, h) = (w + 30 + 20, h + 20);
+        let (area_w, area_h) = chart.plotting_area().dim_in_pixel();
+        let (area_w, area_h) = (area_w as i32, area_h as i32);
+        let base = chart.plotting_area().get_base_pixel();
+        let samples: Vec<(i32, i32)> = self
+            .series
             .iter()
-            .flat_map(|s| s.points.iter().copied())
-            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .flat_map(|s| {
+                let pts: Vec<(i32, i32)> = finite(&s.points)
+                    .map(|p| {
+                        let (x, y) = chart.backend_coord(&p);
+                        (x - base.0, y - base.1)
+                    })
+                    .collect();
+                let lines = s.style != Style::Points;
+                let mut out = pts.clone();
+                if lines {
+                    // A few samples along each segment, so long lines count too.
+                    for w in pts.windows(2) {
+                        for k in 1..4 {
+                            let t = f64::from(k) / 4.0;
+                            out.push((
+                                w[0].0 + (f64::from(w[1].0 - w[0].0) * t) as i32,
+                                w[0].1 + (f64::from(w[1].1 - w[0].1) * t) as i32,
+                            ));
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        use SeriesLabelPosition as P;
+        let candidates = [
+            (P::UpperRight, area_w - w - 5, 5),
+            (P::UpperLeft, 5, 5),
+            (P::LowerRight, area_w - w - 5, area_h - h - 5),
+            (P::LowerLeft, 5, area_h - h - 5),
+            (P::UpperMiddle, (area_w - w) / 2, 5),
+            (P::LowerMiddle, (area_w - w) / 2, area_h - h - 5),
+        ];
+        let covered = |x: i32, y: i32| {
+            samples
+                .iter()
+                .filter(|p| p.0 >= x - 4 && p.0 <= x + w + 4 && p.1 >= y - 4 && p.1 <= y + h + 4)
+                .count()
+        };
+        let best = candidates
+            .into_iter()
+            .map(|(pos, x, y)| (covered(x, y), pos))
+            .min_by_key(|(n, _)| *n)
+            .map_or(P::UpperRight, |(_, pos)| pos);
+        Ok(best)
     }
 
     /// Renders the plot.
     pub fn render(&self) -> Result<RgbImage, PlotError> {
-        let to_axis = |v: f64, log: bool| if log { v.log10() } else { v };
-        let mut range = None::<(f64, f64, f64, f64)>;
-        for (x, y) in self.finite_points() {
-            if (self.log_x && x <= 0.0) || (self.log_y && y <= 0.0) {
-                return Err(PlotError::NonPositiveOnLogAxis(self.title.clone()));
-            }
-            let (x, y) = (to_axis(x, self.log_x), to_axis(y, self.log_y));
-            range = Some(match range {
-                None => (x, x, y, y),
-                Some((a, b, c, d)) => (a.min(x), b.max(x), c.min(y), d.max(y)),
-            });
+        let mut buf = vec![0u8; self.width as usize * self.height as usize * 3];
+        {
+            let root = Raster::with_buffer(&mut buf, (self.width, self.height)).into_drawing_area();
+            self.draw(&root)?;
         }
-        let (x0, x1, y0, y1) = range.ok_or_else(|| PlotError::NoData(self.title.clone()))?;
-        let (x0, x1) = padded(x0, x1);
-        let (y0, y1) = padded(y0, y1);
-        let mut img = RgbImage::from_pixel(self.width, self.height, WHITE);
-        let frame = Frame {
-            left: MARGIN_LEFT as f64,
-            right: (self.width - MARGIN_RIGHT) as f64,
-            top: MARGIN_TOP as f64,
-            bottom: (self.height - MARGIN_BOTTOM) as f64,
-            x0,
-            x1,
-            y0,
-            y1,
-        };
-        self.draw_axes(&mut img, &frame);
-        for s in &self.series {
-            let pts: Vec<(f64, f64)> = s
-                .points
-                .iter()
-                .filter(|(x, y)| x.is_finite() && y.is_finite())
-                .map(|&(x, y)| frame.to_pixel(to_axis(x, self.log_x), to_axis(y, self.log_y)))
-                .collect();
-            let color = Rgb(s.color);
-            if matches!(s.style, Style::Line | Style::LineAndPoints) {
-                for w in pts.windows(2) {
-                    draw_line(&mut img, w[0], w[1], color);
-                }
-            }
-            if matches!(s.style, Style::Points | Style::LineAndPoints) {
-                for &p in &pts {
-                    draw_marker(&mut img, p, color);
-                }
-            }
-        }
-        self.draw_legend(&mut img, &frame);
-        Ok(img)
+        RgbImage::from_raw(self.width, self.height, buf)
+            .ok_or_else(|| self.draw_error("pixel buffer of the wrong size"))
     }
 
-    fn draw_axes(&self, img: &mut RgbImage, f: &Frame) {
-        for (v, major) in ticks(f.x0, f.x1) {
-            let (px, _) = f.to_pixel(v, f.y0);
-            vline(img, px, f.top, f.bottom, GRID);
-            let label = tick_label(v, major, self.log_x);
-            let (w, _) = font::text_size(&label, 1);
-            draw_text(
-                img,
-                &label,
-                px as i64 - i64::from(w) / 2,
-                f.bottom as i64 + 6,
-                BLACK,
-                1,
-            );
+    /// The plot as SVG text (same layout as the PNG; text names the `sans-serif` family).
+    pub fn svg(&self) -> Result<String, PlotError> {
+        let mut text = String::new();
+        {
+            let root =
+                SVGBackend::with_string(&mut text, (self.width, self.height)).into_drawing_area();
+            self.draw(&root)?;
         }
-        for (v, major) in ticks(f.y0, f.y1) {
-            let (_, py) = f.to_pixel(f.x0, v);
-            hline(img, f.left, f.right, py, GRID);
-            let label = tick_label(v, major, self.log_y);
-            let (w, h) = font::text_size(&label, 1);
-            draw_text(
-                img,
-                &label,
-                f.left as i64 - 6 - i64::from(w),
-                py as i64 - i64::from(h) / 2,
-                BLACK,
-                1,
-            );
-        }
-        hline(img, f.left, f.right, f.bottom, BLACK);
-        hline(img, f.left, f.right, f.top, BLACK);
-        vline(img, f.left, f.top, f.bottom, BLACK);
-        vline(img, f.right, f.top, f.bottom, BLACK);
-        let (tw, _) = font::text_size(&self.title, 2);
-        draw_text(
-            img,
-            &self.title,
-            (self.width as i64 - i64::from(tw)) / 2,
-            8,
-            BLACK,
-            2,
-        );
-        let (xw, _) = font::text_size(&self.x_label, 1);
-        let xc = (f.left + f.right) / 2.0;
-        draw_text(
-            img,
-            &self.x_label,
-            xc as i64 - i64::from(xw) / 2,
-            self.height as i64 - 20,
-            BLACK,
-            1,
-        );
-        // The y label reads top to bottom, one character per line, left of the tick labels.
-        let yc = (f.top + f.bottom) / 2.0;
-        let n = self.y_label.chars().count() as i64;
-        let y_start = yc as i64 - n * i64::from(font::CELL_HEIGHT) / 2;
-        for (i, c) in self.y_label.chars().enumerate() {
-            let y = y_start + i as i64 * i64::from(font::CELL_HEIGHT);
-            draw_text(img, &c.to_string(), 4, y, BLACK, 1);
-        }
-    }
-
-    fn draw_legend(&self, img: &mut RgbImage, f: &Frame) {
-        let mut y = f.top as i64 + 8;
-        for s in self.series.iter().filter(|s| !s.label.is_empty()) {
-            let (w, _) = font::text_size(&s.label, 1);
-            let x = f.right as i64 - 30 - i64::from(w);
-            fill_rect(img, x - 4, y - 3, i64::from(w) + 32, 14, WHITE);
-            let color = Rgb(s.color);
-            draw_line(
-                img,
-                (x as f64, y as f64 + 3.5),
-                (x as f64 + 18.0, y as f64 + 3.5),
-                color,
-            );
-            if s.style != Style::Line {
-                draw_marker(img, (x as f64 + 9.0, y as f64 + 3.5), color);
-            }
-            draw_text(img, &s.label, x + 24, y, BLACK, 1);
-            y += 14;
-        }
+        Ok(text)
     }
 
     /// PNG bytes of the plot.
@@ -266,72 +370,57 @@ impl Plot {
                 source,
             })
     }
-}
 
-/// The data-to-pixel map of the plot frame.
-struct Frame {
-    left: f64,
-    right: f64,
-    top: f64,
-    bottom: f64,
-    x0: f64,
-    x1: f64,
-    y0: f64,
-    y1: f64,
-}
-
-impl Frame {
-    fn to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
-        let u = (x - self.x0) / (self.x1 - self.x0);
-        let v = (y - self.y0) / (self.y1 - self.y0);
-        (
-            self.left + u * (self.right - self.left),
-            self.bottom - v * (self.bottom - self.top),
-        )
+    /// Writes the plot as an SVG file.
+    pub fn save_svg(&self, path: &Path) -> Result<(), PlotError> {
+        std::fs::write(path, self.svg()?).map_err(|source| PlotError::Io {
+            path: path.to_owned(),
+            source,
+        })
     }
 }
 
-/// The range widened by 5 % on each side (and made non-empty).
-fn padded(lo: f64, hi: f64) -> (f64, f64) {
+/// The finite points of a series, in order.
+fn finite(points: &[(f64, f64)]) -> impl Iterator<Item = (f64, f64)> + '_ {
+    points
+        .iter()
+        .copied()
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+}
+
+/// The legend's sample of a series, relative to its left end: two line pieces (`(x0, x1)` pixel
+/// spans, `None` when absent) and whether a dot sits in the middle.
+type LegendParts = (Option<(i32, i32)>, Option<(i32, i32)>, bool);
+
+fn legend_parts(style: Style) -> LegendParts {
+    match style {
+        Style::Line => (Some((0, 20)), None, false),
+        Style::Dashed => (Some((0, 7)), Some((12, 20)), false),
+        Style::Points => (None, None, true),
+        Style::LineAndPoints => (Some((0, 20)), None, true),
+    }
+}
+
+/// The range widened by `frac` of its span on each side (and made non-empty).
+fn padded(lo: f64, hi: f64, frac: f64) -> (f64, f64) {
     let span = hi - lo;
     if span <= f64::EPSILON * hi.abs().max(1.0) {
         let d = if lo == 0.0 { 1.0 } else { 0.1 * lo.abs() };
         return (lo - d, hi + d);
     }
-    (lo - 0.05 * span, hi + 0.05 * span)
+    (lo - frac * span, hi + frac * span)
 }
 
-/// Tick positions in `[lo, hi]` at a 1/2/5 x 10^k step giving at most 8 ticks; `true` marks every
-/// tick (all are labelled).
-pub fn ticks(lo: f64, hi: f64) -> Vec<(f64, bool)> {
-    let span = hi - lo;
-    if !(span > 0.0 && span.is_finite()) {
-        return Vec::new();
-    }
-    let raw = span / 6.0;
-    let magnitude = 10f64.powf(raw.log10().floor());
-    let step = [1.0, 2.0, 5.0, 10.0]
-        .iter()
-        .map(|m| m * magnitude)
-        .find(|s| span / s <= 7.0)
-        .unwrap_or(10.0 * magnitude);
-    let first = (lo / step).ceil() as i64;
-    let last = (hi / step).floor() as i64;
-    (first..=last).map(|i| (i as f64 * step, true)).collect()
-}
-
-/// A short label for a tick value (`log` axes show 10^v).
-fn tick_label(v: f64, _major: bool, log: bool) -> String {
-    let v = if log { 10f64.powf(v) } else { v };
+/// A short label for a tick value: at most 3 significant digits, trailing zeros trimmed.
+fn tick_label(v: f64) -> String {
     let a = v.abs();
-    if a == 0.0 || a < 1e-12 {
+    if a < 1e-12 {
         "0".into()
     } else if !(1e-3..1e5).contains(&a) {
         format!("{v:.0e}")
     } else if a >= 100.0 {
         format!("{v:.0}")
     } else {
-        // Enough decimals for 3 significant digits, trailing zeros trimmed.
         let decimals = (2 - a.log10().floor() as i32).clamp(0, 6) as usize;
         let s = format!("{v:.decimals$}");
         if s.contains('.') {
@@ -342,120 +431,109 @@ fn tick_label(v: f64, _major: bool, log: bool) -> String {
     }
 }
 
-fn put(img: &mut RgbImage, x: i64, y: i64, c: Rgb<u8>) {
-    if x >= 0 && y >= 0 && (x as u32) < img.width() && (y as u32) < img.height() {
-        img.put_pixel(x as u32, y as u32, c);
-    }
-}
-
-fn fill_rect(img: &mut RgbImage, x: i64, y: i64, w: i64, h: i64, c: Rgb<u8>) {
-    for yy in y..y + h {
-        for xx in x..x + w {
-            put(img, xx, yy, c);
-        }
-    }
-}
-
-fn hline(img: &mut RgbImage, x0: f64, x1: f64, y: f64, c: Rgb<u8>) {
-    for x in x0.round() as i64..=x1.round() as i64 {
-        put(img, x, y.round() as i64, c);
-    }
-}
-
-fn vline(img: &mut RgbImage, x: f64, y0: f64, y1: f64, c: Rgb<u8>) {
-    for y in y0.round() as i64..=y1.round() as i64 {
-        put(img, x.round() as i64, y, c);
-    }
-}
-
-/// A 2-px wide line (DDA: one step per pixel along the longer axis).
-fn draw_line(img: &mut RgbImage, a: (f64, f64), b: (f64, f64), c: Rgb<u8>) {
-    let steps = (b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil().max(1.0) as i64;
-    for i in 0..=steps {
-        let t = i as f64 / steps as f64;
-        let x = (a.0 + t * (b.0 - a.0)).round() as i64;
-        let y = (a.1 + t * (b.1 - a.1)).round() as i64;
-        put(img, x, y, c);
-        put(img, x + 1, y, c);
-        put(img, x, y + 1, c);
-    }
-}
-
-/// A filled 5x5 square marker.
-fn draw_marker(img: &mut RgbImage, p: (f64, f64), c: Rgb<u8>) {
-    fill_rect(img, p.0.round() as i64 - 2, p.1.round() as i64 - 2, 5, 5, c);
-}
-
-/// Draws `text` with its top-left corner at `(x, y)`.
-pub fn draw_text(img: &mut RgbImage, text: &str, x: i64, y: i64, c: Rgb<u8>, scale: u32) {
-    for (dx, dy) in font::ink(text, scale) {
-        put(img, x + i64::from(dx), y + i64::from(dy), c);
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn count(img: &RgbImage, c: [u8; 3]) -> usize {
+        img.pixels().filter(|p| p.0 == c).count()
+    }
+
     #[test]
-    fn ticks_are_round_numbers_inside_the_range() {
-        let t: Vec<f64> = ticks(0.0, 1.0).into_iter().map(|t| t.0).collect();
-        assert_eq!(t.len(), 6, "{t:?}");
-        for (v, want) in t.iter().zip([0.0, 0.2, 0.4, 0.6, 0.8, 1.0]) {
-            assert!((v - want).abs() < 1e-12, "{t:?}");
-        }
-        let t = ticks(-3.2, 17.9);
-        assert!(t.len() >= 4 && t.len() <= 11, "{t:?}");
-        assert!(t.iter().all(|(v, _)| (-3.2..=17.9).contains(v)));
-        assert_eq!(t[1].0 - t[0].0, 5.0);
-        assert!(ticks(1.0, 1.0).is_empty());
-        assert_eq!(tick_label(0.30000000000000004, true, false), "0.3");
-        assert_eq!(tick_label(1500.0, true, false), "1500");
-        assert_eq!(tick_label(2.0, true, true), "100");
-        assert_eq!(tick_label(-0.0125, true, false), "-0.0125");
+    fn tick_labels_are_short() {
+        assert_eq!(tick_label(0.30000000000000004), "0.3");
+        assert_eq!(tick_label(1500.0), "1500");
+        assert_eq!(tick_label(-0.0125), "-0.0125");
+        assert_eq!(tick_label(1e-17), "0");
+        assert_eq!(tick_label(2e6), "2e6");
+    }
+
+    #[test]
+    fn text_is_drawn() {
+        // A single invisible-in-the-legend point: the title band holds only text.
+        let plot = Plot::new("Title", "x", "y").with_series("", vec![(0.0, 0.0)], Style::Points);
+        let img = plot.render().unwrap();
+        let dark = (0..30u32)
+            .flat_map(|y| (0..img.width()).map(move |x| (x, y)))
+            .filter(|&(x, y)| img.get_pixel(x, y).0[0] < 128)
+            .count();
+        assert!(dark > 50, "the title is drawn ({dark} dark pixels)");
     }
 
     #[test]
     fn series_land_where_the_data_says() {
-        // A horizontal red line at y = 1 across x in [0, 10], and a blue point at (10, 0).
+        // A rising line and a single point, each in its own colour, on a 640x400 canvas.
         let plot = Plot::new("t", "x", "y")
-            .with_series("line", vec![(0.0, 1.0), (10.0, 1.0)], Style::Line)
+            .with_series("line", vec![(0.0, 0.0), (10.0, 1.0)], Style::Line)
             .with_series("pt", vec![(10.0, 0.0)], Style::Points);
         let img = plot.render().unwrap();
         assert_eq!(img.dimensions(), (640, 400));
-        let f = Frame {
-            left: MARGIN_LEFT as f64,
-            right: (640 - MARGIN_RIGHT) as f64,
-            top: MARGIN_TOP as f64,
-            bottom: (400 - MARGIN_BOTTOM) as f64,
-            x0: -0.5,
-            x1: 10.5,
-            y0: -0.05,
-            y1: 1.05,
+        // Pixels of exactly one colour.
+        let where_is = |c: [u8; 3]| -> Vec<(u32, u32)> {
+            img.enumerate_pixels()
+                .filter(|p| p.2.0 == c)
+                .map(|p| (p.0, p.1))
+                .collect()
         };
-        let (lx, ly) = f.to_pixel(2.0, 1.0);
-        assert_eq!(
-            *img.get_pixel(lx.round() as u32, ly.round() as u32),
-            Rgb(PALETTE[0])
+        // The line runs from the lower left to the upper right of the plot area (the legend
+        // sample adds a few pixels of the same colour at the top left).
+        let line = where_is(PALETTE[0]);
+        let lowest_left = line.iter().filter(|p| p.0 < 200).map(|p| p.1).max();
+        let highest_right = line.iter().filter(|p| p.0 > 450).map(|p| p.1).min();
+        assert!(lowest_left > Some(300), "{lowest_left:?}");
+        assert!(highest_right < Some(100), "{highest_right:?}");
+        // The point sits at the lower right; its only other pixels are the legend's sample.
+        let dot = where_is(PALETTE[1]);
+        let plotted: Vec<&(u32, u32)> = dot.iter().filter(|p| p.0 > 560).collect();
+        assert!(
+            plotted.len() > 20 && plotted.iter().all(|p| p.1 > 300),
+            "{plotted:?}"
         );
-        let (px, py) = f.to_pixel(10.0, 0.0);
-        assert_eq!(
-            *img.get_pixel(px.round() as u32, py.round() as u32),
-            Rgb(PALETTE[1])
-        );
+        assert!(dot.iter().all(|p| p.0 > 560 || p.1 < 150), "{dot:?}");
         let png = plot.png_bytes().unwrap();
         assert_eq!(&png[1..4], b"PNG");
     }
 
     #[test]
-    fn empty_or_invalid_data_is_an_error() {
+    fn the_legend_names_every_labelled_series_and_avoids_the_data() {
+        // Data crowding the upper right: the legend moves elsewhere.
+        let pts: Vec<(f64, f64)> = (0..50).map(|i| (f64::from(i), f64::from(i))).collect();
+        let plot = Plot::new("t", "x", "y").with_series("diagonal", pts, Style::Points);
+        let img = plot.render().unwrap();
+        // The legend box is white; the series dots inside it would show through otherwise.
+        let svg = plot.svg().unwrap();
+        for text in ["diagonal", "t", "x", "y"] {
+            assert!(
+                svg.contains(&format!(">\n{text}\n</text>")),
+                "{text} in the SVG"
+            );
+        }
+        assert!(count(&img, PALETTE[0]) > 50 * 20);
+        let mut buf = String::new();
+        let root = SVGBackend::with_string(&mut buf, (640, 400)).into_drawing_area();
+        let pos = plot.draw(&root).unwrap();
+        assert!(
+            matches!(
+                pos,
+                Some(SeriesLabelPosition::UpperLeft | SeriesLabelPosition::LowerRight)
+            ),
+            "{pos:?}"
+        );
+    }
+
+    #[test]
+    fn y_from_zero_starts_the_axis_at_zero() {
+        let mut plot =
+            Plot::new("t", "x", "y").with_series("", vec![(0.0, 5.0), (1.0, 6.0)], Style::Line);
+        assert!(ranges(&plot).unwrap().2 > 4.0);
+        plot.y_from_zero = true;
+        assert_eq!(ranges(&plot).unwrap().2, 0.0);
+    }
+
+    #[test]
+    fn empty_data_is_an_error() {
         let empty = Plot::new("e", "x", "y").with_series("s", vec![(f64::NAN, 1.0)], Style::Line);
         assert!(matches!(empty.render(), Err(PlotError::NoData(_))));
-        let mut log = Plot::new("l", "x", "y").with_series("s", vec![(0.0, 1.0)], Style::Line);
-        log.log_x = true;
-        assert!(matches!(
-            log.render(),
-            Err(PlotError::NonPositiveOnLogAxis(_))
-        ));
+        assert!(matches!(empty.svg(), Err(PlotError::NoData(_))));
     }
 }
