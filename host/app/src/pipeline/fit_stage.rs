@@ -174,7 +174,8 @@ pub enum FitStageError {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_fit(ctx).map_err(StageFailure::new)
+    let params: FitParams = ctx.params()?;
+    run_fit(ctx, &params).map_err(StageFailure::new)
 }
 
 fn check_params(params: &FitParams, captured: usize) -> Result<(), FitStageError> {
@@ -198,10 +199,9 @@ fn check_params(params: &FitParams, captured: usize) -> Result<(), FitStageError
     Ok(())
 }
 
-fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
-    let params: FitParams = ctx.params().unwrap_or_default();
+fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<Value, FitStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
-    check_params(&params, captured)?;
+    check_params(params, captured)?;
     let record = ProfilesRecord::load(&ctx.stage_dir("profiles"))?;
     let t0 = Instant::now();
     let c0 = cpu_seconds();
@@ -316,7 +316,7 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     let fit_s = t1.elapsed().as_secs_f64();
     let c2 = cpu_seconds();
 
-    let model = assemble(ctx, &inputs, &params, &training, layers, dipole, &fit.stats)?;
+    let model = assemble(ctx, &inputs, params, &training, layers, dipole, &fit.stats)?;
     let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
         (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
         _ => None,

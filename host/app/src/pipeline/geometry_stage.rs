@@ -87,11 +87,11 @@ pub enum GeometryStageError {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_geometry(ctx).map_err(StageFailure::new)
+    let params: GeometryParams = ctx.params()?;
+    run_geometry(ctx, &params).map_err(StageFailure::new)
 }
 
-fn run_geometry(ctx: &StageContext) -> Result<Value, GeometryStageError> {
-    let params: GeometryParams = ctx.params().unwrap_or_default();
+fn run_geometry(ctx: &StageContext, params: &GeometryParams) -> Result<Value, GeometryStageError> {
     let calib = ctx
         .calibration
         .ok_or(GeometryStageError::NothingDecoded(ctx.stage_dir("decode")))?;

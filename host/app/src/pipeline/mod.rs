@@ -31,8 +31,10 @@
 //!    uses_calibration, run }`. `run(&StageContext)` reads its inputs' artefacts from
 //!    `ctx.stage_dir(input)` (through loaders exported by the producing stage's file, e.g.
 //!    [`decode_stage::load_coords`]), writes its own under `ctx.dir()`, and returns its report fragment.
-//!    Parameters: `ctx.params::<MyParams>()` (a `Deserialize + Default` struct; the CLI fills them
-//!    with [`Pipeline::set_params`]). Bump `version` when the stage's output changes meaning.
+//!    Parameters: `ctx.params::<MyParams>()?` (a `Serialize + Deserialize + Default` struct; the
+//!    CLI fills them with [`Pipeline::set_params`]; keys given replace the defaults, and an
+//!    unknown key or a mistyped value fails the run with [`PipelineError::Params`] naming the
+//!    stage and the key). Bump `version` when the stage's output changes meaning.
 //! 3. Register it in [`STAGES`] (after its inputs) and add a variant to the CLI's `--until` help.
 //! 4. Errors: the stage's module has its own `thiserror` enum; return it boxed via
 //!    [`StageFailure::new`].
@@ -98,18 +100,102 @@ pub enum PipelineError {
         path: PathBuf,
         source: std::io::Error,
     },
-    /// Stage parameters are not valid JSON for the stage.
-    #[error("parameters of stage `{stage}`: {source}")]
-    Params {
-        stage: &'static str,
-        source: serde_json::Error,
-    },
+    /// Stage parameters do not fit the stage's parameter struct.
+    #[error(transparent)]
+    Params(#[from] ParamsError),
     /// A stage failed.
     #[error("stage `{stage}` failed: {source}")]
     Stage {
         stage: &'static str,
         source: StageFailure,
     },
+}
+
+/// Parameters set for a stage ([`Pipeline::set_params`]) that the stage cannot take: an unknown
+/// key, or a value of the wrong type or out of the type's range. Names the stage and the key.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("parameters of stage `{stage}`: `{key}`: {message}")]
+pub struct ParamsError {
+    pub stage: &'static str,
+    /// Dotted path of the offending key (`-` when the parameters are not a JSON object).
+    pub key: String,
+    pub message: String,
+}
+
+/// Reads the parameters `value` of `stage` into `P`: the keys given replace those of
+/// `P::default()` (so a partial object is enough, also for flattened or foreign parameter
+/// structs without `#[serde(default)]`); every key must be one of `P`'s and every value must fit
+/// it, else a [`ParamsError`] naming the key.
+pub fn parse_params<P>(stage: &'static str, value: &Value) -> Result<P, ParamsError>
+where
+    P: Serialize + serde::de::DeserializeOwned + Default,
+{
+    let error = |key: String, message: String| ParamsError {
+        stage,
+        key,
+        message,
+    };
+    let Some(given) = value.as_object() else {
+        return Err(error(
+            "-".into(),
+            format!("expected a JSON object of parameters, got {value}"),
+        ));
+    };
+    let defaults = match serde_json::to_value(P::default()) {
+        Ok(Value::Object(map)) => map,
+        Ok(other) => {
+            return Err(error(
+                "-".into(),
+                format!("defaults are not an object: {other}"),
+            ));
+        }
+        Err(e) => return Err(error("-".into(), e.to_string())),
+    };
+    // Serde ignores unknown keys (and `deny_unknown_fields` does not combine with the flattened
+    // structs some stages use): a key the defaults do not have is unknown.
+    if let Some((key, known_here)) = unknown_key(value, &Value::Object(defaults.clone()), "") {
+        return Err(error(
+            key,
+            format!("unknown parameter (known: {})", known_here.join(", ")),
+        ));
+    }
+    let over_defaults = |keys: &mut dyn Iterator<Item = (&String, &Value)>| {
+        let mut merged = defaults.clone();
+        merged.extend(keys.map(|(k, v)| (k.clone(), v.clone())));
+        serde_json::from_value::<P>(Value::Object(merged))
+    };
+    over_defaults(&mut given.iter()).map_err(|e| {
+        // The key that fails on its own (over the defaults) is the culprit.
+        let culprit = given
+            .iter()
+            .find(|kv| over_defaults(&mut std::iter::once(*kv)).is_err());
+        let key = culprit.map_or_else(|| "-".to_owned(), |(k, _)| k.clone());
+        error(key, e.to_string())
+    })
+}
+
+/// The first key of `given` (dotted path from `prefix`) that `known` lacks, with the keys `known`
+/// has at that level.
+fn unknown_key(given: &Value, known: &Value, prefix: &str) -> Option<(String, Vec<String>)> {
+    let (Value::Object(given), Value::Object(known)) = (given, known) else {
+        return None;
+    };
+    for (k, v) in given {
+        let path = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match known.get(k) {
+            None => return Some((path, known.keys().cloned().collect())),
+            Some(kv) => {
+                if let Some(found) = unknown_key(v, kv, &path) {
+                    return Some(found);
+                }
+            }
+        }
+    }
+    None
 }
 
 /// A stage's own error, boxed so the pipeline does not depend on every stage's error type.
@@ -136,6 +222,20 @@ impl std::fmt::Display for StageFailure {
 }
 
 impl std::error::Error for StageFailure {}
+
+impl StageFailure {
+    /// The pipeline error for a failure of `stage`: [`PipelineError::Params`] when the stage
+    /// refused its parameters, else [`PipelineError::Stage`].
+    fn into_pipeline_error(self, stage: &'static str) -> PipelineError {
+        match self.0.downcast::<ParamsError>() {
+            Ok(params) => PipelineError::Params(*params),
+            Err(other) => PipelineError::Stage {
+                stage,
+                source: StageFailure(other),
+            },
+        }
+    }
+}
 
 /// One processing stage.
 #[derive(Debug, Clone, Copy)]
@@ -219,11 +319,16 @@ impl StageContext<'_> {
         self.out.join(stage)
     }
 
-    /// This stage's parameters (defaults when none were set).
-    pub fn params<P: for<'de> Deserialize<'de> + Default>(&self) -> Result<P, StageFailure> {
+    /// This stage's parameters (defaults when none were set). Parameters that do not fit `P`
+    /// (unknown key, wrong type) are an error naming the stage and the key ([`parse_params`]),
+    /// which the pipeline reports as [`PipelineError::Params`].
+    pub fn params<P>(&self) -> Result<P, StageFailure>
+    where
+        P: Serialize + serde::de::DeserializeOwned + Default,
+    {
         match self.params {
             None => Ok(P::default()),
-            Some(v) => serde_json::from_value(v.clone()).map_err(StageFailure::new),
+            Some(v) => parse_params(self.stage, v).map_err(StageFailure::new),
         }
     }
 
@@ -402,10 +507,7 @@ impl Pipeline {
         };
         let start = Instant::now();
         let cpu_start = cpu_seconds();
-        let report = (stage.run)(&ctx).map_err(|source| PipelineError::Stage {
-            stage: stage.name,
-            source,
-        })?;
+        let report = (stage.run)(&ctx).map_err(|source| source.into_pipeline_error(stage.name))?;
         let record = StageRecord {
             key,
             report,
@@ -648,6 +750,58 @@ mod tests {
         pipeline.set_params("geometry", serde_json::json!({ "max_edge_mm": 2.0 }));
         let third = pipeline.run_until("geometry").unwrap();
         assert_eq!(third["cached"], serde_json::json!(["decode"]));
+
+        // Parameters the stage cannot take stop the run, naming the stage and the key, instead
+        // of running it with defaults.
+        pipeline.set_params("geometry", serde_json::json!({ "max_edge_mm": "long" }));
+        let err = pipeline.run_until("geometry").unwrap_err();
+        assert!(
+            matches!(&err, PipelineError::Params(p) if p.stage == "geometry" && p.key == "max_edge_mm"),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("`geometry`"), "{err}");
+        pipeline.set_params("geometry", serde_json::json!({ "max_edge": 2.0 }));
+        let err = pipeline.run_until("geometry").unwrap_err();
+        assert!(err.to_string().contains("`max_edge`"), "{err}");
+        assert!(
+            err.to_string().contains("max_edge_mm"),
+            "lists the known keys: {err}"
+        );
+    }
+
+    #[test]
+    fn parameters_name_the_stage_and_the_offending_key() {
+        use fit_stage::FitParams;
+        let ok: FitParams = parse_params("fit", &serde_json::json!({ "block": 3 })).unwrap();
+        assert_eq!(
+            ok,
+            FitParams {
+                block: 3,
+                ..FitParams::default()
+            }
+        );
+        let err = parse_params::<FitParams>("fit", &serde_json::json!({ "blok": 3 })).unwrap_err();
+        assert_eq!((err.stage, err.key.as_str()), ("fit", "blok"));
+        assert!(err.message.contains("unknown parameter"), "{err}");
+        let err = parse_params::<FitParams>(
+            "fit",
+            &serde_json::json!({ "components": 4, "block": "six" }),
+        )
+        .unwrap_err();
+        assert_eq!(err.key, "block", "{err}");
+        assert!(err.message.contains("invalid type"), "{err}");
+        let err =
+            parse_params::<FitParams>("fit", &serde_json::json!({ "em": "bogus" })).unwrap_err();
+        assert_eq!(err.key, "em", "{err}");
+        // Flattened structs (geometry's triangulation parameters) are known keys too.
+        let g = geometry_stage::GeometryParams::default();
+        let mut v = serde_json::to_value(&g).unwrap();
+        parse_params::<geometry_stage::GeometryParams>("geometry", &v).unwrap();
+        v["typo"] = serde_json::json!(1);
+        let err = parse_params::<geometry_stage::GeometryParams>("geometry", &v).unwrap_err();
+        assert_eq!(err.key, "typo");
+        let err = parse_params::<FitParams>("fit", &Value::Null).unwrap_err();
+        assert_eq!(err.key, "-");
     }
 
     #[test]

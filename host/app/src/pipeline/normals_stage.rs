@@ -157,11 +157,11 @@ impl LightModel for ProjectorLights {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_normals(ctx).map_err(StageFailure::new)
+    let params: NormalsParams = ctx.params()?;
+    run_normals(ctx, &params).map_err(StageFailure::new)
 }
 
-fn run_normals(ctx: &StageContext) -> Result<Value, NormalsStageError> {
-    let params: NormalsParams = ctx.params().unwrap_or_default();
+fn run_normals(ctx: &StageContext, params: &NormalsParams) -> Result<Value, NormalsStageError> {
     let calib = ctx.calibration.ok_or(NormalsStageError::ProjectorCount {
         calibrated: 0,
         captured: 1,

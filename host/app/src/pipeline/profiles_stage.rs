@@ -679,14 +679,14 @@ fn accumulate(acc: &mut (f64, f64), a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_profiles(ctx).map_err(StageFailure::new)
+    let params: ProfilesParams = ctx.params()?;
+    run_profiles(ctx, &params).map_err(StageFailure::new)
 }
 
-fn run_profiles(ctx: &StageContext) -> Result<Value, ProfilesStageError> {
-    let params: ProfilesParams = ctx.params().unwrap_or_default();
+fn run_profiles(ctx: &StageContext, params: &ProfilesParams) -> Result<Value, ProfilesStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     let all: Vec<usize> = (0..captured).collect();
-    let inputs = ProfileInputs::load(ctx, &params, &all)?;
+    let inputs = ProfileInputs::load(ctx, params, &all)?;
     let cam = &ctx.capture.manifest.booth.camera;
     let size = (cam.width, cam.height);
     let (row, cols) = scanline(&inputs.surface);

@@ -102,7 +102,8 @@ pub fn white_path(dir: &Path, k: usize) -> PathBuf {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_separate(ctx).map_err(StageFailure::new)
+    let params: SeparateParams = ctx.params()?;
+    run_separate(ctx, &params).map_err(StageFailure::new)
 }
 
 /// The frames of projector `k`: white and the high-frequency shifts in order.
@@ -161,8 +162,7 @@ pub fn stripe_blur(ctx: &StageContext, k: usize) -> f32 {
     (spec.defocus_px.powi(2) + footprint.powi(2) / 12.0).sqrt() as f32
 }
 
-fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
-    let params: SeparateParams = ctx.params().unwrap_or_default();
+fn run_separate(ctx: &StageContext, params: &SeparateParams) -> Result<Value, SeparateStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     let calib = ctx.calibration;
     if let Some(c) = calib
