@@ -54,7 +54,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
-use serde_json::{Map, Value};
+use serde_json::Value;
 
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, truth};
@@ -103,6 +103,12 @@ pub enum PipelineError {
     /// Stage parameters do not fit the stage's parameter struct.
     #[error(transparent)]
     Params(#[from] ParamsError),
+    /// A stage's report fragment does not fit the stage's report struct.
+    #[error("report of stage `{stage}`: {source}")]
+    Report {
+        stage: &'static str,
+        source: serde_json::Error,
+    },
     /// A stage failed.
     #[error("stage `{stage}` failed: {source}")]
     Stage {
@@ -250,6 +256,55 @@ pub struct Stage {
     /// Runs the stage: reads inputs, writes artefacts under `ctx.dir()`, returns its report
     /// fragment (a JSON object).
     pub run: fn(&StageContext) -> Result<Value, StageFailure>,
+}
+
+/// A stage's report as its JSON fragment (what [`Stage::run`] returns and the cache stores).
+pub fn fragment<R: Serialize>(report: &R) -> Result<Value, StageFailure> {
+    serde_json::to_value(report).map_err(StageFailure::new)
+}
+
+/// The report of a pipeline run (`OUT/report.json`, what `mlsss process --json` prints): each
+/// stage's report under its name (only the stages that ran or came from the cache), run times
+/// per stage, and the stages reused from the cache.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct PipelineReport {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decode: Option<decode_stage::DecodeReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry: Option<geometry_stage::GeometryReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub separate: Option<separate_stage::SeparateReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normals: Option<normals_stage::NormalsReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profiles: Option<profiles_stage::ProfilesReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fit: Option<fit_stage::FitReport>,
+    /// Wall-clock seconds per stage (as recorded when it ran, also for cached stages).
+    pub timing_s: BTreeMap<String, f64>,
+    /// CPU seconds per stage (all threads), where the platform tells.
+    pub timing_cpu_s: BTreeMap<String, f64>,
+    /// Stages whose results were reused from the cache.
+    pub cached: Vec<String>,
+}
+
+impl PipelineReport {
+    /// Stores `fragment` as the typed report of `stage`.
+    fn set(&mut self, stage: &str, fragment: Value) -> Result<(), serde_json::Error> {
+        fn typed<T: serde::de::DeserializeOwned>(v: Value) -> Result<Option<T>, serde_json::Error> {
+            serde_json::from_value(v).map(Some)
+        }
+        match stage {
+            "decode" => self.decode = typed(fragment)?,
+            "geometry" => self.geometry = typed(fragment)?,
+            "separate" => self.separate = typed(fragment)?,
+            "normals" => self.normals = typed(fragment)?,
+            "profiles" => self.profiles = typed(fragment)?,
+            "fit" => self.fit = typed(fragment)?,
+            _ => {}
+        }
+        Ok(())
+    }
 }
 
 /// Names of the registered stages, in order.
@@ -436,47 +491,46 @@ impl Pipeline {
     }
 
     /// Runs `until` and every stage it needs (reusing cached results); returns the report.
-    pub fn run_until(&self, until: &str) -> Result<Value, PipelineError> {
+    pub fn run_until(&self, until: &str) -> Result<PipelineReport, PipelineError> {
         let order = needed_stages(until)?;
         create_dir(&self.out)?;
-        let mut report = Map::new();
-        let mut timing = Map::new();
-        let mut cpu = Map::new();
-        let mut cached = Vec::new();
+        let mut report = PipelineReport::default();
         let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
         let handed_over = HandedOver::default();
         for stage in order {
             let key = self.stage_key(stage, &keys);
             let dir = self.out.join(stage.name);
             let record_path = dir.join(STAGE_RECORD);
-            let record = match read_record(&record_path).filter(|r| r.key == key) {
+            // A cached record whose report no longer fits the stage's report struct is run again.
+            let cached = read_record(&record_path)
+                .filter(|r| r.key == key && report.set(stage.name, r.report.clone()).is_ok());
+            if let Some(cb) = &self.on_stage {
+                cb(stage.name, cached.is_some());
+            }
+            let record = match cached {
                 Some(r) => {
-                    if let Some(cb) = &self.on_stage {
-                        cb(stage.name, true);
-                    }
-                    cached.push(Value::from(stage.name));
+                    report.cached.push(stage.name.to_owned());
                     r
                 }
                 None => {
-                    if let Some(cb) = &self.on_stage {
-                        cb(stage.name, false);
-                    }
-                    self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?
+                    let r = self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?;
+                    report.set(stage.name, r.report.clone()).map_err(|source| {
+                        PipelineError::Report {
+                            stage: stage.name,
+                            source,
+                        }
+                    })?;
+                    r
                 }
             };
-            timing.insert(stage.name.into(), Value::from(record.seconds));
+            report.timing_s.insert(stage.name.into(), record.seconds);
             if let Some(c) = record.cpu_seconds {
-                cpu.insert(stage.name.into(), Value::from(c));
+                report.timing_cpu_s.insert(stage.name.into(), c);
             }
-            report.insert(stage.name.into(), record.report);
             keys.insert(stage.name, key);
         }
-        report.insert("timing_s".into(), Value::Object(timing));
-        report.insert("timing_cpu_s".into(), Value::Object(cpu));
-        report.insert("cached".into(), Value::Array(cached));
-        let report = Value::Object(report);
         let path = self.out.join(REPORT_FILE);
-        write_json(&path, &report)?;
+        write_json(&path, &serde_json::to_value(&report).unwrap_or(Value::Null))?;
         Ok(report)
     }
 
@@ -724,32 +778,41 @@ mod tests {
         let out = dir.path().join("out");
         let pipeline = Pipeline::new(&capture, &out, &CalibrationSource::Truth).unwrap();
         let report = pipeline.run_until("geometry").unwrap();
-        for p in report["decode"]["projectors"].as_array().unwrap() {
-            assert!(p["valid_fraction"].as_f64().unwrap() > 0.8, "{p}");
-            assert!(p["wrong_fraction"].as_f64().unwrap() < 0.002, "{p}");
-            assert!(p["mean_abs_error_px"].as_f64().unwrap() < 0.2, "{p}");
+        for p in &report.decode.as_ref().unwrap().projectors {
+            let t = p.truth.unwrap();
+            assert!(p.counts.unwrap().valid_fraction > 0.8, "{p:?}");
+            assert!(t.wrong_fraction < 0.002, "{p:?}");
+            assert!(t.mean_abs_error_px < 0.2, "{p:?}");
         }
-        let g = &report["geometry"];
+        let g = report.geometry.as_ref().unwrap();
+        let depth = g.truth.unwrap();
         // Quick booth: ~0.6 mm projector pixels seen at ~40 degrees; sub-pixel codes give
         // sub-millimetre depth.
-        assert!(g["depth_rmse_mm"].as_f64().unwrap() < 0.5, "{g}");
-        assert!(g["depth_p95_abs_mm"].as_f64().unwrap() < 1.0, "{g}");
-        assert!(g["coverage"].as_f64().unwrap() > 0.8, "{g}");
+        assert!(depth.depth_rmse_mm < 0.5, "{g:?}");
+        assert!(depth.depth_p95_abs_mm < 1.0, "{g:?}");
+        assert!(depth.coverage > 0.8, "{g:?}");
         for f in ["depth.exr", "points.exr", "mesh.ply", "shaded.png"] {
             assert!(out.join("geometry").join(f).is_file(), "{f}");
         }
         assert!(out.join("decode/proj1_codes.png").is_file());
-        assert!(report["timing_s"]["decode"].as_f64().unwrap() > 0.0);
-        assert_eq!(report["cached"], serde_json::json!([]));
+        assert!(report.timing_s["decode"] > 0.0);
+        assert!(report.cached.is_empty());
+        // What report.json holds is the typed report (serde_json's text parsing may differ from
+        // the written float in the last bit: compared loosely).
+        let written: PipelineReport =
+            serde_json::from_str(&std::fs::read_to_string(out.join(REPORT_FILE)).unwrap()).unwrap();
+        let written_depth = written.geometry.as_ref().and_then(|g| g.truth).unwrap();
+        assert!((written_depth.depth_rmse_mm - depth.depth_rmse_mm).abs() < 1e-12);
+        assert_eq!(written.decode.map(|d| d.projectors.len()), Some(2));
 
         // Same inputs: both stages come from the cache. New geometry parameters: only geometry.
         let again = pipeline.run_until("geometry").unwrap();
-        assert_eq!(again["cached"], serde_json::json!(["decode", "geometry"]));
-        assert_eq!(again["geometry"], report["geometry"]);
+        assert_eq!(again.cached, ["decode", "geometry"]);
+        assert_eq!(again.geometry, report.geometry);
         let mut pipeline = pipeline;
         pipeline.set_params("geometry", serde_json::json!({ "max_edge_mm": 2.0 }));
         let third = pipeline.run_until("geometry").unwrap();
-        assert_eq!(third["cached"], serde_json::json!(["decode"]));
+        assert_eq!(third.cached, ["decode"]);
 
         // Parameters the stage cannot take stop the run, naming the stage and the key, instead
         // of running it with defaults.
@@ -811,24 +874,17 @@ mod tests {
         let out = dir.path().join("out");
         let pipeline = Pipeline::new(&capture, &out, &CalibrationSource::None).unwrap();
         let report = pipeline.run_until("decode").unwrap();
-        let p1 = &report["decode"]["projectors"][1];
+        let decode = report.decode.as_ref().unwrap();
+        let p1 = &decode.projectors[1];
         assert!(
-            p1["skipped"]
-                .as_str()
+            p1.skipped
+                .as_deref()
                 .unwrap()
                 .contains("no camera pixel is lit"),
-            "{p1}"
+            "{p1:?}"
         );
-        assert!(
-            report["decode"]["projectors"][0]["valid_fraction"]
-                .as_f64()
-                .unwrap()
-                > 0.8
-        );
-        assert!(
-            report.get("geometry").is_none(),
-            "only what was asked for runs"
-        );
+        assert!(decode.projectors[0].counts.unwrap().valid_fraction > 0.8);
+        assert!(report.geometry.is_none(), "only what was asked for runs");
 
         let err = pipeline.run_until("geometry").unwrap_err();
         assert!(err.to_string().contains("--calib"), "{err}");

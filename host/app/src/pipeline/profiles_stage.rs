@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use super::decode_stage::{DecodeStageError, coords_path, load_coords};
 use super::line_plot::{LinePlot, LinePlotError, Mark, Series};
@@ -198,6 +198,39 @@ pub enum ProfilesStageError {
     /// The record file could not be read or written.
     #[error("{path}: {message}")]
     Record { path: PathBuf, message: String },
+}
+
+/// The profiles stage's report fragment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProfilesReport {
+    pub projectors: Vec<ProjectorProfilesReport>,
+    /// Camera row of the plotted scanline.
+    pub scanline_row: usize,
+    pub eta: f64,
+    pub view_ray: ViewRay,
+    pub direct: DirectPart,
+    /// With ground truth: relative RMS error of the extracted slit light, as configured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse: Option<f64>,
+    /// With [`ProfilesParams::compare_variants`]: the same error of each of [`VARIANTS`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_hard_mask: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_separation: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_none: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_colourless: Option<f64>,
+}
+
+/// One projector's entry of [`ProfilesReport`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProjectorProfilesReport {
+    pub projector: usize,
+    pub pixels_with_profiles: usize,
+    pub slit_frames: usize,
+    pub blur_px: f64,
+    pub black_level: f64,
 }
 
 /// What the stage stores about the profiles it built (read back by the fit stage).
@@ -680,10 +713,13 @@ fn accumulate(acc: &mut (f64, f64), a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
     let params: ProfilesParams = ctx.params()?;
-    run_profiles(ctx, &params).map_err(StageFailure::new)
+    super::fragment(&run_profiles(ctx, &params).map_err(StageFailure::new)?)
 }
 
-fn run_profiles(ctx: &StageContext, params: &ProfilesParams) -> Result<Value, ProfilesStageError> {
+fn run_profiles(
+    ctx: &StageContext,
+    params: &ProfilesParams,
+) -> Result<ProfilesReport, ProfilesStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     let all: Vec<usize> = (0..captured).collect();
     let inputs = ProfileInputs::load(ctx, params, &all)?;
@@ -693,32 +729,35 @@ fn run_profiles(ctx: &StageContext, params: &ProfilesParams) -> Result<Value, Pr
     let mut per_projector = Vec::new();
     for p in &inputs.projectors {
         p.sweep()?; // checks the frames: slits only, camera-sized
-        per_projector.push(json!({
-            "projector": p.k,
-            "pixels_with_profiles": p.geometry.iter().filter(|g| g.is_some()).count(),
-            "slit_frames": p.slits.len(),
-            "blur_px": p.blur_px,
-            "black_level": p.black_level,
-        }));
+        per_projector.push(ProjectorProfilesReport {
+            projector: p.k,
+            pixels_with_profiles: p.geometry.iter().filter(|g| g.is_some()).count(),
+            slit_frames: p.slits.len(),
+            blur_px: f64::from(p.blur_px),
+            black_level: f64::from(p.black_level),
+        });
     }
-    let mut report = json!({
-        "projectors": per_projector,
-        "scanline_row": row,
-        "eta": params.eta,
-        "view_ray": params.view_ray,
-        "direct": params.direct,
-    });
+    let mut report = ProfilesReport {
+        projectors: per_projector,
+        scanline_row: row,
+        eta: params.eta,
+        view_ray: params.view_ray,
+        direct: params.direct,
+        slit_global_rel_rmse: None,
+        slit_global_rel_rmse_hard_mask: None,
+        slit_global_rel_rmse_direct_separation: None,
+        slit_global_rel_rmse_direct_none: None,
+        slit_global_rel_rmse_direct_colourless: None,
+    };
     let truth_dir = ctx.truth_dir();
     if let Some(t) = &truth_dir {
         let errors = truth_check(ctx, &inputs, t, size, params.compare_variants)?;
-        if let Some(v) = errors[0] {
-            report["slit_global_rel_rmse"] = v.into();
-        }
-        for ((suffix, _), value) in VARIANTS.iter().zip(&errors[1..]) {
-            if let Some(v) = value {
-                report[format!("slit_global_rel_rmse_{suffix}")] = (*v).into();
-            }
-        }
+        let variant = |n: usize| errors.get(n + 1).copied().flatten();
+        report.slit_global_rel_rmse = errors[0];
+        report.slit_global_rel_rmse_hard_mask = variant(0);
+        report.slit_global_rel_rmse_direct_separation = variant(1);
+        report.slit_global_rel_rmse_direct_none = variant(2);
+        report.slit_global_rel_rmse_direct_colourless = variant(3);
     }
     let record = ProfilesRecord {
         params: params.clone(),
@@ -743,7 +782,8 @@ fn run_profiles(ctx: &StageContext, params: &ProfilesParams) -> Result<Value, Pr
 }
 
 /// The truth check's variants besides the configured one: hard slit edges, and each rule for
-/// the direct part (report key suffixes).
+/// the direct part (report key suffixes: the fields `slit_global_rel_rmse_<suffix>` of
+/// [`ProfilesReport`], in this order).
 const VARIANTS: [(&str, Option<DirectPart>); 4] = [
     ("hard_mask", None),
     ("direct_separation", Some(DirectPart::Separation)),
