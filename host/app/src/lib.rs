@@ -18,5 +18,6 @@ pub use mlsss_vision::{chessboard_calibration, geometry, photometry};
 pub mod demo;
 pub mod evaluate;
 pub mod pipeline;
+pub mod pose_calibration;
 pub mod quality_sweep;
 pub mod report;

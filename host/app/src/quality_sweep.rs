@@ -272,8 +272,10 @@ pub fn run_sweep(
             })?;
         // The stage's own time when it ran; the wall time when it came from the cache of an
         // identical configuration would be 0, so take the recorded stage time.
-        let fit_s = report["timing_s"]["fit"]
-            .as_f64()
+        let fit_s = report
+            .timing_s
+            .get("fit")
+            .copied()
             .unwrap_or_else(|| start.elapsed().as_secs_f64());
         let model =
             SubsurfaceModel::load(&model_path(out)).map_err(|source| SweepError::Model {
@@ -303,9 +305,15 @@ pub fn run_sweep(
             fit_s,
             render_s: eval.render_seconds,
             seconds: fit_s + eval.render_seconds,
-            psnr_db: r["psnr_db"]["mlsss"].as_f64().unwrap_or(f64::NAN),
-            rmse: r["rmse"]["mlsss"].as_f64().unwrap_or(f64::NAN),
-            global_rel_rmse: r["global_rel_rmse"]["mlsss"].as_f64(),
+            psnr_db: r
+                .psnr("mlsss")
+                .filter(|v| v.is_finite())
+                .unwrap_or(f64::NAN),
+            rmse: r
+                .rmse_of("mlsss")
+                .filter(|v| v.is_finite())
+                .unwrap_or(f64::NAN),
+            global_rel_rmse: r.global_rel_rmse_of("mlsss").filter(|v| v.is_finite()),
             pareto: false,
         });
     }

@@ -7,13 +7,12 @@ use super::size_arg::parse_size;
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::capture::Capture;
-use mlsss::chessboard_calibration::local_homography::LocalHomographyOptions;
 use mlsss::chessboard_calibration::opencv_storage::{read_opencv, write_opencv};
-use mlsss::chessboard_calibration::pose_measurement::{BoardCorners, PoseLayout, measure_pose};
+use mlsss::chessboard_calibration::pose_measurement::PoseLayout;
 use mlsss::chessboard_calibration::procam::{
-    BoardSpec, ProcamOptions, ProcamResult, calibrate_procam, distortion_term_names,
+    BoardSpec, ProcamOptions, ProcamResult, distortion_term_names,
 };
-use rayon::prelude::*;
+use mlsss::pose_calibration::calibrate_poses;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum Layout {
@@ -102,60 +101,30 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .context("--layout opencv needs --projector WxH (e.g. --projector 1024x768)")?,
         },
     };
-    let board = BoardCorners {
-        cols: cols as usize,
-        rows: rows as usize,
-    };
     let progress = ProgressBar::new(args.captures.len() as u64).with_style(
         ProgressStyle::with_template("{msg} {bar:30} {pos}/{len} poses")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     progress.set_message("measuring");
-    let measured = args
-        .captures
-        .par_iter()
-        .map(|dir| {
-            let pose = measure_pose(dir, layout, board, &LocalHomographyOptions::default());
-            progress.inc(1);
-            pose
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    progress.finish_and_clear();
-    let first = &measured[0];
-    for pose in &measured[1..] {
-        if pose.camera_size != first.camera_size || pose.projector_sizes != first.projector_sizes {
-            bail!(
-                "pose {} has a different camera or projector size than {}",
-                pose.corners.name,
-                first.corners.name
-            );
-        }
-    }
-    for pose in &measured {
-        if let Err(reason) = &pose.corners.camera {
-            eprintln!(
-                "skipping pose {}: chessboard not found: {reason}",
-                pose.corners.name
-            );
-        }
-    }
     let mut options = ProcamOptions::default();
     if args.fix_k3 {
         options.distortion[4] = false;
     }
     options.select_distortion = !args.all_distortion_terms;
-    let poses: Vec<_> = measured.iter().map(|m| m.corners.clone()).collect();
-    let result = calibrate_procam(
-        &poses,
-        &BoardSpec {
-            cols: board.cols,
-            rows: board.rows,
-            square_mm: square,
-        },
-        first.camera_size,
-        &first.projector_sizes,
-        &options,
-    )?;
+    let board = BoardSpec {
+        cols: cols as usize,
+        rows: rows as usize,
+        square_mm: square,
+    };
+    let calibrated = calibrate_poses(&args.captures, layout, &board, &options, &|| {
+        progress.inc(1)
+    });
+    progress.finish_and_clear();
+    let calibrated = calibrated?;
+    for (name, reason) in &calibrated.board_not_found {
+        eprintln!("skipping pose {name}: chessboard not found: {reason}");
+    }
+    let result = calibrated.result;
     for pose in result.poses.iter().filter(|p| p.used) {
         for reason in &pose.projector_reasons {
             eprintln!("pose {}: {reason}", pose.name);

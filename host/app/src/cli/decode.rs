@@ -87,8 +87,8 @@ fn decode_capture(args: &Args) -> anyhow::Result<serde_json::Value> {
         eprintln!("{name}{}", if cached { " (cached)" } else { " ..." });
     }));
     let report = pipeline.run_until(pipeline::decode_stage::STAGE.name)?;
-    let mut out = report["decode"].clone();
-    out["timing_s"] = report["timing_s"].clone();
+    let mut out = serde_json::to_value(&report.decode)?;
+    out["timing_s"] = serde_json::to_value(&report.timing_s)?;
     Ok(out)
 }
 

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use mlsss::capture::Capture;
+use mlsss::demo::DemoReport;
 use mlsss::demo::html_report::{RelightFigures, write_report};
 use mlsss::evaluate::backscatter::evaluate_backscatter;
 use mlsss::evaluate::holdout::evaluate_holdout;
@@ -64,13 +65,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     eprintln!("rendering projector {k} under its evaluation patterns ...");
     let result = evaluate_holdout(&capture, &model, k, &renderers, &opts)?;
-    let mut report = serde_json::json!({ "relight": result.report });
+    let mut relight = result.report.clone();
     // A simulated capture has the true slit light: report the back-scatter split as the demo does.
     if capture.truth_dir().is_some()
         && let Some(b) = evaluate_backscatter(&model, k, &result.slits)?
     {
-        report["relight"]["backscatter"] = b.report;
+        relight.backscatter = Some(b.report);
     }
+    let report = DemoReport {
+        relight: Some(relight),
+        ..DemoReport::default()
+    };
     if let Some(path) = &args.report {
         let processed = args
             .model

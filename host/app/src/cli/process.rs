@@ -173,7 +173,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }));
     let report = pipeline.run_until(&args.until)?;
     if args.json {
-        println!("{report}");
+        println!("{}", serde_json::to_string(&report)?);
     } else {
         eprintln!(
             "report in {}",

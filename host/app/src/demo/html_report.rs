@@ -3,8 +3,9 @@
 
 use std::path::Path;
 
-use serde_json::Value;
-
+use super::DemoReport;
+use crate::evaluate::backscatter::SideErrors;
+use crate::evaluate::holdout::BASELINES;
 use crate::report::figures::{RelitImages, comparison_panels, scanline_plot};
 use crate::report::html::{HtmlReport, HtmlReportError, Panel, png_bytes};
 use crate::report::plot::PlotError;
@@ -31,30 +32,30 @@ pub struct RelightFigures {
 }
 
 /// The back-scatter figure and its numbers (simulated captures only).
-fn backscatter_section(html: &mut HtmlReport, report: &Value, processed: &Path) {
-    let b = &report["relight"]["backscatter"];
-    if !b.is_object() {
+fn backscatter_section(html: &mut HtmlReport, report: &DemoReport, processed: &Path) {
+    let Some(b) = report.relight.as_ref().and_then(|r| r.backscatter.as_ref()) else {
         return;
-    }
+    };
     html.heading("Back-scatter: light emerging on the side the light came from");
-    let ratio = |name: &str| fmt(&b["asymmetry_toward_over_away"][name], 3);
-    let side = |side: &str, name: &str| fmt(&b[side]["rel_rmse"][name], 3);
+    let ratio = |name: &str| fmt(b.asymmetry_toward_over_away.get(name).copied(), 3);
+    let side = |side: &SideErrors, name: &str| fmt(side.rel_rmse.get(name).copied().flatten(), 3);
+    let (toward, away) = (&b.toward_light, &b.away_from_light);
     html.paragraph(&format!(
         "Held-out slits (both axes, {} pixels): light emerging toward the light per unit \
          emerging away from it: truth {}, MLSSS {}, homogeneous {}, dipole {}. Relative error \
          of the subsurface light on the side toward the light: MLSSS {}, homogeneous {}, dipole \
          {}; on the side away from it: {}, {}, {}.",
-        fmt(&b["pixels"], 0),
+        fmt(Some(b.pixels as f64), 0),
         ratio("truth"),
         ratio("mlsss"),
         ratio("homogeneous"),
         ratio("dipole"),
-        side("toward_light", "mlsss"),
-        side("toward_light", "homogeneous"),
-        side("toward_light", "dipole"),
-        side("away_from_light", "mlsss"),
-        side("away_from_light", "homogeneous"),
-        side("away_from_light", "dipole"),
+        side(toward, "mlsss"),
+        side(toward, "homogeneous"),
+        side(toward, "dipole"),
+        side(away, "mlsss"),
+        side(away, "homogeneous"),
+        side(away, "dipole"),
     ));
     let panels: Vec<Panel> = Panel::from_file(
         "mean profile across the held-out projector's slits",
@@ -68,101 +69,118 @@ fn backscatter_section(html: &mut HtmlReport, report: &Value, processed: &Path) 
     );
 }
 
-fn fmt(v: &Value, decimals: usize) -> String {
-    match v.as_f64() {
+/// `v` with `decimals` decimals, `-` when absent or not finite.
+fn fmt(v: Option<f64>, decimals: usize) -> String {
+    match v {
         Some(x) if x.is_finite() => format!("{x:.decimals$}"),
         _ => "-".into(),
     }
 }
 
-fn lookup<'a>(report: &'a Value, path: &str) -> &'a Value {
-    path.split('.').fold(report, |v, k| &v[k])
-}
-
-fn metric_rows(report: &Value) -> Vec<Vec<String>> {
-    let renderers = ["mlsss", "homogeneous", "dipole", "direct_only"];
-    renderers
+fn metric_rows(report: &DemoReport) -> Vec<Vec<String>> {
+    let relight = report.relight.as_ref();
+    BASELINES
         .iter()
-        .map(|r| {
+        .map(|(_, r)| {
             vec![
                 (*r).to_owned(),
-                fmt(lookup(report, &format!("relight.psnr_db.{r}")), 2),
-                fmt(lookup(report, &format!("relight.rmse.{r}")), 5),
-                fmt(lookup(report, &format!("relight.global_rel_rmse.{r}")), 4),
+                fmt(relight.and_then(|x| x.psnr(r)), 2),
+                fmt(relight.and_then(|x| x.rmse_of(r)), 5),
+                fmt(relight.and_then(|x| x.global_rel_rmse_of(r)), 4),
             ]
         })
         .collect()
 }
 
-fn pipeline_rows(report: &Value) -> Vec<Vec<String>> {
+fn pipeline_rows(report: &DemoReport) -> Vec<Vec<String>> {
+    let errors = report.calibration.as_ref().and_then(|c| c.errors.as_ref());
+    let estimate = report
+        .calibration
+        .as_ref()
+        .and_then(|c| c.estimate.as_ref());
     [
-        ("decode exact fraction", "decode.exact_fraction", 4),
-        ("depth RMSE (mm)", "depth_rmse_mm", 3),
+        (
+            "decode exact fraction",
+            report.decode.as_ref().and_then(|d| d.exact_fraction),
+            4,
+        ),
+        ("depth RMSE (mm)", report.depth_rmse_mm, 3),
         (
             "normals mean angular error (deg)",
-            "normals.mean_angular_error_deg",
+            report
+                .normals
+                .as_ref()
+                .and_then(|n| n.truth.map(|t| t.mean_angular_error_deg)),
             2,
         ),
         (
             "separation global relative RMSE",
-            "separation.global_rel_rmse",
+            report.separation.and_then(|s| s.global_rel_rmse),
             3,
         ),
         (
             "calibration: max focal error (%)",
-            "calibration.errors.max_focal_rel_pct",
+            errors.map(|e| e.max_focal_rel_pct),
             3,
         ),
         (
             "calibration: max principal point error (px)",
-            "calibration.errors.max_principal_point_px",
+            errors.map(|e| e.max_principal_point_px),
             2,
         ),
         (
             "calibration: max projector centre error (mm)",
-            "calibration.errors.max_projector_centre_mm",
+            errors.map(|e| e.max_projector_centre_mm),
             2,
         ),
         (
             "calibration: stereo RMS (px)",
-            "calibration.stereo_rms_px",
+            estimate.map(|e| e.stereo_rms_px),
             3,
         ),
-        ("peak memory (MB)", "peak_memory_mb", 0),
+        ("peak memory (MB)", report.peak_memory_mb, 0),
     ]
     .iter()
-    .map(|(name, path, d)| vec![(*name).to_owned(), fmt(lookup(report, path), *d)])
+    .map(|(name, value, d)| vec![(*name).to_owned(), fmt(*value, *d)])
     .collect()
 }
 
-fn timing_rows(report: &Value) -> Vec<Vec<String>> {
-    report["timing_s"]
-        .as_object()
-        .map(|m| m.iter().map(|(k, v)| vec![k.clone(), fmt(v, 2)]).collect())
-        .unwrap_or_default()
+fn timing_rows(report: &DemoReport) -> Vec<Vec<String>> {
+    report
+        .timing_s
+        .iter()
+        .map(|(k, v)| vec![k.clone(), fmt(Some(*v), 2)])
+        .collect()
 }
 
 /// Writes the report to `path`. `processed` is the pipeline's output folder (stage previews are
 /// embedded when present).
 pub fn write_report(
     path: &Path,
-    report: &Value,
+    report: &DemoReport,
     relight: Option<&RelightFigures>,
     processed: &Path,
 ) -> Result<(), DemoReportError> {
     let mut html = HtmlReport::new("MLSSS demo: held-out relighting of a simulated capture");
-    let d = &report["demo"];
-    html.paragraph(&format!(
-        "Booth {}, camera {}, subject {}, skin {}, seed {}; projector {} held out of the fit and \
-         relit from the model fitted on the other projectors; calibration: {}.",
-        d["booth"].as_str().unwrap_or("?"),
-        d["camera"],
-        d["subject"].as_str().unwrap_or("?"),
-        d["skin"].as_str().unwrap_or("?"),
-        d["seed"],
-        d["holdout_projector"],
-        report["calibration"]["source"].as_str().unwrap_or("?"),
-    ));
+    let source = report
+        .calibration
+        .as_ref()
+        .map_or("?", |c| c.source.as_str());
+    let intro = match &report.demo {
+        Some(d) => format!(
+            "Booth {}, camera [{},{}], subject {}, skin {}, seed {}; projector {} held out of the \
+             fit and relit from the model fitted on the other projectors; calibration: {source}.",
+            d.booth, d.camera[0], d.camera[1], d.subject, d.skin, d.seed, d.holdout_projector,
+        ),
+        None => format!(
+            "Held-out relighting of projector {}; calibration: {source}.",
+            report
+                .relight
+                .as_ref()
+                .map_or_else(|| "?".to_owned(), |r| r.holdout_projector.to_string()),
+        ),
+    };
+    html.paragraph(&intro);
     html.heading("Held-out relighting");
     html.paragraph(
         "PSNR and RMSE: total render (direct + subsurface) against the recorded frames of the \
@@ -174,15 +192,15 @@ pub fn write_report(
         &["renderer", "PSNR (dB)", "RMSE", "global relative RMSE"],
         metric_rows(report),
     );
-    let margins = &report["relight"]["margins"];
-    if margins.is_object() {
+    if let Some(relight) = &report.relight {
+        let margins = &relight.margins;
         html.paragraph(&format!(
             "Margins: MLSSS minus the best baseline {} dB; MLSSS minus homogeneous {} dB; global \
              error ratio homogeneous / MLSSS {}, dipole / MLSSS {}.",
-            fmt(&margins["psnr_db_mlsss_minus_best_baseline"], 2),
-            fmt(&margins["psnr_db_mlsss_minus_homogeneous"], 2),
-            fmt(&margins["global_rel_rmse_homogeneous_over_mlsss"], 3),
-            fmt(&margins["global_rel_rmse_dipole_over_mlsss"], 3),
+            fmt(Some(margins.psnr_db_mlsss_minus_best_baseline), 2),
+            fmt(Some(margins.psnr_db_mlsss_minus_homogeneous), 2),
+            fmt(margins.global_rel_rmse_homogeneous_over_mlsss, 3),
+            fmt(margins.global_rel_rmse_dipole_over_mlsss, 3),
         ));
     }
     if let Some(fig) = relight {
@@ -260,7 +278,7 @@ pub fn write_report(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use serde_json::json;
+    use crate::evaluate::holdout::{Margins, RelightReport};
 
     #[test]
     fn the_report_holds_metrics_figures_and_previews() {
@@ -270,16 +288,34 @@ mod tests {
         image::RgbImage::new(4, 4)
             .save(processed.join("normals/normals.png"))
             .unwrap();
-        let report = json!({
-            "demo": { "booth": "quick", "camera": [4, 4], "subject": "head", "skin": "light",
-                      "seed": 1, "holdout_projector": 3 },
-            "calibration": { "source": "truth" },
-            "relight": { "psnr_db": { "mlsss": 31.25, "homogeneous": 29.5 },
-                         "rmse": { "mlsss": 0.0274 },
-                         "margins": { "psnr_db_mlsss_minus_best_baseline": 1.75 } },
-            "depth_rmse_mm": 0.25,
-            "timing_s": { "simulate": 3.5, "total": 9.0 },
-        });
+        let report = DemoReport {
+            demo: Some(crate::demo::DemoInfo {
+                booth: "quick".into(),
+                camera: [4, 4],
+                subject: "head".into(),
+                skin: "light".into(),
+                seed: 1,
+                holdout_projector: 3,
+                calibration: crate::demo::CalibrationMode::Truth,
+                monte_carlo: crate::demo::MonteCarloCounts {
+                    cached: 0,
+                    computed: 0,
+                },
+                out: dir.path().to_owned(),
+            }),
+            relight: Some(RelightReport {
+                psnr_db: [("mlsss".into(), 31.25), ("homogeneous".into(), 29.5)].into(),
+                rmse: [("mlsss".into(), 0.0274)].into(),
+                margins: Margins {
+                    psnr_db_mlsss_minus_best_baseline: 1.75,
+                    ..Margins::default()
+                },
+                ..RelightReport::default()
+            }),
+            depth_rmse_mm: Some(0.25),
+            timing_s: [("simulate".into(), 3.5), ("total".into(), 9.0)].into(),
+            ..DemoReport::default()
+        };
         let mask = vec![true; 16];
         let img = |v: f32| vec![[v, v * 0.5, v * 0.25]; 16];
         let images = |pattern: &str| RelitImages {

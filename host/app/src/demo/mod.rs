@@ -28,20 +28,26 @@
 
 pub mod html_report;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use rayon::prelude::*;
-use serde::Serialize;
-use serde_json::{Map, Value, json};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
 
 use crate::evaluate::backscatter::{BackscatterError, evaluate_backscatter};
 use crate::evaluate::calibration_error::{
-    CalibrationErrorError, align_world_frame, calibration_errors,
+    CalibrationErrorError, CalibrationErrors, align_world_frame, calibration_errors,
 };
-use crate::evaluate::holdout::{HoldoutError, evaluate_holdout};
-use crate::pipeline::fit_stage::{FitParams, model_path};
-use crate::pipeline::{CalibrationSource, Pipeline, PipelineError};
+use crate::evaluate::holdout::{HoldoutError, RelightReport, evaluate_holdout};
+use crate::pipeline::decode_stage::ProjectorDecodeReport;
+use crate::pipeline::fit_stage::{FitParams, FitReport, model_path};
+use crate::pipeline::geometry_stage::GeometryReport;
+use crate::pipeline::normals_stage::NormalsReport;
+use crate::pipeline::profiles_stage::ProfilesReport;
+use crate::pipeline::{CalibrationSource, Pipeline, PipelineError, PipelineReport};
+use crate::pose_calibration::{PoseCalibrationError, calibrate_poses};
 use mlsss_core::booth::Booth;
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, Pattern, truth};
@@ -52,12 +58,9 @@ use mlsss_virtual_booth::{
     NoProgress, Progress, ResponseCache, SimulationOptions, SkinPreset, SubjectKind,
     VirtualBoothError, scaled_booth, simulate_calibration, simulate_scan,
 };
-use mlsss_vision::chessboard_calibration::local_homography::LocalHomographyOptions;
-use mlsss_vision::chessboard_calibration::pose_measurement::{
-    BoardCorners, PoseLayout, PoseMeasurementError, measure_pose,
-};
+use mlsss_vision::chessboard_calibration::pose_measurement::{PoseLayout, PoseMeasurementError};
 use mlsss_vision::chessboard_calibration::procam::{
-    BoardSpec, ProcamError, ProcamOptions, calibrate_procam, distortion_term_names,
+    BoardSpec, ProcamError, ProcamOptions, distortion_term_names,
 };
 use mlsss_vision::photometry::response::{LevelFrames, ResponseError, estimate_responses};
 
@@ -132,8 +135,21 @@ pub enum DemoError {
     },
 }
 
+impl From<PoseCalibrationError> for DemoError {
+    fn from(e: PoseCalibrationError) -> Self {
+        match e {
+            PoseCalibrationError::Measurement(e) => DemoError::PoseMeasurement(e),
+            PoseCalibrationError::Procam(e) => DemoError::Procam(e),
+            other => DemoError::InvalidOption {
+                option: "--poses",
+                reason: other.to_string(),
+            },
+        }
+    }
+}
+
 /// Where the demonstration's calibration comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CalibrationMode {
     /// Simulated chessboard poses, calibrated like real ones (the honest path).
@@ -205,14 +221,126 @@ pub fn quick_fit_params() -> FitParams {
 #[derive(Debug, Clone)]
 pub struct DemoOutcome {
     /// The report (also in `OUT/demo.json`).
-    pub report: Value,
+    pub report: DemoReport,
     pub capture: PathBuf,
     pub processed: PathBuf,
 }
 
-/// Wall-clock seconds per step, in the order they ran.
+/// The demonstration's report (`OUT/demo.json`, what `mlsss demo --json` prints; its keys are
+/// documented in the README). Every section is optional so that `mlsss eval --report` can draw
+/// the HTML report of a relighting alone; the demo fills them all.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DemoReport {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub demo: Option<DemoInfo>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CalibrationReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decode: Option<DecodeSummary>,
+    /// The geometry's depth error against the truth (also in `geometry`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_rmse_mm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry: Option<GeometryReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub separation: Option<SeparationSummary>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normals: Option<NormalsReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub relight: Option<RelightReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fit: Option<FitReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profiles: Option<ProfilesReport>,
+    /// Wall-clock seconds per step (see the module documentation).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub timing_s: BTreeMap<String, f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub peak_memory_mb: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report_json: Option<PathBuf>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report_html: Option<PathBuf>,
+}
+
+/// What the demonstration ran.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DemoInfo {
+    pub booth: String,
+    /// Camera width and height, px.
+    pub camera: [u32; 2],
+    pub subject: String,
+    pub skin: String,
+    pub seed: u64,
+    pub holdout_projector: usize,
+    pub calibration: CalibrationMode,
+    pub monte_carlo: MonteCarloCounts,
+    pub out: PathBuf,
+}
+
+/// Monte Carlo responses reused from the cache and computed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MonteCarloCounts {
+    pub cached: usize,
+    pub computed: usize,
+}
+
+/// The calibration used: `source` is `truth` or `estimated`; an estimate has its report, file
+/// and errors against the truth.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationReport {
+    pub source: String,
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub estimate: Option<PoseCalibrationReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<PathBuf>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub errors: Option<CalibrationErrors>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub response_errors: Option<Vec<ResponseErrors>>,
+}
+
+/// A calibration from chessboard poses.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PoseCalibrationReport {
+    pub poses_used: usize,
+    pub poses_total: usize,
+    pub camera_rms_px: f64,
+    pub projector_rms_px: Vec<f64>,
+    pub stereo_rms_px: f64,
+    /// Per device (camera first), the distortion terms estimated.
+    pub distortion_terms: Vec<Vec<String>>,
+    /// The projector responses (`photometry::response::ResponseFit` per projector).
+    pub responses: Value,
+}
+
+/// Estimated projector response against the truth, percent.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ResponseErrors {
+    pub gamma_rel_pct: f64,
+    pub black_level_rel_pct: f64,
+}
+
+/// The decode stage's results, with means over the projectors.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecodeSummary {
+    pub exact_fraction: Option<f64>,
+    pub valid_fraction: Option<f64>,
+    pub wrong_fraction: Option<f64>,
+    pub projectors: Vec<ProjectorDecodeReport>,
+}
+
+/// The separation's errors against the truth.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SeparationSummary {
+    pub global_rel_rmse: Option<f64>,
+    pub direct_rel_rmse: Option<f64>,
+    pub total_rel_rmse: Option<f64>,
+}
+
+/// Wall-clock seconds per step.
 #[derive(Debug, Default)]
-struct Timings(Map<String, Value>);
+struct Timings(BTreeMap<String, f64>);
 
 impl Timings {
     fn time<T>(&mut self, key: &str, f: impl FnOnce() -> T) -> T {
@@ -223,8 +351,8 @@ impl Timings {
     }
 
     fn add(&mut self, key: &str, seconds: f64) {
-        let prev = self.0.get(key).and_then(Value::as_f64).unwrap_or(0.0);
-        self.0.insert(key.to_owned(), json!(prev + seconds));
+        let prev = self.0.get(key).copied().unwrap_or(0.0);
+        self.0.insert(key.to_owned(), prev + seconds);
     }
 }
 
@@ -336,34 +464,21 @@ fn level_frames(pose: &Path) -> Result<Vec<LevelFrames>, DemoError> {
         .collect()
 }
 
-/// Calibrates the booth from the pose folders: geometry (`calibrate_procam`) and projector
+/// Calibrates the booth from the pose folders: geometry ([`calibrate_poses`]) and projector
 /// responses; returns the calibration (camera frame) and its report.
-fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoError> {
-    let board = board_of(&poses[0])?;
-    let corners = BoardCorners {
-        cols: board.cols,
-        rows: board.rows,
-    };
-    let measured = poses
-        .par_iter()
-        .map(|dir| {
-            measure_pose(
-                dir,
-                PoseLayout::Capture,
-                corners,
-                &LocalHomographyOptions::default(),
-            )
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let first = &measured[0];
-    let corner_sets: Vec<_> = measured.iter().map(|m| m.corners.clone()).collect();
-    let result = calibrate_procam(
-        &corner_sets,
+fn calibrate_from_poses(
+    poses: &[PathBuf],
+) -> Result<(Calibration, PoseCalibrationReport), DemoError> {
+    let first = poses.first().ok_or(PoseCalibrationError::NoPoses)?;
+    let board = board_of(first)?;
+    let result = calibrate_poses(
+        poses,
+        PoseLayout::Capture,
         &board,
-        first.camera_size,
-        &first.projector_sizes,
         &ProcamOptions::default(),
-    )?;
+        &|| {},
+    )?
+    .result;
     // Reading the grey-level frames (PNG decoding) is most of this step: one pose per task.
     let levels = poses
         .par_iter()
@@ -374,19 +489,24 @@ fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoE
     for (p, fit) in calibration.projectors.iter_mut().zip(&responses) {
         p.response = Some(fit.response());
     }
-    let report = json!({
-        "poses_used": result.poses.iter().filter(|p| p.used).count(),
-        "poses_total": result.poses.len(),
-        "camera_rms_px": result.camera_rms_px,
-        "projector_rms_px": result.projector_rms_px,
-        "stereo_rms_px": result.stereo_rms_px,
-        "distortion_terms": result
+    let report = PoseCalibrationReport {
+        poses_used: result.poses.iter().filter(|p| p.used).count(),
+        poses_total: result.poses.len(),
+        camera_rms_px: result.camera_rms_px,
+        projector_rms_px: result.projector_rms_px.clone(),
+        stereo_rms_px: result.stereo_rms_px,
+        distortion_terms: result
             .distortion_terms
             .iter()
-            .map(distortion_term_names)
-            .collect::<Vec<_>>(),
-        "responses": responses,
-    });
+            .map(|t| {
+                distortion_term_names(t)
+                    .into_iter()
+                    .map(String::from)
+                    .collect()
+            })
+            .collect(),
+        responses: serde_json::to_value(&responses).unwrap_or(Value::Null),
+    };
     Ok((calibration, report))
 }
 
@@ -394,7 +514,7 @@ fn calibrate_from_poses(poses: &[PathBuf]) -> Result<(Calibration, Value), DemoE
 /// the wall-clock seconds of its two steps.
 struct PoseCalibration {
     calibration: Calibration,
-    report: Value,
+    report: PoseCalibrationReport,
     simulate_seconds: f64,
     calibrate_seconds: f64,
 }
@@ -421,29 +541,30 @@ fn calibrate_from_simulated_poses(
 }
 
 /// Errors of the estimated responses against the truth, percent.
-fn response_errors(estimate: &Calibration, truth: &Calibration) -> Value {
+fn response_errors(estimate: &Calibration, truth: &Calibration) -> Vec<ResponseErrors> {
     let rel = |a: f64, b: f64| 100.0 * (a - b) / b;
-    let per: Vec<Value> = estimate
+    estimate
         .projectors
         .iter()
         .zip(&truth.projectors)
         .filter_map(|(e, t)| {
             let (e, t) = (e.response?, t.response?);
-            Some(json!({
-                "gamma_rel_pct": rel(e.gamma, t.gamma),
-                "black_level_rel_pct": rel(e.black_level, t.black_level),
-            }))
+            Some(ResponseErrors {
+                gamma_rel_pct: rel(e.gamma, t.gamma),
+                black_level_rel_pct: rel(e.black_level, t.black_level),
+            })
         })
-        .collect();
-    Value::Array(per)
+        .collect()
 }
 
-/// Mean of a numeric field over the entries of `report[section].projectors`.
-fn mean_over_projectors(report: &Value, section: &str, field: &str) -> Option<f64> {
-    let values: Vec<f64> = report[section]["projectors"]
-        .as_array()?
+/// Mean of a field of the decoded projectors' truth comparisons.
+fn mean_over_projectors(
+    projectors: &[ProjectorDecodeReport],
+    field: impl Fn(&mlsss_vision::geometry::gray_code::TruthComparison) -> f64,
+) -> Option<f64> {
+    let values: Vec<f64> = projectors
         .iter()
-        .filter_map(|p| p[field].as_f64())
+        .filter_map(|p| p.truth.as_ref().map(&field))
         .collect();
     (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
 }
@@ -460,15 +581,83 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
     prepare_output(opts)?;
     let out = &opts.out;
     let mut timing = Timings::default();
-
     let capture = out.join("capture");
+    let simulate_start = Instant::now();
+    let (sim, calibrated) = simulate(opts, &capture, progress, &mut timing)?;
+    let (calib_source, calibration_report) =
+        calibration_to_use(opts, &capture, calibrated, &mut timing)?;
+    timing.add("simulate", simulate_start.elapsed().as_secs_f64());
+
+    progress.step("processing (decode .. fit)");
+    let processed = out.join("processed");
+    let report = process(opts, &capture, &processed, &calib_source)?;
+    for (stage, seconds) in &report.timing_s {
+        timing.add(stage, *seconds);
+    }
+
+    progress.step("relighting the held-out projector");
+    let (relight, figures) = relight_held_out(opts, &capture, &processed, &mut timing)?;
+    timing.add("total", total.elapsed().as_secs_f64());
+
+    let html = out.join(HTML_FILE);
+    let info = DemoInfo {
+        booth: opts.booth.name.clone(),
+        camera: [opts.booth.camera.width, opts.booth.camera.height],
+        subject: label(&opts.subject),
+        skin: label(&opts.skin),
+        seed: opts.seed,
+        holdout_projector: opts.holdout,
+        calibration: opts.calibration,
+        monte_carlo: MonteCarloCounts {
+            cached: sim.cache.hits,
+            computed: sim.cache.misses,
+        },
+        out: out.clone(),
+    };
+    let demo = DemoReport {
+        report_json: Some(out.join(REPORT_FILE)),
+        report_html: Some(html.clone()),
+        ..demo_report(info, calibration_report, report, relight, timing)
+    };
+    html_report::write_report(&html, &demo, Some(&figures), &processed)?;
+    let path = out.join(REPORT_FILE);
+    let text = serde_json::to_string_pretty(&demo).unwrap_or_default();
+    std::fs::write(&path, text).map_err(|source| DemoError::Io { path, source })?;
+    Ok(DemoOutcome {
+        report: demo,
+        capture,
+        processed,
+    })
+}
+
+/// A value's JSON string (the snake-case name of a unit enum variant), empty otherwise.
+fn label<T: Serialize>(value: &T) -> String {
+    match serde_json::to_value(value) {
+        Ok(Value::String(s)) => s,
+        _ => String::new(),
+    }
+}
+
+/// Simulates the scan into `capture` and, for an estimated calibration, the chessboard poses
+/// and their calibration beside it.
+fn simulate(
+    opts: &DemoOptions,
+    capture: &Path,
+    progress: &dyn DemoProgress,
+    timing: &mut Timings,
+) -> Result<
+    (
+        mlsss_virtual_booth::SimulationReport,
+        Option<PoseCalibration>,
+    ),
+    DemoError,
+> {
     let scan_opts = simulation_options(opts, opts.subject);
     let scan = |progress: &dyn Progress| -> Result<_, DemoError> {
         let start = Instant::now();
-        let sim = simulate_scan(&opts.booth, &scan_opts, &capture, progress)?;
+        let sim = simulate_scan(&opts.booth, &scan_opts, capture, progress)?;
         Ok((sim, start.elapsed().as_secs_f64()))
     };
-    let simulate_start = Instant::now();
     let (sim, calibrated) = match opts.calibration {
         CalibrationMode::Truth => {
             progress.step("simulating the scan");
@@ -488,32 +677,55 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
     };
     let (sim, scan_seconds) = sim;
     timing.add("simulate_scan", scan_seconds);
+    Ok((sim, calibrated))
+}
+
+/// The calibration the pipeline uses: the truth, or the estimate re-expressed in the truth's
+/// world frame and saved as `OUT/calibration.json`, with its errors against the truth.
+fn calibration_to_use(
+    opts: &DemoOptions,
+    capture: &Path,
+    calibrated: Option<PoseCalibration>,
+    timing: &mut Timings,
+) -> Result<(CalibrationSource, CalibrationReport), DemoError> {
+    let Some(calibrated) = calibrated else {
+        let report = CalibrationReport {
+            source: "truth".into(),
+            estimate: None,
+            file: None,
+            errors: None,
+            response_errors: None,
+        };
+        return Ok((CalibrationSource::Truth, report));
+    };
     let truth_dir = capture.join("truth");
     let truth_calibration = Calibration::load(&truth::calibration(&truth_dir))?;
-
-    let (calib_source, calibration_report) = match calibrated {
-        None => (CalibrationSource::Truth, json!({ "source": "truth" })),
-        Some(calibrated) => {
-            timing.add("simulate_calibration", calibrated.simulate_seconds);
-            timing.add("calibrate", calibrated.calibrate_seconds);
-            let (estimate, mut report) = (calibrated.calibration, calibrated.report);
-            let aligned = align_world_frame(&estimate, &truth_calibration.camera.extrinsics);
-            let path = out.join("calibration.json");
-            aligned.save(&path)?;
-            report["source"] = json!("estimated");
-            report["file"] = json!(path);
-            report["errors"] =
-                serde_json::to_value(calibration_errors(&aligned, &truth_calibration)?)
-                    .unwrap_or(Value::Null);
-            report["response_errors"] = response_errors(&aligned, &truth_calibration);
-            (CalibrationSource::File(path), report)
-        }
+    timing.add("simulate_calibration", calibrated.simulate_seconds);
+    timing.add("calibrate", calibrated.calibrate_seconds);
+    let aligned = align_world_frame(
+        &calibrated.calibration,
+        &truth_calibration.camera.extrinsics,
+    );
+    let path = opts.out.join("calibration.json");
+    aligned.save(&path)?;
+    let report = CalibrationReport {
+        source: "estimated".into(),
+        estimate: Some(calibrated.report),
+        file: Some(path.clone()),
+        errors: Some(calibration_errors(&aligned, &truth_calibration)?),
+        response_errors: Some(response_errors(&aligned, &truth_calibration)),
     };
-    timing.add("simulate", simulate_start.elapsed().as_secs_f64());
+    Ok((CalibrationSource::File(path), report))
+}
 
-    progress.step("processing (decode .. fit)");
-    let processed = out.join("processed");
-    let mut pipeline = Pipeline::new(&capture, &processed, &calib_source)?;
+/// Runs the pipeline up to the fit, with the held-out projector left out of it.
+fn process(
+    opts: &DemoOptions,
+    capture: &Path,
+    processed: &Path,
+    calib_source: &CalibrationSource,
+) -> Result<PipelineReport, DemoError> {
+    let mut pipeline = Pipeline::new(capture, processed, calib_source)?;
     let fit_params = FitParams {
         holdout: Some(opts.holdout),
         ..opts.fit.clone()
@@ -522,83 +734,81 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
         "fit",
         serde_json::to_value(&fit_params).unwrap_or(Value::Null),
     );
-    let report = pipeline.run_until("fit")?;
-    for (stage, seconds) in report["timing_s"].as_object().into_iter().flatten() {
-        timing.add(stage, seconds.as_f64().unwrap_or(0.0));
-    }
+    Ok(pipeline.run_until("fit")?)
+}
 
-    progress.step("relighting the held-out projector");
-    let model = SubsurfaceModel::load(&model_path(&processed))?;
+/// Relights the held-out projector from the fitted model with every renderer, evaluates it
+/// and (for a simulated capture) its back-scatter, whose plot goes to the processed folder.
+fn relight_held_out(
+    opts: &DemoOptions,
+    capture: &Path,
+    processed: &Path,
+    timing: &mut Timings,
+) -> Result<(RelightReport, html_report::RelightFigures), DemoError> {
+    let model = SubsurfaceModel::load(&model_path(processed))?;
     let mut renderers = vec![Baseline::Mlsss, Baseline::Homogeneous];
     if model.dipole.is_some() {
         renderers.push(Baseline::Dipole);
     }
     renderers.push(Baseline::Direct);
-    let scan = Capture::open(&capture)?;
+    let scan = Capture::open(capture)?;
     let relight = timing.time("eval", || {
         evaluate_holdout(&scan, &model, opts.holdout, &renderers, &opts.render)
     })?;
     timing.add("render", relight.render_seconds);
-    let mut relight_report = relight.report;
+    let mut report = relight.report;
     if scan.truth_dir().is_some() {
         let found = timing.time("backscatter", || {
             evaluate_backscatter(&model, opts.holdout, &relight.slits)
         })?;
         if let Some(b) = found {
             b.plot.save_png(&processed.join(BACKSCATTER_PLOT))?;
-            relight_report["backscatter"] = b.report;
+            report.backscatter = Some(b.report);
         }
     }
-
-    timing.add("total", total.elapsed().as_secs_f64());
-
-    let mut demo = json!({
-        "demo": {
-            "booth": opts.booth.name,
-            "camera": [opts.booth.camera.width, opts.booth.camera.height],
-            "subject": opts.subject,
-            "skin": opts.skin,
-            "seed": opts.seed,
-            "holdout_projector": opts.holdout,
-            "calibration": opts.calibration,
-            "monte_carlo": { "cached": sim.cache.hits, "computed": sim.cache.misses },
-            "out": out,
-        },
-        "calibration": calibration_report,
-        "decode": {
-            "exact_fraction": mean_over_projectors(&report, "decode", "exact_fraction"),
-            "valid_fraction": report["decode"]["valid_fraction"],
-            "wrong_fraction": mean_over_projectors(&report, "decode", "wrong_fraction"),
-            "projectors": report["decode"]["projectors"],
-        },
-        "depth_rmse_mm": report["geometry"]["depth_rmse_mm"],
-        "geometry": report["geometry"],
-        "separation": {
-            "global_rel_rmse": report["separate"]["global_rel_rmse"],
-            "direct_rel_rmse": report["separate"]["direct_rel_rmse"],
-            "total_rel_rmse": report["separate"]["total_rel_rmse"],
-        },
-        "normals": report["normals"],
-        "relight": relight_report,
-        "fit": report["fit"],
-        "profiles": report["profiles"],
-        "timing_s": Value::Object(timing.0),
-        "peak_memory_mb": peak_memory_mb(),
-    });
-    demo["report_json"] = json!(out.join(REPORT_FILE));
-    let html = out.join(HTML_FILE);
-    demo["report_html"] = json!(html);
     let figures = html_report::RelightFigures {
         images: relight.kept,
         mask: relight.mask,
     };
-    html_report::write_report(&html, &demo, Some(&figures), &processed)?;
-    let path = out.join(REPORT_FILE);
-    let text = serde_json::to_string_pretty(&demo).unwrap_or_default();
-    std::fs::write(&path, text).map_err(|source| DemoError::Io { path, source })?;
-    Ok(DemoOutcome {
-        report: demo,
-        capture,
-        processed,
-    })
+    Ok((report, figures))
+}
+
+/// The demonstration's report from its parts (without the file names).
+fn demo_report(
+    info: DemoInfo,
+    calibration: CalibrationReport,
+    report: PipelineReport,
+    relight: RelightReport,
+    timing: Timings,
+) -> DemoReport {
+    let decode = report.decode.map(|d| DecodeSummary {
+        exact_fraction: mean_over_projectors(&d.projectors, |t| t.exact_fraction),
+        valid_fraction: Some(d.valid_fraction),
+        wrong_fraction: mean_over_projectors(&d.projectors, |t| t.wrong_fraction),
+        projectors: d.projectors,
+    });
+    let separation = report.separate.map(|s| SeparationSummary {
+        global_rel_rmse: s.truth.map(|t| t.global_rel_rmse),
+        direct_rel_rmse: s.truth.map(|t| t.direct_rel_rmse),
+        total_rel_rmse: s.truth.map(|t| t.total_rel_rmse),
+    });
+    DemoReport {
+        demo: Some(info),
+        calibration: Some(calibration),
+        decode,
+        depth_rmse_mm: report
+            .geometry
+            .as_ref()
+            .and_then(|g| g.truth.map(|t| t.depth_rmse_mm)),
+        geometry: report.geometry,
+        separation,
+        normals: report.normals,
+        relight: Some(relight),
+        fit: report.fit,
+        profiles: report.profiles,
+        timing_s: timing.0,
+        peak_memory_mb: peak_memory_mb(),
+        report_json: None,
+        report_html: None,
+    }
 }

@@ -13,8 +13,10 @@
 //!   each renderer's global part, mean of R, G, B.
 //! - "toward" and "away" sides exclude the slit itself (`|s| <= W / 2`).
 
+use std::collections::BTreeMap;
+
 use nalgebra::{Matrix2, Vector2, Vector3};
-use serde_json::{Map, Value, json};
+use serde::{Deserialize, Serialize};
 
 use super::holdout::HeldOutSlit;
 use crate::report::plot::{Plot, Style};
@@ -58,8 +60,33 @@ struct Sample {
 /// The result: the `relight.backscatter` report object and its plot.
 #[derive(Debug, Clone)]
 pub struct Backscatter {
-    pub report: Value,
+    pub report: BackscatterReport,
     pub plot: Plot,
+}
+
+/// The `relight.backscatter` report object. Per-renderer maps are keyed `truth`, `mlsss`,
+/// `homogeneous`, `dipole` (renderers without a finite value are left out).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct BackscatterReport {
+    pub projector: usize,
+    /// Compared pixel samples (both slit axes).
+    pub pixels: usize,
+    pub toward_light: SideErrors,
+    pub away_from_light: SideErrors,
+    /// Light emerging toward the light per unit emerging away from it.
+    pub asymmetry_toward_over_away: BTreeMap<String, f64>,
+    /// Bin centres of the mean profile, mm (< 0 toward the light).
+    pub profile_mm: Vec<f64>,
+    /// Mean global radiance per bin.
+    pub profile: BTreeMap<String, Vec<f64>>,
+}
+
+/// The renderers' errors on one side of the slits.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct SideErrors {
+    pub pixels: usize,
+    /// Relative RMS error per renderer (null when the truth is dark there).
+    pub rel_rmse: BTreeMap<String, Option<f64>>,
 }
 
 /// The profile axis of coordinate `which` (0 = u, 1 = v) at pixel `i`: projector pixels per mm
@@ -174,9 +201,9 @@ fn axis_samples(
 }
 
 /// Relative RMS error of each renderer against the truth over `samples`.
-fn side_errors(samples: &[&Sample]) -> Map<String, Value> {
+fn side_errors(samples: &[&Sample]) -> SideErrors {
     let den: f64 = samples.iter().map(|s| s.truth * s.truth).sum();
-    RENDERERS
+    let rel_rmse = RENDERERS
         .iter()
         .enumerate()
         .filter(|(r, _)| samples.iter().all(|s| s.renders[*r].is_finite()))
@@ -185,14 +212,14 @@ fn side_errors(samples: &[&Sample]) -> Map<String, Value> {
                 .iter()
                 .map(|s| (s.renders[r] - s.truth).powi(2))
                 .sum();
-            let v = if den > 0.0 {
-                json!((num / den).sqrt())
-            } else {
-                Value::Null
-            };
+            let v = (den > 0.0).then(|| (num / den).sqrt());
             ((*name).to_owned(), v)
         })
-        .collect()
+        .collect();
+    SideErrors {
+        pixels: samples.len(),
+        rel_rmse,
+    }
 }
 
 /// Back-scatter of held-out projector `k` against the truth in `truth_dir`; `None` without slit
@@ -215,12 +242,12 @@ pub fn evaluate_backscatter(
             .sum()
     };
     // Light emerging toward the light per unit emerging away from it.
-    let mut asymmetry = Map::new();
-    asymmetry.insert("truth".into(), json!(sum(&toward, None) / sum(&away, None)));
+    let mut asymmetry = BTreeMap::new();
+    asymmetry.insert("truth".into(), sum(&toward, None) / sum(&away, None));
     for (r, (_, name)) in RENDERERS.iter().enumerate() {
         let ratio = sum(&toward, Some(r)) / sum(&away, Some(r));
         if ratio.is_finite() {
-            asymmetry.insert((*name).into(), json!(ratio));
+            asymmetry.insert((*name).into(), ratio);
         }
     }
     // Mean profile in bins of BIN_MM over half the typical period.
@@ -253,10 +280,10 @@ pub fn evaluate_backscatter(
         "mean global radiance",
     )
     .with_series("truth", truth_profile.clone(), Style::LineAndPoints);
-    let mut profiles = Map::new();
+    let mut profiles = BTreeMap::new();
     profiles.insert(
         "truth".into(),
-        json!(truth_profile.iter().map(|p| p.1).collect::<Vec<_>>()),
+        truth_profile.iter().map(|p| p.1).collect::<Vec<_>>(),
     );
     for (r, (_, name)) in RENDERERS.iter().enumerate() {
         let points: Vec<(f64, f64)> = filled
@@ -266,25 +293,19 @@ pub fn evaluate_backscatter(
         if points.iter().all(|p| p.1.is_finite()) {
             profiles.insert(
                 (*name).into(),
-                json!(points.iter().map(|p| p.1).collect::<Vec<_>>()),
+                points.iter().map(|p| p.1).collect::<Vec<_>>(),
             );
             plot = plot.with_series(name, points, Style::Line);
         }
     }
-    let report = json!({
-        "projector": k,
-        "pixels": samples.len(),
-        "toward_light": {
-            "pixels": toward.len(),
-            "rel_rmse": Value::Object(side_errors(&toward)),
-        },
-        "away_from_light": {
-            "pixels": away.len(),
-            "rel_rmse": Value::Object(side_errors(&away)),
-        },
-        "asymmetry_toward_over_away": Value::Object(asymmetry),
-        "profile_mm": filled.iter().map(|&b| centre(b)).collect::<Vec<_>>(),
-        "profile": Value::Object(profiles),
-    });
+    let report = BackscatterReport {
+        projector: k,
+        pixels: samples.len(),
+        toward_light: side_errors(&toward),
+        away_from_light: side_errors(&away),
+        asymmetry_toward_over_away: asymmetry,
+        profile_mm: filled.iter().map(|&b| centre(b)).collect(),
+        profile: profiles,
+    };
     Ok(Some(Backscatter { report, plot }))
 }

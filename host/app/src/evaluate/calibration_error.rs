@@ -11,7 +11,7 @@
 //!   angle of the relative rotation in degrees.
 
 use nalgebra::Matrix3;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use mlsss_core::calibration::{Calibration, DeviceCalibration, Extrinsics};
 
@@ -25,7 +25,7 @@ pub enum CalibrationErrorError {
 }
 
 /// Errors of one device.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct DeviceErrors {
     /// `(f_est - f_true) / f_true`, percent, per axis.
     pub fx_rel_pct: f64,
@@ -44,7 +44,7 @@ pub struct DeviceErrors {
 }
 
 /// Errors of a whole calibration.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CalibrationErrors {
     pub camera: DeviceErrors,
     pub projectors: Vec<DeviceErrors>,

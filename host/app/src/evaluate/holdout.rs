@@ -13,10 +13,11 @@
 //! - `global_rel_rmse` compares the rendered subsurface part alone with the simulator's true
 //!   global image (`truth/projK_global_<pattern>.exr`), for the patterns that have one.
 
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 use image::Rgb32FImage;
-use serde_json::{Map, Value, json};
+use serde::{Deserialize, Serialize};
 
 use super::metrics::{MetricsError, SquaredErrors};
 use crate::report::figures::RelitImages;
@@ -64,11 +65,68 @@ pub const BASELINES: [(Baseline, &str); 4] = [
     (Baseline::Direct, "direct_only"),
 ];
 
+/// The `relight` report object: the held-out projector's renders against the recorded frames
+/// and the truth. Per-renderer maps are keyed by the names of [`BASELINES`].
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RelightReport {
+    pub holdout_projector: usize,
+    /// Labels of the evaluated patterns.
+    pub patterns: Vec<String>,
+    /// Compared pixels per pattern.
+    pub compared_pixels: usize,
+    /// Pooled over the patterns: PSNR (dB, peak 1.0) and RMSE of the total render.
+    pub psnr_db: BTreeMap<String, f64>,
+    pub rmse: BTreeMap<String, f64>,
+    /// Relative RMS error of the rendered subsurface light against the simulator's, over the
+    /// patterns with a truth image (null without any).
+    pub global_rel_rmse: Option<BTreeMap<String, f64>>,
+    pub global_truth_patterns: Vec<String>,
+    pub margins: Margins,
+    pub per_pattern: Vec<PatternPsnr>,
+    pub render_seconds: f64,
+    /// The back-scatter split (`evaluate::backscatter`), added for simulated captures.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backscatter: Option<super::backscatter::BackscatterReport>,
+}
+
+impl RelightReport {
+    /// A renderer's pooled PSNR, dB.
+    pub fn psnr(&self, renderer: &str) -> Option<f64> {
+        self.psnr_db.get(renderer).copied()
+    }
+
+    /// A renderer's pooled RMSE.
+    pub fn rmse_of(&self, renderer: &str) -> Option<f64> {
+        self.rmse.get(renderer).copied()
+    }
+
+    /// A renderer's global relative RMSE.
+    pub fn global_rel_rmse_of(&self, renderer: &str) -> Option<f64> {
+        self.global_rel_rmse.as_ref()?.get(renderer).copied()
+    }
+}
+
+/// How MLSSS compares with the baselines.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Margins {
+    pub psnr_db_mlsss_minus_best_baseline: f64,
+    pub psnr_db_mlsss_minus_homogeneous: f64,
+    pub global_rel_rmse_homogeneous_over_mlsss: Option<f64>,
+    pub global_rel_rmse_dipole_over_mlsss: Option<f64>,
+}
+
+/// Per pattern: each renderer's PSNR, dB.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct PatternPsnr {
+    pub pattern: String,
+    pub psnr_db: BTreeMap<String, f64>,
+}
+
 /// The evaluation's result.
 #[derive(Debug, Clone)]
 pub struct HoldoutResult {
     /// The `relight` report object.
-    pub report: Value,
+    pub report: RelightReport,
     /// Seconds spent rendering.
     pub render_seconds: f64,
     /// The white and first Gray-code images, for figures.
@@ -203,6 +261,74 @@ pub fn evaluate_holdout(
         .copied()
         .filter(|(b, _)| renderers.contains(b))
         .collect();
+    let mask = compared_mask(capture, model, k)?;
+    let stray = stray_under(capture, model, k)?;
+    let truth_dir = capture.truth_dir();
+    let patterns = evaluation_patterns(capture, k);
+    let mut pooled = Pooled::new(baselines.len());
+    let mut per_pattern = Vec::new();
+    let mut kept = Vec::new();
+    let mut slits = Vec::new();
+    for pattern in &patterns {
+        let reference = reference_image(capture, k, pattern, &stray)?;
+        let true_global = match &truth_dir {
+            Some(t) if truth::global(t, k, pattern).is_file() => Some(pixels_of(
+                &imageio::read_exr_rgb(&truth::global(t, k, pattern))?,
+            )),
+            _ => None,
+        };
+        let scene = PatternScene {
+            model,
+            k,
+            pattern,
+            reference: &reference,
+            true_global: true_global.as_deref(),
+            mask: &mask,
+        };
+        let e = scene.evaluate(&baselines, opts)?;
+        pooled.add(&e, true_global.is_some(), pattern.label());
+        per_pattern.push(PatternPsnr {
+            pattern: pattern.label(),
+            psnr_db: e.psnr_db,
+        });
+        if let (true, Some(truth)) = (e.keep_slit, true_global) {
+            slits.push(HeldOutSlit {
+                pattern: *pattern,
+                truth,
+                renders: e.slit_globals,
+            });
+        }
+        let first_gray = matches!(pattern, Pattern::Gray { .. })
+            && !kept
+                .iter()
+                .any(|i: &RelitImages| i.pattern != Pattern::White.label());
+        if matches!(pattern, Pattern::White) || first_gray {
+            kept.push(RelitImages {
+                pattern: pattern.label(),
+                width: model.header.width as u32,
+                height: model.header.height as u32,
+                reference,
+                renders: e.renders,
+            });
+        }
+    }
+    let report = pooled.report(k, &patterns, &baselines, per_pattern)?;
+    Ok(HoldoutResult {
+        render_seconds: report.render_seconds,
+        report,
+        kept,
+        mask,
+        slits,
+    })
+}
+
+/// The compared pixels: on the subject and lit by projector `k`; checks that the capture and
+/// the model agree.
+fn compared_mask(
+    capture: &Capture,
+    model: &SubsurfaceModel,
+    k: usize,
+) -> Result<Vec<bool>, HoldoutError> {
     let (w, h) = (model.header.width, model.header.height);
     let booth = &capture.manifest.booth;
     if (booth.camera.width as usize, booth.camera.height as usize) != (w, h) {
@@ -217,164 +343,214 @@ pub fn evaluate_holdout(
             model.visibility.len()
         ))
     })?;
-    let mask: Vec<bool> = model
+    Ok(model
         .surface
         .mask
         .iter()
         .zip(visible)
         .map(|(&m, &v)| m && v)
-        .collect();
-    let stray = stray_under(capture, model, k)?;
-    let truth_dir = capture.truth_dir();
-    let patterns = evaluation_patterns(capture, k);
-    let mut total = vec![SquaredErrors::default(); baselines.len()];
-    let mut global = vec![SquaredErrors::default(); baselines.len()];
-    let mut global_patterns = Vec::new();
-    let mut per_pattern = Vec::new();
-    let mut kept = Vec::new();
-    let mut slits = Vec::new();
-    let mut kept_gray = false;
-    let mut render_seconds = 0.0;
-    let metric_err = |what: String| move |source| HoldoutError::Metrics { what, source };
-    for pattern in &patterns {
-        let label = pattern.label();
-        let spec = capture
-            .manifest
-            .plan
-            .find(k as u8, pattern)
-            .ok_or_else(|| HoldoutError::MissingFrame {
-                projector: k,
-                pattern: label.clone(),
-            })?;
-        let frame = pixels_of(&capture.read_frame(spec.index)?);
-        let reference: Vec<[f32; 3]> = frame
-            .iter()
-            .zip(&stray)
-            .map(|(f, s)| [f[0] - s[0], f[1] - s[1], f[2] - s[2]])
-            .collect();
-        let true_global = match &truth_dir {
-            Some(t) if truth::global(t, k, pattern).is_file() => Some(pixels_of(
-                &imageio::read_exr_rgb(&truth::global(t, k, pattern))?,
-            )),
-            _ => None,
-        };
-        if true_global.is_some() {
-            global_patterns.push(label.clone());
-        }
-        let mut entry = Map::new();
-        let mut renders = Vec::new();
-        let keep_slit = matches!(pattern, Pattern::Slit { offset: 0, .. }) && true_global.is_some();
-        let mut slit_globals = Vec::new();
-        for (i, (baseline, name)) in baselines.iter().enumerate() {
-            let start = Instant::now();
-            let relit: Relit =
-                render_projector(model, k, pattern, *baseline, opts).map_err(|source| {
-                    HoldoutError::Render {
-                        projector: k,
-                        pattern: label.clone(),
-                        baseline: *baseline,
-                        source,
-                    }
-                })?;
-            render_seconds += start.elapsed().as_secs_f64();
-            let rendered = relit.total();
-            let sums = SquaredErrors::accumulate(&rendered, &reference, &mask)
-                .map_err(metric_err(format!("{name} under {label}")))?;
-            total[i] = total[i].pooled_with(sums);
-            let e = sums
-                .errors()
-                .map_err(metric_err(format!("{name} under {label}")))?;
-            entry.insert((*name).into(), json!(e.psnr_db));
-            if let (Some(tg), false) = (&true_global, *baseline == Baseline::Direct) {
-                let g = SquaredErrors::accumulate(&relit.global, tg, &mask)
-                    .map_err(metric_err(format!("{name} global under {label}")))?;
-                global[i] = global[i].pooled_with(g);
-                if keep_slit {
-                    slit_globals.push((*baseline, relit.global));
-                }
-            }
-            renders.push(((*name).to_owned(), rendered));
-        }
-        per_pattern.push(json!({ "pattern": label, "psnr_db": Value::Object(entry) }));
-        if let (true, Some(truth)) = (keep_slit, true_global) {
-            slits.push(HeldOutSlit {
-                pattern: *pattern,
-                truth,
-                renders: slit_globals,
-            });
-        }
-        let first_gray = matches!(pattern, Pattern::Gray { .. }) && !kept_gray;
-        if matches!(pattern, Pattern::White) || first_gray {
-            kept_gray |= first_gray;
-            kept.push(RelitImages {
-                pattern: label.clone(),
-                width: w as u32,
-                height: h as u32,
-                reference,
-                renders,
-            });
-        }
-    }
-    let mut psnr = Map::new();
-    let mut rmse = Map::new();
-    for (i, (_, name)) in baselines.iter().enumerate() {
-        let e = total[i]
-            .errors()
-            .map_err(metric_err(format!("{name} over all patterns")))?;
-        psnr.insert((*name).into(), json!(e.psnr_db));
-        rmse.insert((*name).into(), json!(e.rmse));
-    }
-    let mut global_rel = Map::new();
-    if !global_patterns.is_empty() {
-        for (i, (b, name)) in baselines.iter().enumerate() {
-            if *b == Baseline::Direct {
-                continue;
-            }
-            let e = global[i]
-                .errors()
-                .map_err(metric_err(format!("{name} global")))?;
-            global_rel.insert((*name).into(), json!(e.rel_rmse));
-        }
-    }
-    let best_baseline_psnr = baselines
-        .iter()
-        .skip(1)
-        .filter_map(|(_, n)| psnr.get(*n).and_then(Value::as_f64))
-        .fold(f64::NEG_INFINITY, f64::max);
-    let psnr_of = |name: &str| psnr.get(name).and_then(Value::as_f64).unwrap_or(f64::NAN);
-    let mlsss_psnr = psnr_of("mlsss");
-    let report = json!({
-        "holdout_projector": k,
-        "patterns": patterns.iter().map(Pattern::label).collect::<Vec<_>>(),
-        "compared_pixels": total[0].pixels / patterns.len().max(1),
-        "psnr_db": Value::Object(psnr.clone()),
-        "rmse": Value::Object(rmse),
-        "global_rel_rmse": if global_rel.is_empty() { Value::Null } else { Value::Object(global_rel.clone()) },
-        "global_truth_patterns": global_patterns,
-        "margins": {
-            "psnr_db_mlsss_minus_best_baseline": mlsss_psnr - best_baseline_psnr,
-            "psnr_db_mlsss_minus_homogeneous": mlsss_psnr - psnr_of("homogeneous"),
-            "global_rel_rmse_homogeneous_over_mlsss": ratio(&global_rel, "homogeneous", "mlsss"),
-            "global_rel_rmse_dipole_over_mlsss": ratio(&global_rel, "dipole", "mlsss"),
-        },
-        "per_pattern": per_pattern,
-        "render_seconds": render_seconds,
-    });
-    Ok(HoldoutResult {
-        report,
-        render_seconds,
-        kept,
-        mask,
-        slits,
-    })
+        .collect())
 }
 
-fn ratio(map: &Map<String, Value>, a: &str, b: &str) -> Value {
-    match (
-        map.get(a).and_then(Value::as_f64),
-        map.get(b).and_then(Value::as_f64),
-    ) {
-        (Some(a), Some(b)) if b > 0.0 => json!(a / b),
-        _ => Value::Null,
+/// The recorded frame of projector `k` under `pattern` less the stray light.
+fn reference_image(
+    capture: &Capture,
+    k: usize,
+    pattern: &Pattern,
+    stray: &[[f32; 3]],
+) -> Result<Vec<[f32; 3]>, HoldoutError> {
+    let spec = capture
+        .manifest
+        .plan
+        .find(k as u8, pattern)
+        .ok_or_else(|| HoldoutError::MissingFrame {
+            projector: k,
+            pattern: pattern.label(),
+        })?;
+    let frame = pixels_of(&capture.read_frame(spec.index)?);
+    Ok(frame
+        .iter()
+        .zip(stray)
+        .map(|(f, s)| [f[0] - s[0], f[1] - s[1], f[2] - s[2]])
+        .collect())
+}
+
+/// What one pattern of the held-out projector is compared with.
+struct PatternScene<'a> {
+    model: &'a SubsurfaceModel,
+    k: usize,
+    pattern: &'a Pattern,
+    reference: &'a [[f32; 3]],
+    true_global: Option<&'a [[f32; 3]]>,
+    mask: &'a [bool],
+}
+
+/// One pattern's renders and error sums, per renderer (in the order of the baselines).
+struct PatternEvaluation {
+    psnr_db: BTreeMap<String, f64>,
+    total: Vec<SquaredErrors>,
+    /// Subsurface part against the truth (default sums for direct-only or without truth).
+    global: Vec<SquaredErrors>,
+    renders: Vec<(String, Vec<[f32; 3]>)>,
+    /// A slit with offset 0 and a truth image: its global parts are kept for the back-scatter.
+    keep_slit: bool,
+    slit_globals: Vec<(Baseline, Vec<[f32; 3]>)>,
+    render_seconds: f64,
+}
+
+fn metric_err(what: String) -> impl FnOnce(MetricsError) -> HoldoutError {
+    move |source| HoldoutError::Metrics { what, source }
+}
+
+impl PatternScene<'_> {
+    /// Renders the pattern with every baseline and compares.
+    fn evaluate(
+        &self,
+        baselines: &[(Baseline, &str)],
+        opts: &RenderOptions,
+    ) -> Result<PatternEvaluation, HoldoutError> {
+        let label = self.pattern.label();
+        let keep_slit =
+            matches!(self.pattern, Pattern::Slit { offset: 0, .. }) && self.true_global.is_some();
+        let mut e = PatternEvaluation {
+            psnr_db: BTreeMap::new(),
+            total: Vec::new(),
+            global: Vec::new(),
+            renders: Vec::new(),
+            keep_slit,
+            slit_globals: Vec::new(),
+            render_seconds: 0.0,
+        };
+        for (baseline, name) in baselines {
+            let start = Instant::now();
+            let relit: Relit = render_projector(self.model, self.k, self.pattern, *baseline, opts)
+                .map_err(|source| HoldoutError::Render {
+                    projector: self.k,
+                    pattern: label.clone(),
+                    baseline: *baseline,
+                    source,
+                })?;
+            e.render_seconds += start.elapsed().as_secs_f64();
+            let rendered = relit.total();
+            let sums = SquaredErrors::accumulate(&rendered, self.reference, self.mask)
+                .map_err(metric_err(format!("{name} under {label}")))?;
+            e.total.push(sums);
+            let errors = sums
+                .errors()
+                .map_err(metric_err(format!("{name} under {label}")))?;
+            e.psnr_db.insert((*name).into(), errors.psnr_db);
+            let mut global = SquaredErrors::default();
+            if let (Some(tg), false) = (self.true_global, *baseline == Baseline::Direct) {
+                global = SquaredErrors::accumulate(&relit.global, tg, self.mask)
+                    .map_err(metric_err(format!("{name} global under {label}")))?;
+                if keep_slit {
+                    e.slit_globals.push((*baseline, relit.global));
+                }
+            }
+            e.global.push(global);
+            e.renders.push(((*name).to_owned(), rendered));
+        }
+        Ok(e)
+    }
+}
+
+/// Error sums pooled over the patterns, per renderer.
+struct Pooled {
+    total: Vec<SquaredErrors>,
+    global: Vec<SquaredErrors>,
+    global_patterns: Vec<String>,
+    render_seconds: f64,
+}
+
+impl Pooled {
+    fn new(renderers: usize) -> Self {
+        Self {
+            total: vec![SquaredErrors::default(); renderers],
+            global: vec![SquaredErrors::default(); renderers],
+            global_patterns: Vec::new(),
+            render_seconds: 0.0,
+        }
+    }
+
+    fn add(&mut self, e: &PatternEvaluation, has_truth: bool, label: String) {
+        for (acc, sums) in self.total.iter_mut().zip(&e.total) {
+            *acc = acc.pooled_with(*sums);
+        }
+        if has_truth {
+            for (acc, sums) in self.global.iter_mut().zip(&e.global) {
+                *acc = acc.pooled_with(*sums);
+            }
+            self.global_patterns.push(label);
+        }
+        self.render_seconds += e.render_seconds;
+    }
+
+    /// The report: pooled metrics per renderer and MLSSS's margins over the baselines.
+    fn report(
+        self,
+        k: usize,
+        patterns: &[Pattern],
+        baselines: &[(Baseline, &str)],
+        per_pattern: Vec<PatternPsnr>,
+    ) -> Result<RelightReport, HoldoutError> {
+        let mut psnr = BTreeMap::new();
+        let mut rmse = BTreeMap::new();
+        for (i, (_, name)) in baselines.iter().enumerate() {
+            let e = self.total[i]
+                .errors()
+                .map_err(metric_err(format!("{name} over all patterns")))?;
+            psnr.insert((*name).to_owned(), e.psnr_db);
+            rmse.insert((*name).to_owned(), e.rmse);
+        }
+        let mut global_rel = BTreeMap::new();
+        if !self.global_patterns.is_empty() {
+            for (i, (b, name)) in baselines.iter().enumerate() {
+                if *b == Baseline::Direct {
+                    continue;
+                }
+                let e = self.global[i]
+                    .errors()
+                    .map_err(metric_err(format!("{name} global")))?;
+                global_rel.insert((*name).to_owned(), e.rel_rmse);
+            }
+        }
+        let best_baseline_psnr = baselines
+            .iter()
+            .skip(1)
+            .filter_map(|(_, n)| finite(&psnr, n))
+            .fold(f64::NEG_INFINITY, f64::max);
+        let psnr_of = |name: &str| finite(&psnr, name).unwrap_or(f64::NAN);
+        let mlsss_psnr = psnr_of("mlsss");
+        let margins = Margins {
+            psnr_db_mlsss_minus_best_baseline: mlsss_psnr - best_baseline_psnr,
+            psnr_db_mlsss_minus_homogeneous: mlsss_psnr - psnr_of("homogeneous"),
+            global_rel_rmse_homogeneous_over_mlsss: ratio(&global_rel, "homogeneous", "mlsss"),
+            global_rel_rmse_dipole_over_mlsss: ratio(&global_rel, "dipole", "mlsss"),
+        };
+        Ok(RelightReport {
+            holdout_projector: k,
+            patterns: patterns.iter().map(Pattern::label).collect(),
+            compared_pixels: self.total.first().map_or(0, |t| t.pixels) / patterns.len().max(1),
+            psnr_db: psnr,
+            rmse,
+            global_rel_rmse: (!global_rel.is_empty()).then_some(global_rel),
+            global_truth_patterns: self.global_patterns,
+            margins,
+            per_pattern,
+            render_seconds: self.render_seconds,
+            backscatter: None,
+        })
+    }
+}
+
+/// `map[key]` when present and finite (a non-finite metric is null in the report).
+fn finite(map: &BTreeMap<String, f64>, key: &str) -> Option<f64> {
+    map.get(key).copied().filter(|v| v.is_finite())
+}
+
+fn ratio(map: &BTreeMap<String, f64>, a: &str, b: &str) -> Option<f64> {
+    match (finite(map, a), finite(map, b)) {
+        (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+        _ => None,
     }
 }

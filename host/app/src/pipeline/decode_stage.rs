@@ -15,7 +15,8 @@
 use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
-use serde_json::{Value, json};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
 
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::truth;
@@ -64,6 +65,37 @@ pub enum DecodeStageError {
     },
 }
 
+/// The decode stage's report fragment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecodeReport {
+    pub projectors: Vec<ProjectorDecodeReport>,
+    /// Mean of `valid_fraction` over the decoded (not skipped) projectors.
+    pub valid_fraction: f64,
+}
+
+/// One projector's entry of [`DecodeReport`]: skipped (all frames dark), or its counts and, with
+/// ground truth, the comparison with the true coordinates.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProjectorDecodeReport {
+    pub projector: usize,
+    /// Why the projector was skipped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skipped: Option<String>,
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub counts: Option<DecodeCounts>,
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<TruthComparison>,
+}
+
+/// Fractions of the camera pixels by decoding outcome.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DecodeCounts {
+    pub valid_fraction: f64,
+    pub flagged_fraction: f64,
+    pub repaired_fraction: f64,
+    pub unlit_fraction: f64,
+}
+
 /// Path of projector `k`'s coordinate map in a decode folder.
 pub fn coords_path(dir: &Path, k: usize) -> PathBuf {
     dir.join(format!("proj{k}_coords.exr"))
@@ -71,6 +103,10 @@ pub fn coords_path(dir: &Path, k: usize) -> PathBuf {
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
     let params: DecodeParams = ctx.params()?;
+    super::fragment(&run_decode(ctx, &params)?)
+}
+
+fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport, StageFailure> {
     let capture = ctx.capture;
     let booth = &capture.manifest.booth;
     let truth_dir = ctx.truth_dir();
@@ -84,10 +120,15 @@ fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
                 source,
             })
         })?;
-        let decoded = match decode(&frames, (proj.width, proj.height), &params) {
+        let decoded = match decode(&frames, (proj.width, proj.height), params) {
             Ok(d) => d,
             Err(err @ GrayCodeError::NothingLit { .. }) => {
-                projectors.push(json!({ "projector": k, "skipped": err.to_string() }));
+                projectors.push(ProjectorDecodeReport {
+                    projector: k,
+                    skipped: Some(err.to_string()),
+                    counts: None,
+                    truth: None,
+                });
                 continue;
             }
             Err(source) => {
@@ -113,10 +154,10 @@ fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
         decoded_count += 1;
         projectors.push(entry);
     }
-    Ok(json!({
-        "projectors": projectors,
-        "valid_fraction": valid_sum / f64::from(decoded_count.max(1)),
-    }))
+    Ok(DecodeReport {
+        projectors,
+        valid_fraction: valid_sum / f64::from(decoded_count.max(1)),
+    })
 }
 
 /// The report entry of one projector (used by the pipeline and by `mlsss decode --layout opencv`).
@@ -124,22 +165,19 @@ pub fn projector_report(
     k: usize,
     decoded: &ProjectorDecode,
     truth: Option<&[Option<(f64, f64)>]>,
-) -> Value {
+) -> ProjectorDecodeReport {
     let s = decoded.summary();
-    let mut entry = json!({
-        "projector": k,
-        "valid_fraction": s.valid_fraction(),
-        "flagged_fraction": s.flagged_fraction(),
-        "repaired_fraction": s.repaired as f64 / s.pixels.max(1) as f64,
-        "unlit_fraction": s.unlit as f64 / s.pixels.max(1) as f64,
-    });
-    if let (Some(truth), Some(obj)) = (truth, entry.as_object_mut()) {
-        let cmp = TruthComparison::new(decoded, truth);
-        if let Ok(Value::Object(extra)) = serde_json::to_value(cmp) {
-            obj.extend(extra);
-        }
+    ProjectorDecodeReport {
+        projector: k,
+        skipped: None,
+        counts: Some(DecodeCounts {
+            valid_fraction: s.valid_fraction(),
+            flagged_fraction: s.flagged_fraction(),
+            repaired_fraction: s.repaired as f64 / s.pixels.max(1) as f64,
+            unlit_fraction: s.unlit as f64 / s.pixels.max(1) as f64,
+        }),
+        truth: truth.map(|t| TruthComparison::new(decoded, t)),
     }
-    entry
 }
 
 /// Writes projector `k`'s coordinate map, confidence and false-colour preview into `dir`.

@@ -31,6 +31,7 @@
 //! `heldout_global_rel_rmse.{pattern}.{mlsss,homogeneous,dipole}`: relative RMS error of the held-out projector's rendered subsurface light
 //! against the simulator's, over the pixels that projector lights.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -46,6 +47,7 @@ use mlsss_core::capture::{Axis, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_core::resources::cpu_seconds;
 use mlsss_layer_model::fit::{EmVariant, FitError, FitOptions, fit_dipole_model, fit_model};
+use mlsss_layer_model::layer_depth::SpacingEstimate;
 use mlsss_layer_model::mixture::{EmConfig, Profile};
 use mlsss_layer_model::model_file::{
     Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, SubsurfaceModel,
@@ -54,8 +56,9 @@ use mlsss_layer_model::model_file::{
 use mlsss_layer_model::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use mlsss_layer_model::relight::{direct_albedo, pattern_irradiance};
 use mlsss_layer_model::render::{LayerModel, RenderOptions, SplatLayer, extent};
-use mlsss_layer_model::shading_regression::refine_normals;
+use mlsss_layer_model::shading_regression::{ShadingReport, refine_normals};
 use mlsss_layer_model::spatial_prior::regularise_in_place;
+use mlsss_layer_model::surface::Surface;
 
 /// The fit stage.
 pub const STAGE: Stage = Stage {
@@ -174,7 +177,8 @@ pub enum FitStageError {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_fit(ctx).map_err(StageFailure::new)
+    let params: FitParams = ctx.params()?;
+    super::fragment(&run_fit(ctx, &params).map_err(StageFailure::new)?)
 }
 
 fn check_params(params: &FitParams, captured: usize) -> Result<(), FitStageError> {
@@ -198,24 +202,102 @@ fn check_params(params: &FitParams, captured: usize) -> Result<(), FitStageError
     Ok(())
 }
 
-fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
-    let params: FitParams = ctx.params().unwrap_or_default();
+/// The fit stage's report fragment (see the module documentation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitReport {
+    pub em: EmVariant,
+    /// Components per fit at the start.
+    pub components: usize,
+    /// Mean components per fit after BIC.
+    pub components_mean: f64,
+    pub depth_spacing_mm: f64,
+    pub depth_estimate: SpacingEstimate,
+    pub pixels_fitted: usize,
+    /// Surface pixels without a fit (filled with the subject's mean layers).
+    pub pixels_skipped: usize,
+    pub pixels_filled: usize,
+    pub fits: usize,
+    pub mean_iterations: f64,
+    pub holdout: Option<usize>,
+    pub training_projectors: Vec<usize>,
+    pub model_file: String,
+    pub model_bytes: u64,
+    /// The spatial prior's report (`subsurface::spatial_prior::PriorReport`, null when off).
+    pub spatial_prior: Value,
+    /// The shading regression's report (`subsurface::shading_regression::ShadingReport`, null
+    /// when off).
+    pub shading: Value,
+    /// Pattern label to renderer (`mlsss`, `homogeneous`, `dipole`) to relative RMS error of the
+    /// held-out projector's rendered subsurface light.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heldout_global_rel_rmse: Option<BTreeMap<String, BTreeMap<String, f64>>>,
+    pub timing_s: FitTimings,
+    pub timing_cpu_s: FitCpuTimings,
+}
+
+/// Wall-clock seconds of the fit stage's parts.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct FitTimings {
+    pub load: f64,
+    /// Up to the model: normals, EM, then the prior beside the dipole baseline.
+    pub fit: f64,
+    pub fit_normals: f64,
+    pub fit_em: f64,
+    /// Side by side, each its own wall clock: the spatial prior (with the filling of unfitted
+    /// pixels) and the dipole baseline.
+    pub fit_prior: f64,
+    pub dipole: f64,
+    /// Side by side too: saving the model and drawing the figures.
+    pub save: f64,
+    pub figures: f64,
+}
+
+/// CPU seconds (all threads) of the fit stage's parts, where the platform tells; what ran side
+/// by side is one figure.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct FitCpuTimings {
+    pub load: Option<f64>,
+    pub fit: Option<f64>,
+    pub fit_normals: Option<f64>,
+    pub fit_em: Option<f64>,
+    pub prior_and_dipole: Option<f64>,
+    pub save_and_figures: Option<f64>,
+}
+
+/// CPU seconds between two readings of [`cpu_seconds`].
+fn cpu_span(a: Option<f64>, b: Option<f64>) -> Option<f64> {
+    a.zip(b).map(|(a, b)| b - a)
+}
+
+/// The training projectors' profile geometry and slit sweeps, borrowed from the inputs.
+struct TrainingProfiles<'a> {
+    geometries: Vec<Vec<Option<PixelGeometry>>>,
+    sweeps: Vec<SlitSweep<'a>>,
+}
+
+/// The layers fitted to every pixel, regularised and filled, with the dipole baseline.
+struct FittedLayers {
+    stats: mlsss_layer_model::fit::FitStats,
+    layers: LayerModel,
+    dipole: Option<LayerModel>,
+    prior: Option<mlsss_layer_model::spatial_prior::PriorReport>,
+    /// Per pixel: fitted (before filling).
+    fitted: Vec<bool>,
+    filled: usize,
+    em_s: f64,
+    prior_s: f64,
+    dipole_s: f64,
+    /// CPU reading when the EM ended and the prior and dipole began.
+    cpu_after_em: Option<f64>,
+}
+
+fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
-    check_params(&params, captured)?;
+    check_params(params, captured)?;
     let record = ProfilesRecord::load(&ctx.stage_dir("profiles"))?;
     let t0 = Instant::now();
     let c0 = cpu_seconds();
-    let candidates: Vec<usize> = (0..captured)
-        .filter(|&k| Some(k) != params.holdout)
-        .collect();
-    let mut inputs = ProfileInputs::take_or_load(ctx, &record.params, &candidates)?;
-    let training: Vec<usize> = candidates
-        .into_iter()
-        .filter(|&k| inputs.projectors[k].geometry.iter().any(Option::is_some))
-        .collect();
-    if training.is_empty() {
-        return Err(FitStageError::NoTrainingProjector);
-    }
+    let (mut inputs, training) = load_training(ctx, params, &record)?;
     let load_s = t0.elapsed().as_secs_f64();
     let c1 = cpu_seconds();
 
@@ -225,34 +307,156 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         .iter()
         .map(|&k| std::mem::take(&mut inputs.projectors[k].geometry))
         .collect();
+    let shading = if params.refine_normals {
+        Some(refine_surface(&mut inputs, &training, &mut geometries)?)
+    } else {
+        None
+    };
+    let inputs = inputs;
+    let profiles = TrainingProfiles {
+        sweeps: training
+            .iter()
+            .map(|&k| inputs.projectors[k].sweep())
+            .collect::<Result<_, _>>()?,
+        geometries,
+    };
+    let normals_s = t1.elapsed().as_secs_f64();
+    let c_em = cpu_seconds();
+    let FittedLayers {
+        stats,
+        layers,
+        dipole,
+        prior,
+        fitted,
+        filled,
+        em_s,
+        prior_s,
+        dipole_s,
+        cpu_after_em,
+    } = fit_layers(&inputs.surface, &profiles, params, record.params.eta)?;
+    let fit_s = t1.elapsed().as_secs_f64();
+    let c2 = cpu_seconds();
+
+    let model = assemble(ctx, &inputs, params, &training, layers, dipole, &stats)?;
+    let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
+        (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
+        _ => None,
+    };
+    let path = ctx.dir().join(MODEL_FILE);
+    let (save_s, figures_s) =
+        save_and_draw(ctx, &inputs, &record, &model, &training, &profiles, &path)?;
+    let model_bytes = std::fs::metadata(&path).map_or(0, |m| m.len());
+    let c4 = cpu_seconds();
+
+    let surface = &inputs.surface;
+    Ok(FitReport {
+        em: params.em,
+        components: params.components,
+        components_mean: stats.mean_layers,
+        depth_spacing_mm: stats.depth_spacing_mm,
+        depth_estimate: stats.depth.clone(),
+        pixels_fitted: fitted.iter().filter(|f| **f).count(),
+        pixels_skipped: surface
+            .mask
+            .iter()
+            .zip(&fitted)
+            .filter(|(m, f)| **m && !**f)
+            .count(),
+        pixels_filled: filled,
+        fits: stats.fits,
+        mean_iterations: stats.mean_iterations,
+        holdout: params.holdout,
+        training_projectors: training,
+        model_file: path.display().to_string(),
+        model_bytes,
+        spatial_prior: serde_json::to_value(&prior).unwrap_or(Value::Null),
+        shading: serde_json::to_value(&shading).unwrap_or(Value::Null),
+        heldout_global_rel_rmse: heldout,
+        timing_s: FitTimings {
+            load: load_s,
+            fit: fit_s,
+            fit_normals: normals_s,
+            fit_em: em_s,
+            fit_prior: prior_s,
+            dipole: dipole_s,
+            save: save_s,
+            figures: figures_s,
+        },
+        timing_cpu_s: FitCpuTimings {
+            load: cpu_span(c0, c1),
+            fit: cpu_span(c1, c2),
+            fit_normals: cpu_span(c1, c_em),
+            fit_em: cpu_span(c_em, cpu_after_em),
+            prior_and_dipole: cpu_span(cpu_after_em, c2),
+            save_and_figures: cpu_span(c2, c4),
+        },
+    })
+}
+
+/// The profiles' inputs with the slits of every candidate training projector (all but the
+/// holdout), and the training projectors: the candidates with a profile geometry.
+fn load_training(
+    ctx: &StageContext,
+    params: &FitParams,
+    record: &ProfilesRecord,
+) -> Result<(ProfileInputs, Vec<usize>), FitStageError> {
+    let captured = ctx.capture.manifest.booth.projectors.len();
+    let candidates: Vec<usize> = (0..captured)
+        .filter(|&k| Some(k) != params.holdout)
+        .collect();
+    let inputs = ProfileInputs::take_or_load(ctx, &record.params, &candidates)?;
+    let training: Vec<usize> = candidates
+        .into_iter()
+        .filter(|&k| inputs.projectors[k].geometry.iter().any(Option::is_some))
+        .collect();
+    if training.is_empty() {
+        return Err(FitStageError::NoTrainingProjector);
+    }
+    Ok((inputs, training))
+}
+
+/// Corrects the surface normals by the shading regression of the training projectors'
+/// amplitudes and recomputes their profile geometry. Everything downstream (fit, prior, dipole,
+/// albedo, the model file) sees the corrected normals, so every renderer and baseline gets the
+/// same geometry.
+fn refine_surface(
+    inputs: &mut ProfileInputs,
+    training: &[usize],
+    geometries: &mut Vec<Vec<Option<PixelGeometry>>>,
+) -> Result<ShadingReport, FitStageError> {
     let sweeps: Vec<SlitSweep> = training
         .iter()
         .map(|&k| inputs.projectors[k].sweep())
         .collect::<Result<_, _>>()?;
-    let shading = if params.refine_normals {
-        let centres: Vec<Vector3<f64>> = training
-            .iter()
-            .map(|&k| inputs.projectors[k].centre)
-            .collect();
-        let (refined, report) = refine_normals(&inputs.surface, &geometries, &sweeps, &centres)?;
-        // Everything downstream (fit, prior, dipole, albedo, the model file) sees the corrected
-        // normals, so every renderer and baseline gets the same geometry.
-        inputs.surface = refined;
-        geometries = training
-            .iter()
-            .map(|&k| {
-                pixel_geometry(
-                    &inputs.surface,
-                    &inputs.projectors[k].view(),
-                    inputs.params.eta,
-                    inputs.params.view_ray,
-                )
-            })
-            .collect::<Result<_, _>>()?;
-        Some(report)
-    } else {
-        None
-    };
+    let centres: Vec<Vector3<f64>> = training
+        .iter()
+        .map(|&k| inputs.projectors[k].centre)
+        .collect();
+    let (refined, report) = refine_normals(&inputs.surface, geometries, &sweeps, &centres)?;
+    drop(sweeps);
+    inputs.surface = refined;
+    *geometries = training
+        .iter()
+        .map(|&k| {
+            pixel_geometry(
+                &inputs.surface,
+                &inputs.projectors[k].view(),
+                inputs.params.eta,
+                inputs.params.view_ray,
+            )
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(report)
+}
+
+/// The EM fit of every pixel, then the spatial prior (and the filling of unfitted pixels) beside
+/// the dipole baseline.
+fn fit_layers(
+    surface: &Surface,
+    profiles: &TrainingProfiles,
+    params: &FitParams,
+    eta: f64,
+) -> Result<FittedLayers, FitStageError> {
     let opts = FitOptions {
         em: EmConfig {
             components: params.components,
@@ -265,13 +469,11 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
         block: params.block,
         ..FitOptions::default()
     };
-    let normals_s = t1.elapsed().as_secs_f64();
-    let c_em = cpu_seconds();
-    let surface = &inputs.surface;
+    let (geometries, sweeps) = (&profiles.geometries, &profiles.sweeps);
     let t_em = Instant::now();
-    let mut fit = fit_model(surface, &geometries, &sweeps, &opts)?;
+    let mut fit = fit_model(surface, geometries, sweeps, &opts)?;
     let em_s = t_em.elapsed().as_secs_f64();
-    let c_prior = cpu_seconds();
+    let cpu_after_em = cpu_seconds();
     let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
     // The dipole baseline needs only the EM's amplitudes: it runs beside the spatial prior,
     // whose statistics and model building leave cores idle.
@@ -284,8 +486,8 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
                 params.spatial_prior,
                 &mut model,
                 surface,
-                &geometries,
-                &sweeps,
+                geometries,
+                sweeps,
                 block,
                 spacing,
             )?;
@@ -300,9 +502,9 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
                 .then(|| {
                     fit_dipole_model(
                         surface,
-                        &geometries,
-                        &sweeps,
-                        record.params.eta,
+                        geometries,
+                        sweeps,
+                        eta,
                         params.block,
                         &fit.amplitudes,
                     )
@@ -313,87 +515,53 @@ fn run_fit(ctx: &StageContext) -> Result<Value, FitStageError> {
     );
     let (prior, fitted, layers, filled, prior_s) = regularised?;
     let (dipole, dipole_s) = dipole?;
-    let fit_s = t1.elapsed().as_secs_f64();
-    let c2 = cpu_seconds();
+    Ok(FittedLayers {
+        stats: fit.stats,
+        layers,
+        dipole,
+        prior,
+        fitted,
+        filled,
+        em_s,
+        prior_s,
+        dipole_s,
+        cpu_after_em,
+    })
+}
 
-    let model = assemble(ctx, &inputs, &params, &training, layers, dipole, &fit.stats)?;
-    let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
-        (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
-        _ => None,
-    };
-    // Saving is mostly serial (one palette, then a few gzip members) and the figures' renders are
-    // parallel: side by side they fill the cores.
-    let path = ctx.dir().join(MODEL_FILE);
+/// Saves the model to `path` while drawing the figures: saving is mostly serial (one palette,
+/// then a few gzip members) and the figures' renders are parallel, so side by side they fill
+/// the cores. Returns the wall-clock seconds of each.
+fn save_and_draw(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    record: &ProfilesRecord,
+    model: &SubsurfaceModel,
+    training: &[usize],
+    profiles: &TrainingProfiles,
+    path: &Path,
+) -> Result<(f64, f64), FitStageError> {
     let timed = |f: &dyn Fn() -> Result<(), FitStageError>| {
         let t = Instant::now();
         f().map(|()| t.elapsed().as_secs_f64())
     };
     let (save_s, figures_s) = rayon::join(
-        || timed(&|| Ok(model.save(&path)?)),
+        || timed(&|| Ok(model.save(path)?)),
         || {
             timed(&|| {
                 write_figures(
                     ctx,
-                    &inputs,
-                    &record,
-                    &model,
-                    &training,
-                    &sweeps,
-                    &geometries,
+                    inputs,
+                    record,
+                    model,
+                    training,
+                    &profiles.sweeps,
+                    &profiles.geometries,
                 )
             })
         },
     );
-    let (save_s, figures_s) = (save_s?, figures_s?);
-    let model_bytes = std::fs::metadata(&path).map_or(0, |m| m.len());
-    let c4 = cpu_seconds();
-
-    let mut report = json!({
-        "em": params.em,
-        "components": params.components,
-        "components_mean": fit.stats.mean_layers,
-        "depth_spacing_mm": fit.stats.depth_spacing_mm,
-        "depth_estimate": fit.stats.depth,
-        "pixels_fitted": fitted.iter().filter(|f| **f).count(),
-        "pixels_skipped": surface.mask.iter().zip(&fitted).filter(|(m, f)| **m && !**f).count(),
-        "pixels_filled": filled,
-        "fits": fit.stats.fits,
-        "mean_iterations": fit.stats.mean_iterations,
-        "holdout": params.holdout,
-        "training_projectors": training,
-        "model_file": path.display().to_string(),
-        "model_bytes": model_bytes,
-        "spatial_prior": prior,
-        "shading": shading,
-    });
-    if let Some(errors) = heldout {
-        report["heldout_global_rel_rmse"] = errors;
-    }
-    report["timing_s"] = json!({
-        "load": load_s,
-        // Up to the model: normals, EM, then the prior beside the dipole baseline.
-        "fit": fit_s,
-        "fit_normals": normals_s,
-        "fit_em": em_s,
-        // Side by side, each its own wall clock: the spatial prior (with the filling of
-        // unfitted pixels) and the dipole baseline.
-        "fit_prior": prior_s,
-        "dipole": dipole_s,
-        // Side by side too: saving the model and drawing the figures.
-        "save": save_s,
-        "figures": figures_s,
-    });
-    // CPU seconds (all threads), where the platform tells; what ran side by side is one figure.
-    let span = |a: Option<f64>, b: Option<f64>| a.zip(b).map(|(a, b)| b - a);
-    report["timing_cpu_s"] = json!({
-        "load": span(c0, c1),
-        "fit": span(c1, c2),
-        "fit_normals": span(c1, c_em),
-        "fit_em": span(c_em, c_prior),
-        "prior_and_dipole": span(c_prior, c2),
-        "save_and_figures": span(c2, c4),
-    });
-    Ok(report)
+    Ok((save_s?, figures_s?))
 }
 
 /// Surface pixels without layers in a channel get the homogeneous layers of that channel.
@@ -516,7 +684,7 @@ fn heldout_errors(
     model: &SubsurfaceModel,
     h: usize,
     truth_dir: &Path,
-) -> Result<Value, FitStageError> {
+) -> Result<BTreeMap<String, BTreeMap<String, f64>>, FitStageError> {
     let size = (model.header.width as u32, model.header.height as u32);
     let mask: Vec<bool> = model.visibility[h]
         .iter()
@@ -531,7 +699,7 @@ fn heldout_errors(
         offset: 0,
     };
     let patterns = [Pattern::White, slit(Axis::X), slit(Axis::Y)];
-    let mut out = serde_json::Map::new();
+    let mut out = BTreeMap::new();
     let opts = RenderOptions::default();
     for pattern in &patterns {
         let path = truth::global(truth_dir, h, pattern);
@@ -543,7 +711,7 @@ fn heldout_errors(
             continue;
         }
         let truth: Vec<[f32; 3]> = img.pixels().map(|p| p.0).collect();
-        let mut entry = serde_json::Map::new();
+        let mut entry = BTreeMap::new();
         for (name, baseline) in [
             ("mlsss", Baseline::Mlsss),
             ("homogeneous", Baseline::Homogeneous),
@@ -551,15 +719,15 @@ fn heldout_errors(
         ] {
             match render_projector(model, h, pattern, baseline, &opts) {
                 Ok(r) => {
-                    entry.insert(name.into(), rel_rmse(&r.global, &truth, &mask).into());
+                    entry.insert(name.into(), rel_rmse(&r.global, &truth, &mask));
                 }
                 Err(ModelFileError::NoDipole) => {}
                 Err(e) => return Err(e.into()),
             }
         }
-        out.insert(pattern.label(), Value::Object(entry));
+        out.insert(pattern.label(), entry);
     }
-    Ok(Value::Object(out))
+    Ok(out)
 }
 
 /// The model's profile of one pixel: `E sum_l w_l (g_l * box_W)(s)`, comb images included.
@@ -579,7 +747,8 @@ fn model_profile(layers: &[SplatLayer], irradiance: f64, profile: &Profile, s: f
             let mass: f64 = images
                 .iter()
                 .map(|k| {
-                    let d = s - mu - k * period;
+                    // The slit's own image has no offset (0 x an infinite period is NaN).
+                    let d = s - mu - if *k == 0.0 { 0.0 } else { k * period };
                     0.5 * (mlsss_core::special::erf((d + w / 2.0) / sigma)
                         - mlsss_core::special::erf((d - w / 2.0) / sigma))
                 })
@@ -796,4 +965,130 @@ fn measured_global(
         blur_px: p.blur_px,
     };
     Ok(mlsss_layer_model::slit_global::slit_global(&pixels, slit, &p.coords, &white).ok())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layer(weight: f32, sigma_mm: f32, depth_mm: f32) -> SplatLayer {
+        SplatLayer {
+            index: 0,
+            weight,
+            sigma_mm,
+            depth_mm,
+        }
+    }
+
+    fn single_slit(width: f64, shift_per_depth: f64) -> Profile {
+        Profile {
+            samples: Vec::new(),
+            slit_width: width,
+            period: None,
+            shift_per_depth,
+        }
+    }
+
+    #[test]
+    fn a_pixel_profile_is_the_layer_gaussian_integrated_over_the_slit() {
+        // A slit as wide as two standard deviations, centred on the layer: the layer's light
+        // within one sigma of its mean, 68.27 % of it (the normal distribution's 1-sigma mass).
+        let one_sigma_mass = 0.682_689_492_137_086;
+        let profile = single_slit(1.0, 0.0);
+        let layers = [layer(2.0, 0.5, 0.0)];
+        let at_centre = model_profile(&layers, 3.0, &profile, 0.0);
+        assert!(
+            (at_centre - 2.0 * 3.0 * one_sigma_mass).abs() < 1e-9,
+            "{at_centre}"
+        );
+        // Symmetric about the slit, and far from it nothing.
+        let (left, right) = (
+            model_profile(&layers, 3.0, &profile, -0.7),
+            model_profile(&layers, 3.0, &profile, 0.7),
+        );
+        assert!((left - right).abs() < 1e-12);
+        assert!(model_profile(&layers, 3.0, &profile, 6.0) < 1e-12);
+        // A layer 1 mm deep with 0.4 mm of shift per mm of depth peaks 0.4 mm forward.
+        let shifted = single_slit(1.0, 0.4);
+        let deep = [layer(2.0, 0.5, 1.0)];
+        let peak = model_profile(&deep, 3.0, &shifted, 0.4);
+        assert!((peak - at_centre).abs() < 1e-12, "{peak} vs {at_centre}");
+        // A comb adds the neighbouring slits' light: one period away it is the same again.
+        let comb = Profile {
+            period: Some(4.0),
+            ..single_slit(1.0, 0.0)
+        };
+        let c0 = model_profile(&layers, 3.0, &comb, 0.0);
+        let c1 = model_profile(&layers, 3.0, &comb, 4.0);
+        assert!(
+            (c0 - at_centre).abs() < 1e-9 && (c1 - c0).abs() < 1e-9,
+            "{c0} {c1}"
+        );
+    }
+
+    #[test]
+    fn relative_rmse_is_over_the_mask_and_all_channels() {
+        let a = [[1.0, 1.0, 1.0], [9.0, 9.0, 9.0]];
+        let t = [[2.0, 2.0, 2.0], [0.0, 0.0, 0.0]];
+        // sqrt(3 * 1^2 / (3 * 2^2)) = 0.5; the second pixel is masked out.
+        assert!((rel_rmse(&a, &t, &[true, false]) - 0.5).abs() < 1e-12);
+        assert_eq!(rel_rmse(&a, &t, &[false, false]), 0.0, "no truth light");
+    }
+
+    #[test]
+    fn unfitted_surface_pixels_get_the_mean_layers_and_only_they() {
+        // Pixel 0 fitted, pixel 1 on the surface without a fit, pixel 2 off the surface.
+        let model = LayerModel::from_fn(3, 1, |i, _| {
+            (i == 0).then(|| layer(0.5, 1.0, 0.2)).into_iter()
+        });
+        let fitted = model.fitted();
+        assert_eq!(fitted, [true, false, false]);
+        let (filled, count) = fill_unfitted(&model, &fitted, &[true, true, false]);
+        assert_eq!(count, 1);
+        for c in 0..3 {
+            assert_eq!(filled.layers(0, c), model.layers(0, c));
+            assert_eq!(
+                filled.layers(1, c),
+                model.mean_layers(&fitted)[c].as_slice()
+            );
+            assert!(!filled.layers(1, c).is_empty());
+            assert!(filled.layers(2, c).is_empty());
+        }
+    }
+
+    #[test]
+    fn out_of_range_parameters_are_refused() {
+        let ok = FitParams::default();
+        check_params(&ok, 4).unwrap();
+        let holdout = FitParams {
+            holdout: Some(4),
+            ..FitParams::default()
+        };
+        assert!(matches!(
+            check_params(&holdout, 4),
+            Err(FitStageError::BadHoldout {
+                holdout: 4,
+                count: 4
+            })
+        ));
+        for bad in [
+            FitParams {
+                components: 0,
+                ..FitParams::default()
+            },
+            FitParams {
+                block: 0,
+                ..FitParams::default()
+            },
+            FitParams {
+                max_iterations: 0,
+                ..FitParams::default()
+            },
+        ] {
+            assert!(matches!(
+                check_params(&bad, 4),
+                Err(FitStageError::BadParameter(_))
+            ));
+        }
+    }
 }

@@ -16,7 +16,7 @@ use std::path::PathBuf;
 
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use super::decode_stage::{DecodeStageError, coords_path, load_coords};
 use super::{Stage, StageContext, StageFailure};
@@ -55,6 +55,21 @@ impl Default for GeometryParams {
     }
 }
 
+/// The geometry stage's report fragment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GeometryReport {
+    /// Camera pixels with a depth.
+    pub valid_fraction: f64,
+    /// Mean number of projectors fused per measured pixel.
+    pub mean_projectors_used: f64,
+    /// Candidate depths rejected by the fusion, over all candidates.
+    pub outlier_fraction: f64,
+    pub triangles: usize,
+    /// With ground truth: the depth errors.
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<DepthErrors>,
+}
+
 /// Errors of the geometry stage.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -87,11 +102,14 @@ pub enum GeometryStageError {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_geometry(ctx).map_err(StageFailure::new)
+    let params: GeometryParams = ctx.params()?;
+    super::fragment(&run_geometry(ctx, &params).map_err(StageFailure::new)?)
 }
 
-fn run_geometry(ctx: &StageContext) -> Result<Value, GeometryStageError> {
-    let params: GeometryParams = ctx.params().unwrap_or_default();
+fn run_geometry(
+    ctx: &StageContext,
+    params: &GeometryParams,
+) -> Result<GeometryReport, GeometryStageError> {
     let calib = ctx
         .calibration
         .ok_or(GeometryStageError::NothingDecoded(ctx.stage_dir("decode")))?;
@@ -140,30 +158,28 @@ fn run_geometry(ctx: &StageContext) -> Result<Value, GeometryStageError> {
         calib.camera.extrinsics.centre().coords.into(),
     )?;
 
-    let mut report = summary(&map);
-    report["triangles"] = json!(mesh.triangles.len());
-    if let Some(t) = ctx.truth_dir() {
-        let truth_depth = imageio::read_exr_gray(&truth::depth(&t))?;
-        let errors = DepthErrors::new(&map, &truth_depth.data);
-        if let (Some(obj), Ok(Value::Object(extra))) =
-            (report.as_object_mut(), serde_json::to_value(errors))
-        {
-            obj.extend(extra);
+    let truth = match ctx.truth_dir() {
+        Some(t) => {
+            let truth_depth = imageio::read_exr_gray(&truth::depth(&t))?;
+            Some(DepthErrors::new(&map, &truth_depth.data))
         }
-    }
-    Ok(report)
+        None => None,
+    };
+    Ok(report(&map, mesh.triangles.len(), truth))
 }
 
-fn summary(map: &DepthMap) -> Value {
+fn report(map: &DepthMap, triangles: usize, truth: Option<DepthErrors>) -> GeometryReport {
     let n = map.depth.len().max(1) as f64;
     let valid = map.valid_count();
     let used: usize = map.projectors_used.iter().map(|&u| u as usize).sum();
     let candidates: usize = used + map.outliers.iter().map(|&o| o as usize).sum::<usize>();
-    json!({
-        "valid_fraction": valid as f64 / n,
-        "mean_projectors_used": used as f64 / valid.max(1) as f64,
-        "outlier_fraction": (candidates - used) as f64 / candidates.max(1) as f64,
-    })
+    GeometryReport {
+        valid_fraction: valid as f64 / n,
+        mean_projectors_used: used as f64 / valid.max(1) as f64,
+        outlier_fraction: (candidates - used) as f64 / candidates.max(1) as f64,
+        triangles,
+        truth,
+    }
 }
 
 fn write_artefacts(

@@ -31,8 +31,10 @@
 //!    uses_calibration, run }`. `run(&StageContext)` reads its inputs' artefacts from
 //!    `ctx.stage_dir(input)` (through loaders exported by the producing stage's file, e.g.
 //!    [`decode_stage::load_coords`]), writes its own under `ctx.dir()`, and returns its report fragment.
-//!    Parameters: `ctx.params::<MyParams>()` (a `Deserialize + Default` struct; the CLI fills them
-//!    with [`Pipeline::set_params`]). Bump `version` when the stage's output changes meaning.
+//!    Parameters: `ctx.params::<MyParams>()?` (a `Serialize + Deserialize + Default` struct; the
+//!    CLI fills them with [`Pipeline::set_params`]; keys given replace the defaults, and an
+//!    unknown key or a mistyped value fails the run with [`PipelineError::Params`] naming the
+//!    stage and the key). Bump `version` when the stage's output changes meaning.
 //! 3. Register it in [`STAGES`] (after its inputs) and add a variant to the CLI's `--until` help.
 //! 4. Errors: the stage's module has its own `thiserror` enum; return it boxed via
 //!    [`StageFailure::new`].
@@ -52,7 +54,7 @@ use std::sync::Mutex;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
-use serde_json::{Map, Value};
+use serde_json::Value;
 
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, truth};
@@ -98,9 +100,12 @@ pub enum PipelineError {
         path: PathBuf,
         source: std::io::Error,
     },
-    /// Stage parameters are not valid JSON for the stage.
-    #[error("parameters of stage `{stage}`: {source}")]
-    Params {
+    /// Stage parameters do not fit the stage's parameter struct.
+    #[error(transparent)]
+    Params(#[from] ParamsError),
+    /// A stage's report fragment does not fit the stage's report struct.
+    #[error("report of stage `{stage}`: {source}")]
+    Report {
         stage: &'static str,
         source: serde_json::Error,
     },
@@ -110,6 +115,93 @@ pub enum PipelineError {
         stage: &'static str,
         source: StageFailure,
     },
+}
+
+/// Parameters set for a stage ([`Pipeline::set_params`]) that the stage cannot take: an unknown
+/// key, or a value of the wrong type or out of the type's range. Names the stage and the key.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("parameters of stage `{stage}`: `{key}`: {message}")]
+pub struct ParamsError {
+    pub stage: &'static str,
+    /// Dotted path of the offending key (`-` when the parameters are not a JSON object).
+    pub key: String,
+    pub message: String,
+}
+
+/// Reads the parameters `value` of `stage` into `P`: the keys given replace those of
+/// `P::default()` (so a partial object is enough, also for flattened or foreign parameter
+/// structs without `#[serde(default)]`); every key must be one of `P`'s and every value must fit
+/// it, else a [`ParamsError`] naming the key.
+pub fn parse_params<P>(stage: &'static str, value: &Value) -> Result<P, ParamsError>
+where
+    P: Serialize + serde::de::DeserializeOwned + Default,
+{
+    let error = |key: String, message: String| ParamsError {
+        stage,
+        key,
+        message,
+    };
+    let Some(given) = value.as_object() else {
+        return Err(error(
+            "-".into(),
+            format!("expected a JSON object of parameters, got {value}"),
+        ));
+    };
+    let defaults = match serde_json::to_value(P::default()) {
+        Ok(Value::Object(map)) => map,
+        Ok(other) => {
+            return Err(error(
+                "-".into(),
+                format!("defaults are not an object: {other}"),
+            ));
+        }
+        Err(e) => return Err(error("-".into(), e.to_string())),
+    };
+    // Serde ignores unknown keys (and `deny_unknown_fields` does not combine with the flattened
+    // structs some stages use): a key the defaults do not have is unknown.
+    if let Some((key, known_here)) = unknown_key(value, &Value::Object(defaults.clone()), "") {
+        return Err(error(
+            key,
+            format!("unknown parameter (known: {})", known_here.join(", ")),
+        ));
+    }
+    let over_defaults = |keys: &mut dyn Iterator<Item = (&String, &Value)>| {
+        let mut merged = defaults.clone();
+        merged.extend(keys.map(|(k, v)| (k.clone(), v.clone())));
+        serde_json::from_value::<P>(Value::Object(merged))
+    };
+    over_defaults(&mut given.iter()).map_err(|e| {
+        // The key that fails on its own (over the defaults) is the culprit.
+        let culprit = given
+            .iter()
+            .find(|kv| over_defaults(&mut std::iter::once(*kv)).is_err());
+        let key = culprit.map_or_else(|| "-".to_owned(), |(k, _)| k.clone());
+        error(key, e.to_string())
+    })
+}
+
+/// The first key of `given` (dotted path from `prefix`) that `known` lacks, with the keys `known`
+/// has at that level.
+fn unknown_key(given: &Value, known: &Value, prefix: &str) -> Option<(String, Vec<String>)> {
+    let (Value::Object(given), Value::Object(known)) = (given, known) else {
+        return None;
+    };
+    for (k, v) in given {
+        let path = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match known.get(k) {
+            None => return Some((path, known.keys().cloned().collect())),
+            Some(kv) => {
+                if let Some(found) = unknown_key(v, kv, &path) {
+                    return Some(found);
+                }
+            }
+        }
+    }
+    None
 }
 
 /// A stage's own error, boxed so the pipeline does not depend on every stage's error type.
@@ -137,6 +229,20 @@ impl std::fmt::Display for StageFailure {
 
 impl std::error::Error for StageFailure {}
 
+impl StageFailure {
+    /// The pipeline error for a failure of `stage`: [`PipelineError::Params`] when the stage
+    /// refused its parameters, else [`PipelineError::Stage`].
+    fn into_pipeline_error(self, stage: &'static str) -> PipelineError {
+        match self.0.downcast::<ParamsError>() {
+            Ok(params) => PipelineError::Params(*params),
+            Err(other) => PipelineError::Stage {
+                stage,
+                source: StageFailure(other),
+            },
+        }
+    }
+}
+
 /// One processing stage.
 #[derive(Debug, Clone, Copy)]
 pub struct Stage {
@@ -150,6 +256,55 @@ pub struct Stage {
     /// Runs the stage: reads inputs, writes artefacts under `ctx.dir()`, returns its report
     /// fragment (a JSON object).
     pub run: fn(&StageContext) -> Result<Value, StageFailure>,
+}
+
+/// A stage's report as its JSON fragment (what [`Stage::run`] returns and the cache stores).
+pub fn fragment<R: Serialize>(report: &R) -> Result<Value, StageFailure> {
+    serde_json::to_value(report).map_err(StageFailure::new)
+}
+
+/// The report of a pipeline run (`OUT/report.json`, what `mlsss process --json` prints): each
+/// stage's report under its name (only the stages that ran or came from the cache), run times
+/// per stage, and the stages reused from the cache.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct PipelineReport {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decode: Option<decode_stage::DecodeReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub geometry: Option<geometry_stage::GeometryReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub separate: Option<separate_stage::SeparateReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normals: Option<normals_stage::NormalsReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profiles: Option<profiles_stage::ProfilesReport>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fit: Option<fit_stage::FitReport>,
+    /// Wall-clock seconds per stage (as recorded when it ran, also for cached stages).
+    pub timing_s: BTreeMap<String, f64>,
+    /// CPU seconds per stage (all threads), where the platform tells.
+    pub timing_cpu_s: BTreeMap<String, f64>,
+    /// Stages whose results were reused from the cache.
+    pub cached: Vec<String>,
+}
+
+impl PipelineReport {
+    /// Stores `fragment` as the typed report of `stage`.
+    fn set(&mut self, stage: &str, fragment: Value) -> Result<(), serde_json::Error> {
+        fn typed<T: serde::de::DeserializeOwned>(v: Value) -> Result<Option<T>, serde_json::Error> {
+            serde_json::from_value(v).map(Some)
+        }
+        match stage {
+            "decode" => self.decode = typed(fragment)?,
+            "geometry" => self.geometry = typed(fragment)?,
+            "separate" => self.separate = typed(fragment)?,
+            "normals" => self.normals = typed(fragment)?,
+            "profiles" => self.profiles = typed(fragment)?,
+            "fit" => self.fit = typed(fragment)?,
+            _ => {}
+        }
+        Ok(())
+    }
 }
 
 /// Names of the registered stages, in order.
@@ -219,11 +374,16 @@ impl StageContext<'_> {
         self.out.join(stage)
     }
 
-    /// This stage's parameters (defaults when none were set).
-    pub fn params<P: for<'de> Deserialize<'de> + Default>(&self) -> Result<P, StageFailure> {
+    /// This stage's parameters (defaults when none were set). Parameters that do not fit `P`
+    /// (unknown key, wrong type) are an error naming the stage and the key ([`parse_params`]),
+    /// which the pipeline reports as [`PipelineError::Params`].
+    pub fn params<P>(&self) -> Result<P, StageFailure>
+    where
+        P: Serialize + serde::de::DeserializeOwned + Default,
+    {
         match self.params {
             None => Ok(P::default()),
-            Some(v) => serde_json::from_value(v.clone()).map_err(StageFailure::new),
+            Some(v) => parse_params(self.stage, v).map_err(StageFailure::new),
         }
     }
 
@@ -331,47 +491,46 @@ impl Pipeline {
     }
 
     /// Runs `until` and every stage it needs (reusing cached results); returns the report.
-    pub fn run_until(&self, until: &str) -> Result<Value, PipelineError> {
+    pub fn run_until(&self, until: &str) -> Result<PipelineReport, PipelineError> {
         let order = needed_stages(until)?;
         create_dir(&self.out)?;
-        let mut report = Map::new();
-        let mut timing = Map::new();
-        let mut cpu = Map::new();
-        let mut cached = Vec::new();
+        let mut report = PipelineReport::default();
         let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
         let handed_over = HandedOver::default();
         for stage in order {
             let key = self.stage_key(stage, &keys);
             let dir = self.out.join(stage.name);
             let record_path = dir.join(STAGE_RECORD);
-            let record = match read_record(&record_path).filter(|r| r.key == key) {
+            // A cached record whose report no longer fits the stage's report struct is run again.
+            let cached = read_record(&record_path)
+                .filter(|r| r.key == key && report.set(stage.name, r.report.clone()).is_ok());
+            if let Some(cb) = &self.on_stage {
+                cb(stage.name, cached.is_some());
+            }
+            let record = match cached {
                 Some(r) => {
-                    if let Some(cb) = &self.on_stage {
-                        cb(stage.name, true);
-                    }
-                    cached.push(Value::from(stage.name));
+                    report.cached.push(stage.name.to_owned());
                     r
                 }
                 None => {
-                    if let Some(cb) = &self.on_stage {
-                        cb(stage.name, false);
-                    }
-                    self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?
+                    let r = self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?;
+                    report.set(stage.name, r.report.clone()).map_err(|source| {
+                        PipelineError::Report {
+                            stage: stage.name,
+                            source,
+                        }
+                    })?;
+                    r
                 }
             };
-            timing.insert(stage.name.into(), Value::from(record.seconds));
+            report.timing_s.insert(stage.name.into(), record.seconds);
             if let Some(c) = record.cpu_seconds {
-                cpu.insert(stage.name.into(), Value::from(c));
+                report.timing_cpu_s.insert(stage.name.into(), c);
             }
-            report.insert(stage.name.into(), record.report);
             keys.insert(stage.name, key);
         }
-        report.insert("timing_s".into(), Value::Object(timing));
-        report.insert("timing_cpu_s".into(), Value::Object(cpu));
-        report.insert("cached".into(), Value::Array(cached));
-        let report = Value::Object(report);
         let path = self.out.join(REPORT_FILE);
-        write_json(&path, &report)?;
+        write_json(&path, &serde_json::to_value(&report).unwrap_or(Value::Null))?;
         Ok(report)
     }
 
@@ -402,10 +561,7 @@ impl Pipeline {
         };
         let start = Instant::now();
         let cpu_start = cpu_seconds();
-        let report = (stage.run)(&ctx).map_err(|source| PipelineError::Stage {
-            stage: stage.name,
-            source,
-        })?;
+        let report = (stage.run)(&ctx).map_err(|source| source.into_pipeline_error(stage.name))?;
         let record = StageRecord {
             key,
             report,
@@ -622,32 +778,93 @@ mod tests {
         let out = dir.path().join("out");
         let pipeline = Pipeline::new(&capture, &out, &CalibrationSource::Truth).unwrap();
         let report = pipeline.run_until("geometry").unwrap();
-        for p in report["decode"]["projectors"].as_array().unwrap() {
-            assert!(p["valid_fraction"].as_f64().unwrap() > 0.8, "{p}");
-            assert!(p["wrong_fraction"].as_f64().unwrap() < 0.002, "{p}");
-            assert!(p["mean_abs_error_px"].as_f64().unwrap() < 0.2, "{p}");
+        for p in &report.decode.as_ref().unwrap().projectors {
+            let t = p.truth.unwrap();
+            assert!(p.counts.unwrap().valid_fraction > 0.8, "{p:?}");
+            assert!(t.wrong_fraction < 0.002, "{p:?}");
+            assert!(t.mean_abs_error_px < 0.2, "{p:?}");
         }
-        let g = &report["geometry"];
+        let g = report.geometry.as_ref().unwrap();
+        let depth = g.truth.unwrap();
         // Quick booth: ~0.6 mm projector pixels seen at ~40 degrees; sub-pixel codes give
         // sub-millimetre depth.
-        assert!(g["depth_rmse_mm"].as_f64().unwrap() < 0.5, "{g}");
-        assert!(g["depth_p95_abs_mm"].as_f64().unwrap() < 1.0, "{g}");
-        assert!(g["coverage"].as_f64().unwrap() > 0.8, "{g}");
+        assert!(depth.depth_rmse_mm < 0.5, "{g:?}");
+        assert!(depth.depth_p95_abs_mm < 1.0, "{g:?}");
+        assert!(depth.coverage > 0.8, "{g:?}");
         for f in ["depth.exr", "points.exr", "mesh.ply", "shaded.png"] {
             assert!(out.join("geometry").join(f).is_file(), "{f}");
         }
         assert!(out.join("decode/proj1_codes.png").is_file());
-        assert!(report["timing_s"]["decode"].as_f64().unwrap() > 0.0);
-        assert_eq!(report["cached"], serde_json::json!([]));
+        assert!(report.timing_s["decode"] > 0.0);
+        assert!(report.cached.is_empty());
+        // What report.json holds is the typed report (serde_json's text parsing may differ from
+        // the written float in the last bit: compared loosely).
+        let written: PipelineReport =
+            serde_json::from_str(&std::fs::read_to_string(out.join(REPORT_FILE)).unwrap()).unwrap();
+        let written_depth = written.geometry.as_ref().and_then(|g| g.truth).unwrap();
+        assert!((written_depth.depth_rmse_mm - depth.depth_rmse_mm).abs() < 1e-12);
+        assert_eq!(written.decode.map(|d| d.projectors.len()), Some(2));
 
         // Same inputs: both stages come from the cache. New geometry parameters: only geometry.
         let again = pipeline.run_until("geometry").unwrap();
-        assert_eq!(again["cached"], serde_json::json!(["decode", "geometry"]));
-        assert_eq!(again["geometry"], report["geometry"]);
+        assert_eq!(again.cached, ["decode", "geometry"]);
+        assert_eq!(again.geometry, report.geometry);
         let mut pipeline = pipeline;
         pipeline.set_params("geometry", serde_json::json!({ "max_edge_mm": 2.0 }));
         let third = pipeline.run_until("geometry").unwrap();
-        assert_eq!(third["cached"], serde_json::json!(["decode"]));
+        assert_eq!(third.cached, ["decode"]);
+
+        // Parameters the stage cannot take stop the run, naming the stage and the key, instead
+        // of running it with defaults.
+        pipeline.set_params("geometry", serde_json::json!({ "max_edge_mm": "long" }));
+        let err = pipeline.run_until("geometry").unwrap_err();
+        assert!(
+            matches!(&err, PipelineError::Params(p) if p.stage == "geometry" && p.key == "max_edge_mm"),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("`geometry`"), "{err}");
+        pipeline.set_params("geometry", serde_json::json!({ "max_edge": 2.0 }));
+        let err = pipeline.run_until("geometry").unwrap_err();
+        assert!(err.to_string().contains("`max_edge`"), "{err}");
+        assert!(
+            err.to_string().contains("max_edge_mm"),
+            "lists the known keys: {err}"
+        );
+    }
+
+    #[test]
+    fn parameters_name_the_stage_and_the_offending_key() {
+        use fit_stage::FitParams;
+        let ok: FitParams = parse_params("fit", &serde_json::json!({ "block": 3 })).unwrap();
+        assert_eq!(
+            ok,
+            FitParams {
+                block: 3,
+                ..FitParams::default()
+            }
+        );
+        let err = parse_params::<FitParams>("fit", &serde_json::json!({ "blok": 3 })).unwrap_err();
+        assert_eq!((err.stage, err.key.as_str()), ("fit", "blok"));
+        assert!(err.message.contains("unknown parameter"), "{err}");
+        let err = parse_params::<FitParams>(
+            "fit",
+            &serde_json::json!({ "components": 4, "block": "six" }),
+        )
+        .unwrap_err();
+        assert_eq!(err.key, "block", "{err}");
+        assert!(err.message.contains("invalid type"), "{err}");
+        let err =
+            parse_params::<FitParams>("fit", &serde_json::json!({ "em": "bogus" })).unwrap_err();
+        assert_eq!(err.key, "em", "{err}");
+        // Flattened structs (geometry's triangulation parameters) are known keys too.
+        let g = geometry_stage::GeometryParams::default();
+        let mut v = serde_json::to_value(&g).unwrap();
+        parse_params::<geometry_stage::GeometryParams>("geometry", &v).unwrap();
+        v["typo"] = serde_json::json!(1);
+        let err = parse_params::<geometry_stage::GeometryParams>("geometry", &v).unwrap_err();
+        assert_eq!(err.key, "typo");
+        let err = parse_params::<FitParams>("fit", &Value::Null).unwrap_err();
+        assert_eq!(err.key, "-");
     }
 
     #[test]
@@ -657,24 +874,17 @@ mod tests {
         let out = dir.path().join("out");
         let pipeline = Pipeline::new(&capture, &out, &CalibrationSource::None).unwrap();
         let report = pipeline.run_until("decode").unwrap();
-        let p1 = &report["decode"]["projectors"][1];
+        let decode = report.decode.as_ref().unwrap();
+        let p1 = &decode.projectors[1];
         assert!(
-            p1["skipped"]
-                .as_str()
+            p1.skipped
+                .as_deref()
                 .unwrap()
                 .contains("no camera pixel is lit"),
-            "{p1}"
+            "{p1:?}"
         );
-        assert!(
-            report["decode"]["projectors"][0]["valid_fraction"]
-                .as_f64()
-                .unwrap()
-                > 0.8
-        );
-        assert!(
-            report.get("geometry").is_none(),
-            "only what was asked for runs"
-        );
+        assert!(decode.projectors[0].counts.unwrap().valid_fraction > 0.8);
+        assert!(report.geometry.is_none(), "only what was asked for runs");
 
         let err = pipeline.run_until("geometry").unwrap_err();
         assert!(err.to_string().contains("--calib"), "{err}");

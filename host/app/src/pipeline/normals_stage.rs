@@ -23,14 +23,15 @@ use std::path::{Path, PathBuf};
 use image::Rgb32FImage;
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use super::separate_stage::{direct_path, white_path};
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::truth;
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::photometry::photometric_stereo::{
-    LightModel, LightSample, Method, PhotometricStereoError, PsParams, angular_errors, solve_images,
+    LightModel, LightSample, Method, NormalMapStats, PhotometricStereoError, PsParams,
+    angular_errors, solve_images,
 };
 
 /// The photometric-stereo stage.
@@ -78,6 +79,64 @@ impl Default for NormalsParams {
             input: PsInput::Direct,
             points: PointSource::Geometry,
             method: Method::Robust,
+        }
+    }
+}
+
+/// The normals stage's report fragment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NormalsReport {
+    /// Pixels attempted (with a surface point).
+    pub pixels: u64,
+    /// Pixels solved.
+    pub solved: u64,
+    /// Mean number of lights used over the solved pixels.
+    pub lights_used_mean: f64,
+    pub flagged: NormalsFlagged,
+    pub input: PsInput,
+    pub points: PointSource,
+    pub method: Method,
+    /// With ground truth: angular errors over the solved pixels of the truth mask.
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<NormalErrors>,
+}
+
+/// Pixels photometric stereo flagged, by reason.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct NormalsFlagged {
+    pub too_few_lights: u64,
+    pub ill_conditioned: u64,
+    pub no_signal: u64,
+    pub back_facing: u64,
+}
+
+/// Normals against the simulator's.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NormalErrors {
+    pub mean_angular_error_deg: f64,
+    pub median_angular_error_deg: f64,
+    pub p95_angular_error_deg: f64,
+    pub compared_pixels: u64,
+    /// Solved fraction of the truth mask.
+    pub coverage: f64,
+}
+
+impl NormalsReport {
+    fn new(stats: &NormalMapStats, params: &NormalsParams) -> Self {
+        Self {
+            pixels: stats.pixels,
+            solved: stats.solved,
+            lights_used_mean: stats.lights_used_mean,
+            flagged: NormalsFlagged {
+                too_few_lights: stats.too_few_lights,
+                ill_conditioned: stats.ill_conditioned,
+                no_signal: stats.no_signal,
+                back_facing: stats.back_facing,
+            },
+            input: params.input,
+            points: params.points,
+            method: params.method,
+            truth: None,
         }
     }
 }
@@ -157,11 +216,14 @@ impl LightModel for ProjectorLights {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_normals(ctx).map_err(StageFailure::new)
+    let params: NormalsParams = ctx.params()?;
+    super::fragment(&run_normals(ctx, &params).map_err(StageFailure::new)?)
 }
 
-fn run_normals(ctx: &StageContext) -> Result<Value, NormalsStageError> {
-    let params: NormalsParams = ctx.params().unwrap_or_default();
+fn run_normals(
+    ctx: &StageContext,
+    params: &NormalsParams,
+) -> Result<NormalsReport, NormalsStageError> {
     let calib = ctx.calibration.ok_or(NormalsStageError::ProjectorCount {
         calibrated: 0,
         captured: 1,
@@ -255,11 +317,7 @@ fn run_normals(ctx: &StageContext) -> Result<Value, NormalsStageError> {
         },
     )?;
     write_preview(&dir.join("normals.png"), &normals)?;
-    let stats = map.stats();
-    let mut report = stats.report_json();
-    report["input"] = json!(params.input);
-    report["points"] = json!(params.points);
-    report["method"] = json!(params.method);
+    let mut report = NormalsReport::new(&map.stats(), params);
     if let Some(t) = ctx.truth_dir() {
         let truth_normals = imageio::read_exr_rgb(&truth::normals(&t))?;
         let mask = image::open(truth::mask(&t)).ok().map(|m| {
@@ -275,11 +333,13 @@ fn run_normals(ctx: &StageContext) -> Result<Value, NormalsStageError> {
             let skin = mask
                 .as_ref()
                 .map_or(0, |m| m.iter().filter(|v| **v).count());
-            report["mean_angular_error_deg"] = errors.mean_deg.into();
-            report["median_angular_error_deg"] = errors.median_deg.into();
-            report["p95_angular_error_deg"] = errors.p95_deg.into();
-            report["compared_pixels"] = errors.pixels.into();
-            report["coverage"] = (errors.pixels as f64 / skin.max(1) as f64).into();
+            report.truth = Some(NormalErrors {
+                mean_angular_error_deg: errors.mean_deg,
+                median_angular_error_deg: errors.median_deg,
+                p95_angular_error_deg: errors.p95_deg,
+                compared_pixels: errors.pixels,
+                coverage: errors.pixels as f64 / skin.max(1) as f64,
+            });
         }
     }
     Ok(report)

@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use super::decode_stage::{DecodeStageError, coords_path, load_coords};
 use super::line_plot::{LinePlot, LinePlotError, Mark, Series};
@@ -198,6 +198,39 @@ pub enum ProfilesStageError {
     /// The record file could not be read or written.
     #[error("{path}: {message}")]
     Record { path: PathBuf, message: String },
+}
+
+/// The profiles stage's report fragment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProfilesReport {
+    pub projectors: Vec<ProjectorProfilesReport>,
+    /// Camera row of the plotted scanline.
+    pub scanline_row: usize,
+    pub eta: f64,
+    pub view_ray: ViewRay,
+    pub direct: DirectPart,
+    /// With ground truth: relative RMS error of the extracted slit light, as configured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse: Option<f64>,
+    /// With [`ProfilesParams::compare_variants`]: the same error of each of [`VARIANTS`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_hard_mask: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_separation: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_none: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_colourless: Option<f64>,
+}
+
+/// One projector's entry of [`ProfilesReport`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProjectorProfilesReport {
+    pub projector: usize,
+    pub pixels_with_profiles: usize,
+    pub slit_frames: usize,
+    pub blur_px: f64,
+    pub black_level: f64,
 }
 
 /// What the stage stores about the profiles it built (read back by the fit stage).
@@ -679,46 +712,52 @@ fn accumulate(acc: &mut (f64, f64), a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_profiles(ctx).map_err(StageFailure::new)
+    let params: ProfilesParams = ctx.params()?;
+    super::fragment(&run_profiles(ctx, &params).map_err(StageFailure::new)?)
 }
 
-fn run_profiles(ctx: &StageContext) -> Result<Value, ProfilesStageError> {
-    let params: ProfilesParams = ctx.params().unwrap_or_default();
+fn run_profiles(
+    ctx: &StageContext,
+    params: &ProfilesParams,
+) -> Result<ProfilesReport, ProfilesStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     let all: Vec<usize> = (0..captured).collect();
-    let inputs = ProfileInputs::load(ctx, &params, &all)?;
+    let inputs = ProfileInputs::load(ctx, params, &all)?;
     let cam = &ctx.capture.manifest.booth.camera;
     let size = (cam.width, cam.height);
     let (row, cols) = scanline(&inputs.surface);
     let mut per_projector = Vec::new();
     for p in &inputs.projectors {
         p.sweep()?; // checks the frames: slits only, camera-sized
-        per_projector.push(json!({
-            "projector": p.k,
-            "pixels_with_profiles": p.geometry.iter().filter(|g| g.is_some()).count(),
-            "slit_frames": p.slits.len(),
-            "blur_px": p.blur_px,
-            "black_level": p.black_level,
-        }));
+        per_projector.push(ProjectorProfilesReport {
+            projector: p.k,
+            pixels_with_profiles: p.geometry.iter().filter(|g| g.is_some()).count(),
+            slit_frames: p.slits.len(),
+            blur_px: f64::from(p.blur_px),
+            black_level: f64::from(p.black_level),
+        });
     }
-    let mut report = json!({
-        "projectors": per_projector,
-        "scanline_row": row,
-        "eta": params.eta,
-        "view_ray": params.view_ray,
-        "direct": params.direct,
-    });
+    let mut report = ProfilesReport {
+        projectors: per_projector,
+        scanline_row: row,
+        eta: params.eta,
+        view_ray: params.view_ray,
+        direct: params.direct,
+        slit_global_rel_rmse: None,
+        slit_global_rel_rmse_hard_mask: None,
+        slit_global_rel_rmse_direct_separation: None,
+        slit_global_rel_rmse_direct_none: None,
+        slit_global_rel_rmse_direct_colourless: None,
+    };
     let truth_dir = ctx.truth_dir();
     if let Some(t) = &truth_dir {
         let errors = truth_check(ctx, &inputs, t, size, params.compare_variants)?;
-        if let Some(v) = errors[0] {
-            report["slit_global_rel_rmse"] = v.into();
-        }
-        for ((suffix, _), value) in VARIANTS.iter().zip(&errors[1..]) {
-            if let Some(v) = value {
-                report[format!("slit_global_rel_rmse_{suffix}")] = (*v).into();
-            }
-        }
+        let variant = |n: usize| errors.get(n + 1).copied().flatten();
+        report.slit_global_rel_rmse = errors[0];
+        report.slit_global_rel_rmse_hard_mask = variant(0);
+        report.slit_global_rel_rmse_direct_separation = variant(1);
+        report.slit_global_rel_rmse_direct_none = variant(2);
+        report.slit_global_rel_rmse_direct_colourless = variant(3);
     }
     let record = ProfilesRecord {
         params: params.clone(),
@@ -743,7 +782,8 @@ fn run_profiles(ctx: &StageContext) -> Result<Value, ProfilesStageError> {
 }
 
 /// The truth check's variants besides the configured one: hard slit edges, and each rule for
-/// the direct part (report key suffixes).
+/// the direct part (report key suffixes: the fields `slit_global_rel_rmse_<suffix>` of
+/// [`ProfilesReport`], in this order).
 const VARIANTS: [(&str, Option<DirectPart>); 4] = [
     ("hard_mask", None),
     ("direct_separation", Some(DirectPart::Separation)),
@@ -908,4 +948,83 @@ fn write_scanline_plot(
     };
     plot.write(&ctx.dir().join("scanline"))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn direct_part_rules_split_a_white_frame() {
+        let direct = [[0.2f32, 0.3, 0.1]];
+        let global = [[1.0f32, 1.0, 1.0]];
+        let close = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+        let (d, g) = DirectPart::Separation.split(&direct, &global);
+        assert_eq!((d[0], g[0]), (direct[0], global[0]));
+        // None: all light is subsurface light.
+        let (d, g) = DirectPart::None.split(&direct, &global);
+        assert!(
+            close(d[0], [0.0; 3]) && close(g[0], [1.2, 1.3, 1.1]),
+            "{d:?} {g:?}"
+        );
+        // Colourless: the smallest channel in every channel, the rest back to the global part.
+        let (d, g) = DirectPart::Colourless.split(&direct, &global);
+        assert!(
+            close(d[0], [0.1; 3]) && close(g[0], [1.1, 1.2, 1.0]),
+            "{d:?} {g:?}"
+        );
+        // Whatever the rule, direct + global is the white frame.
+        for rule in [
+            DirectPart::Separation,
+            DirectPart::None,
+            DirectPart::Colourless,
+        ] {
+            let (d, g) = rule.split(&direct, &global);
+            let total = [0, 1, 2].map(|c| d[0][c] + g[0][c]);
+            assert!(close(total, [1.2, 1.3, 1.1]), "{rule:?}");
+        }
+    }
+
+    #[test]
+    fn the_scanline_is_a_quarter_down_the_subject_across_its_columns() {
+        // Subject on rows 2..=10 of a 12x12 image; on row 4 it spans columns 3..=7.
+        let (w, h) = (12, 12);
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                (2..=10).contains(&y) && if y == 4 { (3..=7).contains(&x) } else { x == 5 }
+            })
+            .collect();
+        let surface = Surface {
+            width: w,
+            height: h,
+            points: vec![Vector3::zeros(); w * h],
+            normals: vec![Vector3::z(); w * h],
+            mask,
+            camera_centre: Vector3::new(0.0, 0.0, 100.0),
+        };
+        assert_eq!(scanline(&surface), (4, (3, 7)));
+    }
+
+    #[test]
+    fn the_reference_slit_is_the_first_vertical_one() {
+        let slit = |axis, offset| Pattern::Slit {
+            axis,
+            width: 2,
+            period: 16,
+            offset,
+        };
+        let slits: Vec<SlitGlobal> = vec![
+            (slit(Axis::Y, 0), vec![[1.0; 3]]),
+            (slit(Axis::X, 2), vec![[2.0; 3]]),
+            (slit(Axis::X, 0), vec![[3.0; 3]]),
+        ];
+        assert_eq!(reference_slit(&slits).map(|s| s.0), Some(slit(Axis::X, 0)));
+        assert_eq!(
+            reference_slit(&slits[..2]).map(|s| s.0),
+            Some(slit(Axis::Y, 0)),
+            "else the first"
+        );
+        assert!(reference_slit(&[]).is_none());
+    }
 }

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use image::Rgb32FImage;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::{CaptureError, Pattern, truth};
@@ -54,6 +54,38 @@ impl Default for SeparateParams {
             remove_stray: true,
         }
     }
+}
+
+/// The separation stage's report fragment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SeparateReport {
+    pub projectors: Vec<SeparateProjectorReport>,
+    /// True when the other projectors' black-level light was removed.
+    pub stray_removed: bool,
+    /// With ground truth: relative RMS errors (see the module documentation).
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<SeparationErrors>,
+}
+
+/// One projector's entry of [`SeparateReport`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SeparateProjectorReport {
+    pub black_level: f64,
+    /// `calibration` or `none (0)`.
+    pub black_level_source: String,
+    /// Stripe blur restored, projector px.
+    pub blur_px: f64,
+    pub saturated_pixels: u64,
+    pub non_finite_pixels: u64,
+    pub clamped_negative: u64,
+}
+
+/// Relative RMS errors of the separation against the simulator's truth.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SeparationErrors {
+    pub direct_rel_rmse: f64,
+    pub global_rel_rmse: f64,
+    pub total_rel_rmse: f64,
 }
 
 /// Errors of the separation stage.
@@ -102,7 +134,8 @@ pub fn white_path(dir: &Path, k: usize) -> PathBuf {
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
-    run_separate(ctx).map_err(StageFailure::new)
+    let params: SeparateParams = ctx.params()?;
+    super::fragment(&run_separate(ctx, &params).map_err(StageFailure::new)?)
 }
 
 /// The frames of projector `k`: white and the high-frequency shifts in order.
@@ -161,8 +194,10 @@ pub fn stripe_blur(ctx: &StageContext, k: usize) -> f32 {
     (spec.defocus_px.powi(2) + footprint.powi(2) / 12.0).sqrt() as f32
 }
 
-fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
-    let params: SeparateParams = ctx.params().unwrap_or_default();
+fn run_separate(
+    ctx: &StageContext,
+    params: &SeparateParams,
+) -> Result<SeparateReport, SeparateStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     let calib = ctx.calibration;
     if let Some(c) = calib
@@ -219,20 +254,26 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
         imageio::write_exr_rgb(&direct_path(&dir, k), &sep.direct)?;
         imageio::write_exr_rgb(&global_path(&dir, k), &sep.global)?;
         imageio::write_exr_rgb(&white_path(&dir, k), &subtract(white, offset))?;
-        per_projector.push(json!({
-            "black_level": black[k],
-            "black_level_source": if responses[k].is_some() { "calibration" } else { "none (0)" },
-            "blur_px": blur,
-            "saturated_pixels": sep.stats.saturated_pixels,
-            "non_finite_pixels": sep.stats.non_finite_pixels,
-            "clamped_negative": sep.stats.clamped_negative,
-        }));
+        per_projector.push(SeparateProjectorReport {
+            black_level: black[k],
+            black_level_source: if responses[k].is_some() {
+                "calibration"
+            } else {
+                "none (0)"
+            }
+            .into(),
+            blur_px: f64::from(blur),
+            saturated_pixels: sep.stats.saturated_pixels,
+            non_finite_pixels: sep.stats.non_finite_pixels,
+            clamped_negative: sep.stats.clamped_negative,
+        });
         outputs.push(sep);
     }
-    let mut report = json!({
-        "projectors": per_projector,
-        "stray_removed": stray.is_some(),
-    });
+    let mut report = SeparateReport {
+        projectors: per_projector,
+        stray_removed: stray.is_some(),
+        truth: None,
+    };
     let truth_images = match ctx.truth_dir() {
         Some(t) if truth::direct(&t, 0, &Pattern::White).is_file() => {
             let mask = read_mask(&truth::mask(&t));
@@ -245,10 +286,7 @@ fn run_separate(ctx: &StageContext) -> Result<Value, SeparateStageError> {
                     ))
                 })
                 .collect::<Result<Vec<_>, SeparateStageError>>()?;
-            let errors = relative_errors(&outputs, &pairs, mask.as_deref());
-            report["direct_rel_rmse"] = errors.0.into();
-            report["global_rel_rmse"] = errors.1.into();
-            report["total_rel_rmse"] = errors.2.into();
+            report.truth = Some(relative_errors(&outputs, &pairs, mask.as_deref()));
             Some(pairs)
         }
         _ => None,
@@ -283,7 +321,7 @@ fn relative_errors(
     outputs: &[mlsss_vision::photometry::separation::Separation],
     truth: &[(Rgb32FImage, Rgb32FImage)],
     mask: Option<&[bool]>,
-) -> (f64, f64, f64) {
+) -> SeparationErrors {
     let mut acc = [0.0f64; 6];
     for (sep, (td, tg)) in outputs.iter().zip(truth) {
         if td.dimensions() != sep.direct.dimensions() {
@@ -309,11 +347,11 @@ fn relative_errors(
         }
     }
     let ratio = |e: f64, t: f64| if t > 0.0 { (e / t).sqrt() } else { 0.0 };
-    (
-        ratio(acc[0], acc[1]),
-        ratio(acc[2], acc[3]),
-        ratio(acc[4], acc[5]),
-    )
+    SeparationErrors {
+        direct_rel_rmse: ratio(acc[0], acc[1]),
+        global_rel_rmse: ratio(acc[2], acc[3]),
+        total_rel_rmse: ratio(acc[4], acc[5]),
+    }
 }
 
 /// Pixel `(x, y)` of `img` at half resolution: the mean of its 2x2 block (of the pixels inside).
