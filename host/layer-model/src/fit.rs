@@ -19,10 +19,12 @@ use rayon::prelude::*;
 use super::em_free::{self, Component};
 use super::em_layered::{self, DepthSpacing, LayeredParams};
 use super::layer_depth::{self, LayerDepthError, SpacingEstimate};
-use super::mixture::{EmConfig, EmError, Profile};
-use super::profiles::{PixelGeometry, SlitSweep};
+use super::mixture::{EmError, Profile};
+use super::profiles::{PixelGeometry, SlitSweep, pixel_profiles};
 use super::render::{LayerModel, SplatLayer};
 use super::surface::Surface;
+
+pub use super::fit_options::{EmVariant, FitOptions};
 
 /// Errors of the fit stage.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -43,47 +45,6 @@ pub enum FitError {
     /// The per-projector inputs disagree in number.
     #[error("{geometries} projector geometries but {sweeps} slit sweeps")]
     ProjectorCount { geometries: usize, sweeps: usize },
-}
-
-/// EM variant of DESIGN section 5.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum EmVariant {
-    /// Means tied to layer depth, joint over projectors and axes (ours).
-    #[default]
-    Layered,
-    /// Free means per profile, averaged (the paper).
-    Free,
-}
-
-/// Knobs of the fit stage.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FitOptions {
-    pub em: EmConfig,
-    pub variant: EmVariant,
-    /// Fixed layer spacing (mm); `None` estimates it.
-    pub depth_spacing: Option<f64>,
-    /// Start and upper bound of the spacing estimate (mm; `subsurface::layer_depth`).
-    pub spacing_start: f64,
-    pub spacing_max: f64,
-    /// Pixels used for the spacing estimate (each with all 3 channels).
-    pub spacing_pixels: usize,
-    /// Fit one pixel per `block x block` tile.
-    pub block: usize,
-}
-
-impl Default for FitOptions {
-    fn default() -> Self {
-        Self {
-            em: EmConfig::default(),
-            variant: EmVariant::Layered,
-            depth_spacing: None,
-            spacing_start: 0.1,
-            spacing_max: 1.0,
-            spacing_pixels: 64,
-            block: 1,
-        }
-    }
 }
 
 /// What the fit did.
@@ -108,28 +69,6 @@ pub struct FitResult {
     /// Every pixel's measured amplitude per channel, `sum_p F_p / sum_p E_p W_p` (0 off the
     /// lit surface): what scales its layer weights, and the dipole's total reflectance.
     pub amplitudes: Vec<[f32; 3]>,
-}
-
-/// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
-/// `E W` product of each (for absolute weights).
-pub(crate) fn pixel_profiles(
-    i: usize,
-    c: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
-    sweeps: &[SlitSweep],
-) -> (Vec<Profile>, Vec<f64>) {
-    let mut profiles = Vec::new();
-    let mut ew = Vec::new();
-    for (geo, sweep) in geometries.iter().zip(sweeps) {
-        let Some(g) = geo[i] else { continue };
-        for a in 0..2 {
-            if let Some(p) = sweep.profile(i, c, a, &g) {
-                ew.push(g.irradiance * p.slit_width);
-                profiles.push(p);
-            }
-        }
-    }
-    (profiles, ew)
 }
 
 /// `sum_p F_p / sum_p E_p W_p` for pixel `i`, channel `c`: [`weight_scale`] of

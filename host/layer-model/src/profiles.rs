@@ -321,6 +321,28 @@ impl<'a> SlitSweep<'a> {
     }
 }
 
+/// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
+/// `E W` product of each (for absolute weights).
+pub(crate) fn pixel_profiles(
+    i: usize,
+    c: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> (Vec<Profile>, Vec<f64>) {
+    let mut profiles = Vec::new();
+    let mut ew = Vec::new();
+    for (geo, sweep) in geometries.iter().zip(sweeps) {
+        let Some(g) = geo[i] else { continue };
+        for a in 0..2 {
+            if let Some(p) = sweep.profile(i, c, a, &g) {
+                ew.push(g.irradiance * p.slit_width);
+                profiles.push(p);
+            }
+        }
+    }
+    (profiles, ew)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
