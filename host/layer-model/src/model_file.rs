@@ -818,7 +818,7 @@ mod tests {
 
     fn plane_model_sized(w: usize, h: usize) -> SubsurfaceModel {
         let booth = Booth::builtin(true);
-        let calibration = Calibration::from_booth(&booth);
+        let calibration = booth.calibration();
         let cam = booth.camera_calibration();
         // A patch of the camera image around its centre, scaled down to w x h.
         let points: Vec<Vector3<f64>> = (0..w * h)

@@ -271,7 +271,7 @@ mod tests {
     #[test]
     fn exact_coordinates_of_a_plane_give_its_depth_and_outliers_are_rejected() {
         let booth = Booth::builtin(true);
-        let calib = mlsss_core::calibration::Calibration::from_booth(&booth);
+        let calib = booth.calibration();
         let z0 = 10.0;
         let mut coords: Vec<Vec<Option<(f64, f64)>>> =
             (0..4).map(|k| plane_coords(&booth, k, z0)).collect();
