@@ -33,7 +33,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::fit::{EmVariant, FitStats};
-use super::profiles::{Falloff, ProjectorView};
+use super::profiles::{Falloff, ProjectorIllumination};
 use super::relight::{Relit, relight};
 use super::render::{LayerModel, RenderError, RenderOptions, SplatLayer};
 use super::surface::{Surface, ViewRay};
@@ -769,7 +769,7 @@ fn render_with_black_level(
             count: model.header.projectors.len(),
         })?;
     let coords = model.projector_coords(k)?;
-    let view = ProjectorView {
+    let view = ProjectorIllumination {
         centre: Vector3::from(light.centre),
         falloff: light.falloff,
         coords: &coords,

@@ -9,7 +9,7 @@ use image::Rgb32FImage;
 use serde::Serialize;
 
 use super::VirtualBoothError;
-use super::frame_render::{FrameRadiance, ProjectorView, Scene};
+use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::subjects::Chessboard;
 use mlsss_core::capture::{Pattern, truth};
 use mlsss_core::imageio::{GrayF32, linear_to_srgb, write_exr_gray, write_exr_rgb};
@@ -66,7 +66,7 @@ pub fn write_geometry(
 /// Projector coordinates seen through `view` (camera-sized `(w, h)`).
 pub fn write_projector_coords(
     dir: &Path,
-    view: &ProjectorView,
+    view: &ProjectorTransport,
     (w, h): (u32, u32),
 ) -> Result<(), VirtualBoothError> {
     write_exr_rgb(
