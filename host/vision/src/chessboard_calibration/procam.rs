@@ -439,7 +439,68 @@ pub fn calibrate_procam(
     options: &ProcamOptions,
 ) -> Result<ProcamResult, ProcamError> {
     let points = board.points();
-    let mut reports: Vec<PoseReport> = poses
+    let mut reports = initial_reports(poses, projector_sizes.len());
+    let camera_views = camera_views(poses, &points, &mut reports);
+    let camera = fit_camera(&camera_views, camera_size, options, &mut reports)?;
+    let mut projectors = Vec::new();
+    for (k, size) in projector_sizes.iter().enumerate() {
+        let views = projector_views(poses, &points, k);
+        projectors.push(fit_projector(
+            k,
+            views,
+            &camera.kept,
+            *size,
+            points.len(),
+            options,
+            &mut reports,
+        )?);
+    }
+    let (model, distortion_terms) = initial_joint_model(&camera, &projectors);
+    let observations = joint_observations(&camera_views, &camera.kept, &projectors);
+    let joint = refine(
+        &model,
+        &observations,
+        &RefineOptions {
+            distortion: options.distortion,
+            device_distortion: Some(distortion_terms.clone()),
+            ..RefineOptions::default()
+        },
+    )
+    .map_err(|source| ProcamError::Refinement {
+        device: "joint refinement".into(),
+        source,
+    })?;
+    let residuals = JointResiduals::new(&joint, observations);
+    residuals.report_poses(&camera.kept, projector_sizes.len(), &mut reports);
+    let camera_rms_px = residuals.rms_where(&|o| o.device == 0).unwrap_or(0.0);
+    let projector_rms_px: Vec<f64> = (0..projector_sizes.len())
+        .map(|k| residuals.rms_where(&|o| o.device == k + 1).unwrap_or(0.0))
+        .collect();
+    let stereo_rms_px = rms(residuals.residuals.iter().copied()).unwrap_or(0.0);
+    let calibration = joint_calibration(
+        &joint,
+        camera_size,
+        projector_sizes,
+        camera_rms_px,
+        &projector_rms_px,
+    );
+    Ok(ProcamResult {
+        calibration,
+        camera_rms_px,
+        projector_rms_px,
+        stereo_rms_px,
+        separate: SeparateFits {
+            camera_rms_px: camera.fit.rms,
+            projector_rms_px: projectors.iter().map(|p| p.fit.rms).collect(),
+        },
+        poses: reports,
+        distortion_terms,
+    })
+}
+
+/// One report per pose, nothing used yet; poses whose board was not found say so.
+fn initial_reports(poses: &[PoseCorners], projectors: usize) -> Vec<PoseReport> {
+    poses
         .iter()
         .map(|p| PoseReport {
             name: p.name.clone(),
@@ -450,12 +511,20 @@ pub fn calibrate_procam(
                 .err()
                 .map(|e| format!("chessboard not found: {e}")),
             camera_rms_px: None,
-            projector_rms_px: vec![None; projector_sizes.len()],
-            projector_corners: vec![0; projector_sizes.len()],
+            projector_rms_px: vec![None; projectors],
+            projector_corners: vec![0; projectors],
             projector_reasons: Vec::new(),
         })
-        .collect();
-    // Camera views: every pose whose board was found with the full corner count.
+        .collect()
+}
+
+/// Camera views: every pose whose board was found with the full corner count (empty for the
+/// others, whose reports say why).
+fn camera_views(
+    poses: &[PoseCorners],
+    points: &[Vector3<f64>],
+    reports: &mut [PoseReport],
+) -> Vec<ViewPoints> {
     let camera_views: Vec<ViewPoints> = poses
         .iter()
         .map(|p| match &p.camera {
@@ -470,85 +539,130 @@ pub fn calibrate_procam(
             report.reason = Some(format!("expected {} camera corners", points.len()));
         }
     }
-    let candidates: Vec<usize> = (0..poses.len())
+    camera_views
+}
+
+/// The camera alone on every pose with a view, outlier poses dropped (and reported).
+fn fit_camera(
+    camera_views: &[ViewPoints],
+    camera_size: ImageSize,
+    options: &ProcamOptions,
+    reports: &mut [PoseReport],
+) -> Result<RobustFit, ProcamError> {
+    let candidates: Vec<usize> = (0..camera_views.len())
         .filter(|&i| !camera_views[i].is_empty())
         .collect();
-    let RobustFit {
-        fit: camera_fit,
-        kept,
-        dropped,
-    } = fit_device_robust("camera", &camera_views, candidates, camera_size, options)?;
-    for (i, view_rms) in dropped {
+    let RobustFit { fit, kept, dropped } =
+        fit_device_robust("camera", camera_views, candidates, camera_size, options)?;
+    for &(i, view_rms) in &dropped {
         reports[i].reason = Some(format!(
             "bad pose: camera reprojection RMS {view_rms:.2} px is far above the other poses'"
         ));
     }
-    // Projector views, restricted to the poses the camera kept.
+    Ok(RobustFit { fit, kept, dropped })
+}
+
+/// Projector `k`'s views: per pose, the board corners it measured.
+fn projector_views(poses: &[PoseCorners], points: &[Vector3<f64>], k: usize) -> Vec<ViewPoints> {
+    poses
+        .iter()
+        .map(|p| {
+            p.projectors
+                .get(k)
+                .map(|corners| {
+                    points
+                        .iter()
+                        .zip(corners)
+                        .filter_map(|(b, c)| c.map(|c| (*b, c)))
+                        .collect()
+                })
+                .unwrap_or_default()
+        })
+        .collect()
+}
+
+/// A projector's separate fit, with its views (one per pose) and the poses it kept.
+struct ProjectorFit {
+    fit: DeviceFit,
+    views: Vec<ViewPoints>,
+    kept: Vec<usize>,
+}
+
+/// Projector `k` alone on the poses the camera kept where it measured enough of the board's
+/// `corners`, outlier views dropped; every pose left out is reported.
+fn fit_projector(
+    k: usize,
+    views: Vec<ViewPoints>,
+    camera_kept: &[usize],
+    size: ImageSize,
+    corners: usize,
+    options: &ProcamOptions,
+    reports: &mut [PoseReport],
+) -> Result<ProjectorFit, ProcamError> {
+    let name = format!("projector {k}");
     let min_corners =
-        ((points.len() as f64 * options.min_projector_corner_fraction).ceil() as usize).max(6);
-    let mut projector_fits = Vec::new();
-    let mut projector_kept: Vec<Vec<usize>> = Vec::new();
-    for (k, size) in projector_sizes.iter().enumerate() {
-        let name = format!("projector {k}");
-        let views: Vec<ViewPoints> = poses
-            .iter()
-            .map(|p| {
-                p.projectors
-                    .get(k)
-                    .map(|corners| {
-                        points
-                            .iter()
-                            .zip(corners)
-                            .filter_map(|(b, c)| c.map(|c| (*b, c)))
-                            .collect()
-                    })
-                    .unwrap_or_default()
-            })
-            .collect();
-        let mut candidates = Vec::new();
-        for &i in &kept {
-            reports[i].projector_corners[k] = views[i].len();
-            if views[i].len() >= min_corners {
-                candidates.push(i);
-            } else {
-                reports[i].projector_reasons.push(format!(
-                    "{name}: only {} of {} corners measured",
-                    views[i].len(),
-                    points.len()
-                ));
-            }
-        }
-        let RobustFit {
-            fit,
-            kept: kept_k,
-            dropped: dropped_k,
-        } = fit_device_robust(&name, &views, candidates, *size, options)?;
-        for (i, view_rms) in dropped_k {
+        ((corners as f64 * options.min_projector_corner_fraction).ceil() as usize).max(6);
+    let mut candidates = Vec::new();
+    for &i in camera_kept {
+        reports[i].projector_corners[k] = views[i].len();
+        if views[i].len() >= min_corners {
+            candidates.push(i);
+        } else {
             reports[i].projector_reasons.push(format!(
-                "{name}: bad view, reprojection RMS {view_rms:.2} px is far above the other poses'"
+                "{name}: only {} of {} corners measured",
+                views[i].len(),
+                corners
             ));
         }
-        projector_fits.push((fit, views));
-        projector_kept.push(kept_k);
     }
-    // Joint model: camera = device 0, projector k = device k + 1; views = camera-kept poses.
-    let view_of_pose = |pose: usize| kept.iter().position(|&i| i == pose);
+    let RobustFit { fit, kept, dropped } =
+        fit_device_robust(&name, &views, candidates, size, options)?;
+    for (i, view_rms) in dropped {
+        reports[i].projector_reasons.push(format!(
+            "{name}: bad view, reprojection RMS {view_rms:.2} px is far above the other poses'"
+        ));
+    }
+    Ok(ProjectorFit { fit, views, kept })
+}
+
+/// The joint model's start from the separate fits: camera = device 0, projector k = device
+/// k + 1; views = the camera-kept poses. Also the distortion terms of every device.
+fn initial_joint_model(
+    camera: &RobustFit,
+    projectors: &[ProjectorFit],
+) -> (RigModel, Vec<[bool; 5]>) {
     let mut device_poses = vec![Pose::identity()];
-    for ((fit, _), kept_k) in projector_fits.iter().zip(&projector_kept) {
-        device_poses.push(initial_device_pose(&camera_fit, &kept, fit, kept_k));
+    for p in projectors {
+        device_poses.push(initial_device_pose(
+            &camera.fit,
+            &camera.kept,
+            &p.fit,
+            &p.kept,
+        ));
     }
-    let distortion_terms: Vec<[bool; 5]> = std::iter::once(camera_fit.distortion)
-        .chain(projector_fits.iter().map(|(f, _)| f.distortion))
+    let distortion_terms: Vec<[bool; 5]> = std::iter::once(camera.fit.distortion)
+        .chain(projectors.iter().map(|p| p.fit.distortion))
         .collect();
     let model = RigModel {
-        intrinsics: std::iter::once(camera_fit.intrinsics)
-            .chain(projector_fits.iter().map(|(f, _)| f.intrinsics))
+        intrinsics: std::iter::once(camera.fit.intrinsics)
+            .chain(projectors.iter().map(|p| p.fit.intrinsics))
             .collect(),
         device_poses,
-        view_poses: camera_fit.poses.clone(),
+        view_poses: camera.fit.poses.clone(),
     };
+    (model, distortion_terms)
+}
+
+/// Every observation of the joint model: the camera's in its kept poses, then each projector's
+/// in its kept poses that the camera kept too.
+fn joint_observations(
+    camera_views: &[ViewPoints],
+    camera_kept: &[usize],
+    projectors: &[ProjectorFit],
+) -> Vec<Observation> {
+    let view_of_pose = |pose: usize| camera_kept.iter().position(|&i| i == pose);
     let mut observations = Vec::new();
-    for (view, &pose) in kept.iter().enumerate() {
+    for (view, &pose) in camera_kept.iter().enumerate() {
         observations.extend(
             camera_views[pose]
                 .iter()
@@ -560,12 +674,12 @@ pub fn calibrate_procam(
                 }),
         );
     }
-    for (k, ((_, views), kept_k)) in projector_fits.iter().zip(&projector_kept).enumerate() {
-        for &pose in kept_k {
+    for (k, p) in projectors.iter().enumerate() {
+        for &pose in &p.kept {
             let Some(view) = view_of_pose(pose) else {
                 continue;
             };
-            observations.extend(views[pose].iter().map(|&(board, pixel)| Observation {
+            observations.extend(p.views[pose].iter().map(|&(board, pixel)| Observation {
                 device: k + 1,
                 view,
                 board,
@@ -573,44 +687,60 @@ pub fn calibrate_procam(
             }));
         }
     }
-    let joint = refine(
-        &model,
-        &observations,
-        &RefineOptions {
-            distortion: options.distortion,
-            device_distortion: Some(distortion_terms.clone()),
-            ..RefineOptions::default()
-        },
-    )
-    .map_err(|source| ProcamError::Refinement {
-        device: "joint refinement".into(),
-        source,
-    })?;
-    let residuals: Vec<Vector2<f64>> = joint
-        .residuals(&observations)
-        .into_iter()
-        .map(|r| r.unwrap_or(Vector2::repeat(1e6)))
-        .collect();
-    let rms_where = |pred: &dyn Fn(&Observation) -> bool| {
-        rms(observations
-            .iter()
-            .zip(&residuals)
-            .filter(|(o, _)| pred(o))
-            .map(|(_, r)| *r))
-    };
-    for (view, &pose) in kept.iter().enumerate() {
-        let r = &mut reports[pose];
-        r.used = true;
-        r.camera_rms_px = rms_where(&|o| o.device == 0 && o.view == view);
-        for k in 0..projector_sizes.len() {
-            r.projector_rms_px[k] = rms_where(&|o| o.device == k + 1 && o.view == view);
+    observations
+}
+
+/// The joint model's reprojection residual of every observation (1e6 px where it does not
+/// project).
+struct JointResiduals {
+    observations: Vec<Observation>,
+    residuals: Vec<Vector2<f64>>,
+}
+
+impl JointResiduals {
+    fn new(joint: &RigModel, observations: Vec<Observation>) -> Self {
+        let residuals: Vec<Vector2<f64>> = joint
+            .residuals(&observations)
+            .into_iter()
+            .map(|r| r.unwrap_or(Vector2::repeat(1e6)))
+            .collect();
+        Self {
+            observations,
+            residuals,
         }
     }
-    let camera_rms_px = rms_where(&|o| o.device == 0).unwrap_or(0.0);
-    let projector_rms_px: Vec<f64> = (0..projector_sizes.len())
-        .map(|k| rms_where(&|o| o.device == k + 1).unwrap_or(0.0))
-        .collect();
-    let stereo_rms_px = rms(residuals.iter().copied()).unwrap_or(0.0);
+
+    /// RMS of the observations `pred` selects; `None` without any.
+    fn rms_where(&self, pred: &dyn Fn(&Observation) -> bool) -> Option<f64> {
+        rms(self
+            .observations
+            .iter()
+            .zip(&self.residuals)
+            .filter(|(o, _)| pred(o))
+            .map(|(_, r)| *r))
+    }
+
+    /// Marks the camera-kept poses used, with their RMS per device.
+    fn report_poses(&self, camera_kept: &[usize], projectors: usize, reports: &mut [PoseReport]) {
+        for (view, &pose) in camera_kept.iter().enumerate() {
+            let r = &mut reports[pose];
+            r.used = true;
+            r.camera_rms_px = self.rms_where(&|o| o.device == 0 && o.view == view);
+            for k in 0..projectors {
+                r.projector_rms_px[k] = self.rms_where(&|o| o.device == k + 1 && o.view == view);
+            }
+        }
+    }
+}
+
+/// The refined joint model as a calibration with its RMS figures.
+fn joint_calibration(
+    joint: &RigModel,
+    camera_size: ImageSize,
+    projector_sizes: &[ImageSize],
+    camera_rms_px: f64,
+    projector_rms_px: &[f64],
+) -> Calibration {
     let device = |d: usize, size: ImageSize| DeviceCalibration {
         width: size.width,
         height: size.height,
@@ -620,7 +750,7 @@ pub fn calibrate_procam(
             &joint.device_poses[d].translation,
         ),
     };
-    let calibration = Calibration {
+    Calibration {
         camera: device(0, camera_size),
         camera_rms_px: Some(camera_rms_px),
         projectors: projector_sizes
@@ -632,19 +762,7 @@ pub fn calibrate_procam(
                 rms_px: Some(projector_rms_px[k]),
             })
             .collect(),
-    };
-    Ok(ProcamResult {
-        calibration,
-        camera_rms_px,
-        projector_rms_px,
-        stereo_rms_px,
-        separate: SeparateFits {
-            camera_rms_px: camera_fit.rms,
-            projector_rms_px: projector_fits.iter().map(|(f, _)| f.rms).collect(),
-        },
-        poses: reports,
-        distortion_terms,
-    })
+    }
 }
 
 /// Camera -> projector pose from the views both fits share: `T_pc = T_pb T_cb^-1` per view, then
