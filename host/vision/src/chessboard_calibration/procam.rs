@@ -197,6 +197,50 @@ fn fit_device(
     distortion: [bool; 5],
     select: bool,
 ) -> Result<DeviceFit, ProcamError> {
+    let model = closed_form_model(device, views, size)?;
+    let observations: Vec<Observation> = views
+        .iter()
+        .enumerate()
+        .flat_map(|(view, points)| {
+            points.iter().map(move |&(board, pixel)| Observation {
+                device: 0,
+                view,
+                board,
+                pixel,
+            })
+        })
+        .collect();
+    let (model, distortion) = refine_device(device, &model, &observations, distortion, select)?;
+    let residuals = model.residuals(&observations);
+    let view_rms = (0..views.len())
+        .map(|v| {
+            rms(observations
+                .iter()
+                .zip(&residuals)
+                .filter(|(o, _)| o.view == v)
+                .map(|(_, r)| r.unwrap_or(Vector2::repeat(1e6))))
+            .unwrap_or(0.0)
+        })
+        .collect();
+    Ok(DeviceFit {
+        intrinsics: model.intrinsics[0],
+        poses: model.view_poses,
+        view_rms,
+        rms: rms(residuals
+            .into_iter()
+            .map(|r| r.unwrap_or(Vector2::repeat(1e6))))
+        .unwrap_or(0.0),
+        distortion,
+    })
+}
+
+/// The closed-form start of a one-device fit: a homography per view, Zhang's pinhole (no
+/// distortion) and the board pose of every view.
+fn closed_form_model(
+    device: &str,
+    views: &[ViewPoints],
+    size: ImageSize,
+) -> Result<RigModel, ProcamError> {
     let homographies: Vec<Matrix3<f64>> = views
         .iter()
         .map(|v| {
@@ -230,7 +274,7 @@ fn fit_device(
                 })
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let model = RigModel {
+    Ok(RigModel {
         intrinsics: vec![Intrinsics {
             fx: pinhole.fx,
             fy: pinhole.fy,
@@ -240,19 +284,19 @@ fn fit_device(
         }],
         device_poses: vec![Pose::identity()],
         view_poses: poses,
-    };
-    let observations: Vec<Observation> = views
-        .iter()
-        .enumerate()
-        .flat_map(|(view, points)| {
-            points.iter().map(move |&(board, pixel)| Observation {
-                device: 0,
-                view,
-                board,
-                pixel,
-            })
-        })
-        .collect();
+    })
+}
+
+/// A one-device model refined from its closed form: pinhole and poses first, then with the
+/// `distortion` terms (or, with `select`, the fewest nested sets of them the corners support).
+/// Returns the model and the terms it estimated.
+fn refine_device(
+    device: &str,
+    model: &RigModel,
+    observations: &[Observation],
+    distortion: [bool; 5],
+    select: bool,
+) -> Result<(RigModel, [bool; 5]), ProcamError> {
     let refine_err = |source| ProcamError::Refinement {
         device: device.into(),
         source,
@@ -262,7 +306,7 @@ fn fit_device(
         distortion: [false; 5],
         ..RefineOptions::default()
     };
-    let pinhole_model = refine(&model, &observations, &pinhole_only).map_err(refine_err)?;
+    let pinhole_model = refine(model, observations, &pinhole_only).map_err(refine_err)?;
     let candidates = if select {
         nested_distortion_sets(distortion)
     } else {
@@ -275,41 +319,20 @@ fn fit_device(
                 distortion: terms,
                 ..RefineOptions::default()
             };
-            refine(&pinhole_model, &observations, &options).map_err(refine_err)
+            refine(&pinhole_model, observations, &options).map_err(refine_err)
         })
         .collect::<Result<Vec<_>, _>>()?;
     let squared_sums: Vec<f64> = fits
         .iter()
         .map(|m| {
-            m.residuals(&observations)
+            m.residuals(observations)
                 .into_iter()
                 .map(|r| r.map_or(1e12, |r| r.norm_squared()))
                 .sum()
         })
         .collect();
     let chosen = select_distortion(&candidates, &squared_sums, observations.len());
-    let (model, distortion) = (fits[chosen].clone(), candidates[chosen]);
-    let residuals = model.residuals(&observations);
-    let view_rms = (0..views.len())
-        .map(|v| {
-            rms(observations
-                .iter()
-                .zip(&residuals)
-                .filter(|(o, _)| o.view == v)
-                .map(|(_, r)| r.unwrap_or(Vector2::repeat(1e6))))
-            .unwrap_or(0.0)
-        })
-        .collect();
-    Ok(DeviceFit {
-        intrinsics: model.intrinsics[0],
-        poses: model.view_poses,
-        view_rms,
-        rms: rms(residuals
-            .into_iter()
-            .map(|r| r.unwrap_or(Vector2::repeat(1e6))))
-        .unwrap_or(0.0),
-        distortion,
-    })
+    Ok((fits[chosen].clone(), candidates[chosen]))
 }
 
 /// Names of the distortion terms set in `terms` (`[k1, k2, p1, p2, k3]` order), for reports.
