@@ -222,28 +222,10 @@ pub fn fit_model(
             let mut row = Vec::with_capacity(bw);
             for bx in 0..bw {
                 let centre = tile_pixel(bx, by, block, w, h, &lit_by_any);
-                let mut shapes: [Option<Shape>; 3] = Default::default();
-                if let Some(i) = centre {
-                    for c in 0..3 {
-                        let (profiles, _) = pixel_profiles(i, c, geometries, sweeps);
-                        let result = match opts.variant {
-                            EmVariant::Layered => {
-                                fit_layered_shape(&profiles, spacing, opts, warm[c].as_ref()).map(
-                                    |(s, p)| {
-                                        warm[c] = Some(p);
-                                        s
-                                    },
-                                )
-                            }
-                            EmVariant::Free => fit_free_shape(&profiles, opts),
-                        };
-                        match result {
-                            Ok(s) => shapes[c] = Some(s),
-                            Err(EmError::NoSignal) => {}
-                            Err(source) => return Err(FitError::Em { pixel: i, source }),
-                        }
-                    }
-                }
+                let shapes = match centre {
+                    Some(i) => fit_pixel_shapes(i, geometries, sweeps, spacing, opts, &mut warm)?,
+                    None => Default::default(),
+                };
                 row.push(shapes);
             }
             Ok(row)
@@ -253,29 +235,7 @@ pub fn fit_model(
     for row in tile_rows {
         tiles.extend(row?);
     }
-    let mut stats = FitStats {
-        depth_spacing_mm: spacing,
-        depth,
-        ..FitStats::default()
-    };
-    let (mut layer_sum, mut iter_sum) = (0usize, 0usize);
-    for shapes in &tiles {
-        for s in shapes {
-            match s {
-                Some(s) => {
-                    stats.fits += 1;
-                    layer_sum += s.layers.len();
-                    iter_sum += s.iterations;
-                }
-                None => stats.skipped += 1,
-            }
-        }
-    }
-    if stats.fits == 0 {
-        return Err(FitError::NothingToFit);
-    }
-    stats.mean_layers = layer_sum as f64 / stats.fits as f64;
-    stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
+    let stats = fit_stats(&tiles, depth)?;
     let scales = pixel_amplitudes(surface, geometries, sweeps);
     let model = LayerModel::from_fn(w, h, |i, c| {
         if !lit_by_any(i) {
@@ -300,6 +260,64 @@ pub fn fit_model(
         stats,
         amplitudes: scales,
     })
+}
+
+/// The shapes of pixel `i` in every channel (`None` where its profiles have no light), with the
+/// layered fit warm-started from and updating `warm` (per channel).
+fn fit_pixel_shapes(
+    i: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    spacing: f64,
+    opts: &FitOptions,
+    warm: &mut [Option<LayeredParams>; 3],
+) -> Result<[Option<Shape>; 3], FitError> {
+    let mut shapes: [Option<Shape>; 3] = Default::default();
+    for c in 0..3 {
+        let (profiles, _) = pixel_profiles(i, c, geometries, sweeps);
+        let result = match opts.variant {
+            EmVariant::Layered => fit_layered_shape(&profiles, spacing, opts, warm[c].as_ref())
+                .map(|(s, p)| {
+                    warm[c] = Some(p);
+                    s
+                }),
+            EmVariant::Free => fit_free_shape(&profiles, opts),
+        };
+        match result {
+            Ok(s) => shapes[c] = Some(s),
+            Err(EmError::NoSignal) => {}
+            Err(source) => return Err(FitError::Em { pixel: i, source }),
+        }
+    }
+    Ok(shapes)
+}
+
+/// Counts and means of the tile fits; no fit at all is [`FitError::NothingToFit`].
+fn fit_stats(tiles: &[[Option<Shape>; 3]], depth: SpacingEstimate) -> Result<FitStats, FitError> {
+    let mut stats = FitStats {
+        depth_spacing_mm: depth.spacing_mm,
+        depth,
+        ..FitStats::default()
+    };
+    let (mut layer_sum, mut iter_sum) = (0usize, 0usize);
+    for shapes in tiles {
+        for s in shapes {
+            match s {
+                Some(s) => {
+                    stats.fits += 1;
+                    layer_sum += s.layers.len();
+                    iter_sum += s.iterations;
+                }
+                None => stats.skipped += 1,
+            }
+        }
+    }
+    if stats.fits == 0 {
+        return Err(FitError::NothingToFit);
+    }
+    stats.mean_layers = layer_sum as f64 / stats.fits as f64;
+    stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
+    Ok(stats)
 }
 
 /// Every pixel's own amplitude per channel (its profiles' flux over `sum E W`; 0 where no
