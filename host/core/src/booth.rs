@@ -11,7 +11,9 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::calibration::{DeviceCalibration, Extrinsics, Intrinsics};
+use crate::calibration::{
+    Calibration, DeviceCalibration, Extrinsics, Intrinsics, ProjectorCalibration, ProjectorResponse,
+};
 
 /// Errors reading a booth description.
 #[derive(Debug, thiserror::Error)]
@@ -285,6 +287,30 @@ impl Booth {
             extrinsics: Extrinsics::look_at(p.position_mm, p.look_at_mm, p.up),
         })
     }
+
+    /// The exact calibration of this booth description (truth of the virtual booth).
+    pub fn calibration(&self) -> Calibration {
+        let projectors = self
+            .projectors
+            .iter()
+            .enumerate()
+            .filter_map(|(k, spec)| {
+                Some(ProjectorCalibration {
+                    device: self.projector_calibration(k)?,
+                    response: Some(ProjectorResponse {
+                        gamma: spec.gamma,
+                        black_level: spec.black_level,
+                    }),
+                    rms_px: None,
+                })
+            })
+            .collect();
+        Calibration {
+            camera: self.camera_calibration(),
+            camera_rms_px: None,
+            projectors,
+        }
+    }
 }
 
 /// 1-based line and column where a TOML parse error points (0, 0 when it has no span).
@@ -369,5 +395,17 @@ mod tests {
             BoothError::Parse { line, .. } => assert_eq!(line, expected_line),
             other => panic!("expected parse error, got {other:?}"),
         }
+    }
+
+    #[test]
+    fn ray_through_projected_pixel_hits_the_point() {
+        let booth = Booth::builtin(false);
+        let cam = booth.camera_calibration();
+        let p = nalgebra::Point3::new(12.0, -30.0, 25.0);
+        let px = cam.project(&p).unwrap();
+        let (o, d) = cam.ray(px.x, px.y);
+        let along = (p - o).dot(&d);
+        let closest = o + d * along;
+        approx::assert_relative_eq!(closest, p, epsilon = 1e-6);
     }
 }

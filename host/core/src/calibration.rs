@@ -205,30 +205,6 @@ pub enum CalibrationError {
 }
 
 impl Calibration {
-    /// The exact calibration of a booth description (truth of the virtual booth).
-    pub fn from_booth(booth: &crate::booth::Booth) -> Self {
-        let projectors = booth
-            .projectors
-            .iter()
-            .enumerate()
-            .filter_map(|(k, spec)| {
-                Some(ProjectorCalibration {
-                    device: booth.projector_calibration(k)?,
-                    response: Some(ProjectorResponse {
-                        gamma: spec.gamma,
-                        black_level: spec.black_level,
-                    }),
-                    rms_px: None,
-                })
-            })
-            .collect();
-        Self {
-            camera: booth.camera_calibration(),
-            camera_rms_px: None,
-            projectors,
-        }
-    }
-
     pub fn load(path: &Path) -> Result<Self, CalibrationError> {
         let text = std::fs::read_to_string(path).map_err(|source| CalibrationError::Io {
             path: path.display().to_string(),
@@ -289,17 +265,5 @@ mod tests {
             assert_relative_eq!(xu, x, epsilon = 1e-10);
             assert_relative_eq!(yu, y, epsilon = 1e-10);
         }
-    }
-
-    #[test]
-    fn ray_through_projected_pixel_hits_the_point() {
-        let booth = crate::booth::Booth::builtin(false);
-        let cam = booth.camera_calibration();
-        let p = Point3::new(12.0, -30.0, 25.0);
-        let px = cam.project(&p).unwrap();
-        let (o, d) = cam.ray(px.x, px.y);
-        let along = (p - o).dot(&d);
-        let closest = o + d * along;
-        assert_relative_eq!(closest, p, epsilon = 1e-6);
     }
 }

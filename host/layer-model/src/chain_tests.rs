@@ -8,7 +8,9 @@ use nalgebra::Vector3;
 
 use super::fit::{FitOptions, fit_dipole_model, fit_model, pixel_amplitudes};
 use super::mixture::EmConfig;
-use super::profiles::{Falloff, ProjectorView, SlitFrame, SlitSweep, irradiance, pixel_geometry};
+use super::profiles::{
+    Falloff, ProjectorIllumination, SlitFrame, SlitSweep, irradiance, pixel_geometry,
+};
 use super::relight::{pattern_irradiance, shifts};
 use super::render::{RenderOptions, render_global};
 use super::surface::{Surface, ViewRay};
@@ -142,9 +144,9 @@ fn profiles_fit_and_relight_a_held_out_projector() {
         .iter()
         .map(|&k| patterns.iter().map(|p| truth_global(&s, k, p)).collect())
         .collect();
-    let views: Vec<ProjectorView> = training
+    let views: Vec<ProjectorIllumination> = training
         .iter()
-        .map(|&k| ProjectorView {
+        .map(|&k| ProjectorIllumination {
             centre: projector_centre(k),
             falloff: Falloff::Isotropic,
             coords: &coords,
@@ -182,7 +184,7 @@ fn profiles_fit_and_relight_a_held_out_projector() {
     assert!(fit.stats.fits > 0 && fit.stats.depth_spacing_mm.is_finite());
 
     // Held-out projector 3: white and one slit frame along each axis.
-    let held = ProjectorView {
+    let held = ProjectorIllumination {
         centre: projector_centre(3),
         falloff: Falloff::Isotropic,
         coords: &coords,

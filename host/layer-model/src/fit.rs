@@ -19,10 +19,12 @@ use rayon::prelude::*;
 use super::em_free::{self, Component};
 use super::em_layered::{self, DepthSpacing, LayeredParams};
 use super::layer_depth::{self, LayerDepthError, SpacingEstimate};
-use super::mixture::{EmConfig, EmError, Profile};
-use super::profiles::{PixelGeometry, SlitSweep};
+use super::mixture::{EmError, Profile};
+use super::profiles::{PixelGeometry, SlitSweep, pixel_profiles};
 use super::render::{LayerModel, SplatLayer};
 use super::surface::Surface;
+
+pub use super::fit_options::{EmVariant, FitOptions};
 
 /// Errors of the fit stage.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -43,47 +45,6 @@ pub enum FitError {
     /// The per-projector inputs disagree in number.
     #[error("{geometries} projector geometries but {sweeps} slit sweeps")]
     ProjectorCount { geometries: usize, sweeps: usize },
-}
-
-/// EM variant of DESIGN section 5.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum EmVariant {
-    /// Means tied to layer depth, joint over projectors and axes (ours).
-    #[default]
-    Layered,
-    /// Free means per profile, averaged (the paper).
-    Free,
-}
-
-/// Knobs of the fit stage.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FitOptions {
-    pub em: EmConfig,
-    pub variant: EmVariant,
-    /// Fixed layer spacing (mm); `None` estimates it.
-    pub depth_spacing: Option<f64>,
-    /// Start and upper bound of the spacing estimate (mm; `subsurface::layer_depth`).
-    pub spacing_start: f64,
-    pub spacing_max: f64,
-    /// Pixels used for the spacing estimate (each with all 3 channels).
-    pub spacing_pixels: usize,
-    /// Fit one pixel per `block x block` tile.
-    pub block: usize,
-}
-
-impl Default for FitOptions {
-    fn default() -> Self {
-        Self {
-            em: EmConfig::default(),
-            variant: EmVariant::Layered,
-            depth_spacing: None,
-            spacing_start: 0.1,
-            spacing_max: 1.0,
-            spacing_pixels: 64,
-            block: 1,
-        }
-    }
 }
 
 /// What the fit did.
@@ -108,28 +69,6 @@ pub struct FitResult {
     /// Every pixel's measured amplitude per channel, `sum_p F_p / sum_p E_p W_p` (0 off the
     /// lit surface): what scales its layer weights, and the dipole's total reflectance.
     pub amplitudes: Vec<[f32; 3]>,
-}
-
-/// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
-/// `E W` product of each (for absolute weights).
-pub(crate) fn pixel_profiles(
-    i: usize,
-    c: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
-    sweeps: &[SlitSweep],
-) -> (Vec<Profile>, Vec<f64>) {
-    let mut profiles = Vec::new();
-    let mut ew = Vec::new();
-    for (geo, sweep) in geometries.iter().zip(sweeps) {
-        let Some(g) = geo[i] else { continue };
-        for a in 0..2 {
-            if let Some(p) = sweep.profile(i, c, a, &g) {
-                ew.push(g.irradiance * p.slit_width);
-                profiles.push(p);
-            }
-        }
-    }
-    (profiles, ew)
 }
 
 /// `sum_p F_p / sum_p E_p W_p` for pixel `i`, channel `c`: [`weight_scale`] of
@@ -283,28 +222,10 @@ pub fn fit_model(
             let mut row = Vec::with_capacity(bw);
             for bx in 0..bw {
                 let centre = tile_pixel(bx, by, block, w, h, &lit_by_any);
-                let mut shapes: [Option<Shape>; 3] = Default::default();
-                if let Some(i) = centre {
-                    for c in 0..3 {
-                        let (profiles, _) = pixel_profiles(i, c, geometries, sweeps);
-                        let result = match opts.variant {
-                            EmVariant::Layered => {
-                                fit_layered_shape(&profiles, spacing, opts, warm[c].as_ref()).map(
-                                    |(s, p)| {
-                                        warm[c] = Some(p);
-                                        s
-                                    },
-                                )
-                            }
-                            EmVariant::Free => fit_free_shape(&profiles, opts),
-                        };
-                        match result {
-                            Ok(s) => shapes[c] = Some(s),
-                            Err(EmError::NoSignal) => {}
-                            Err(source) => return Err(FitError::Em { pixel: i, source }),
-                        }
-                    }
-                }
+                let shapes = match centre {
+                    Some(i) => fit_pixel_shapes(i, geometries, sweeps, spacing, opts, &mut warm)?,
+                    None => Default::default(),
+                };
                 row.push(shapes);
             }
             Ok(row)
@@ -314,29 +235,7 @@ pub fn fit_model(
     for row in tile_rows {
         tiles.extend(row?);
     }
-    let mut stats = FitStats {
-        depth_spacing_mm: spacing,
-        depth,
-        ..FitStats::default()
-    };
-    let (mut layer_sum, mut iter_sum) = (0usize, 0usize);
-    for shapes in &tiles {
-        for s in shapes {
-            match s {
-                Some(s) => {
-                    stats.fits += 1;
-                    layer_sum += s.layers.len();
-                    iter_sum += s.iterations;
-                }
-                None => stats.skipped += 1,
-            }
-        }
-    }
-    if stats.fits == 0 {
-        return Err(FitError::NothingToFit);
-    }
-    stats.mean_layers = layer_sum as f64 / stats.fits as f64;
-    stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
+    let stats = fit_stats(&tiles, depth)?;
     let scales = pixel_amplitudes(surface, geometries, sweeps);
     let model = LayerModel::from_fn(w, h, |i, c| {
         if !lit_by_any(i) {
@@ -361,6 +260,64 @@ pub fn fit_model(
         stats,
         amplitudes: scales,
     })
+}
+
+/// The shapes of pixel `i` in every channel (`None` where its profiles have no light), with the
+/// layered fit warm-started from and updating `warm` (per channel).
+fn fit_pixel_shapes(
+    i: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+    spacing: f64,
+    opts: &FitOptions,
+    warm: &mut [Option<LayeredParams>; 3],
+) -> Result<[Option<Shape>; 3], FitError> {
+    let mut shapes: [Option<Shape>; 3] = Default::default();
+    for c in 0..3 {
+        let (profiles, _) = pixel_profiles(i, c, geometries, sweeps);
+        let result = match opts.variant {
+            EmVariant::Layered => fit_layered_shape(&profiles, spacing, opts, warm[c].as_ref())
+                .map(|(s, p)| {
+                    warm[c] = Some(p);
+                    s
+                }),
+            EmVariant::Free => fit_free_shape(&profiles, opts),
+        };
+        match result {
+            Ok(s) => shapes[c] = Some(s),
+            Err(EmError::NoSignal) => {}
+            Err(source) => return Err(FitError::Em { pixel: i, source }),
+        }
+    }
+    Ok(shapes)
+}
+
+/// Counts and means of the tile fits; no fit at all is [`FitError::NothingToFit`].
+fn fit_stats(tiles: &[[Option<Shape>; 3]], depth: SpacingEstimate) -> Result<FitStats, FitError> {
+    let mut stats = FitStats {
+        depth_spacing_mm: depth.spacing_mm,
+        depth,
+        ..FitStats::default()
+    };
+    let (mut layer_sum, mut iter_sum) = (0usize, 0usize);
+    for shapes in tiles {
+        for s in shapes {
+            match s {
+                Some(s) => {
+                    stats.fits += 1;
+                    layer_sum += s.layers.len();
+                    iter_sum += s.iterations;
+                }
+                None => stats.skipped += 1,
+            }
+        }
+    }
+    if stats.fits == 0 {
+        return Err(FitError::NothingToFit);
+    }
+    stats.mean_layers = layer_sum as f64 / stats.fits as f64;
+    stats.mean_iterations = iter_sum as f64 / stats.fits as f64;
+    Ok(stats)
 }
 
 /// Every pixel's own amplitude per channel (its profiles' flux over `sum E W`; 0 where no

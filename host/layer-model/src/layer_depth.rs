@@ -46,9 +46,9 @@
 use rayon::prelude::*;
 
 use super::em_layered::{self, DepthSpacing, LayeredParams};
-use super::fit::{FitOptions, pixel_profiles};
+use super::fit_options::FitOptions;
 use super::mixture::{EmConfig, EmError, Profile};
-use super::profiles::{PixelGeometry, SlitSweep};
+use super::profiles::{PixelGeometry, SlitSweep, pixel_profiles};
 
 /// Stop when one round moves `D` by less than this (mm).
 pub const TOLERANCE_MM: f64 = 1e-3;

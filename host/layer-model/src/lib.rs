@@ -7,6 +7,7 @@ pub mod dipole;
 pub mod em_free;
 pub mod em_layered;
 pub mod fit;
+pub mod fit_options;
 pub mod layer_depth;
 pub mod mixture;
 pub mod model_file;

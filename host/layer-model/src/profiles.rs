@@ -58,9 +58,10 @@ pub enum Falloff {
     Projector { axis: [f64; 3], scale: f64 },
 }
 
-/// One projector as the profile stage sees it.
+/// How one projector illuminates the camera's pixels, as the profile stage sees it: where it is,
+/// how its light falls off, and which projector pixel lights each camera pixel.
 #[derive(Debug, Clone, Copy)]
-pub struct ProjectorView<'a> {
+pub struct ProjectorIllumination<'a> {
     /// Optical centre (world, mm).
     pub centre: Vector3<f64>,
     pub falloff: Falloff,
@@ -126,7 +127,12 @@ pub struct PixelGeometry {
     pub shift: Vector3<f64>,
 }
 
-fn coord_at(view: &ProjectorView, surface: &Surface, x: i64, y: i64) -> Option<Vector2<f64>> {
+fn coord_at(
+    view: &ProjectorIllumination,
+    surface: &Surface,
+    x: i64,
+    y: i64,
+) -> Option<Vector2<f64>> {
     if x < 0 || y < 0 || x as usize >= surface.width || y as usize >= surface.height {
         return None;
     }
@@ -138,7 +144,11 @@ fn coord_at(view: &ProjectorView, surface: &Surface, x: i64, y: i64) -> Option<V
 }
 
 /// `d(u, v)/d(x, y)` at pixel `i` by central (or one-sided) differences.
-fn coord_jacobian(view: &ProjectorView, surface: &Surface, i: usize) -> Option<Matrix2<f64>> {
+fn coord_jacobian(
+    view: &ProjectorIllumination,
+    surface: &Surface,
+    i: usize,
+) -> Option<Matrix2<f64>> {
     let (x, y) = ((i % surface.width) as i64, (i / surface.width) as i64);
     let here = coord_at(view, surface, x, y)?;
     let diff = |dx: i64, dy: i64| -> Option<Vector2<f64>> {
@@ -174,7 +184,7 @@ fn surface_gradient(fp: &Footprint, g: Vector2<f64>) -> Option<Vector3<f64>> {
 /// shadowed or at grazing incidence.
 pub fn pixel_geometry(
     surface: &Surface,
-    view: &ProjectorView,
+    view: &ProjectorIllumination,
     eta: f64,
     view_ray: ViewRay,
 ) -> Result<Vec<Option<PixelGeometry>>, ProfileError> {
@@ -321,6 +331,28 @@ impl<'a> SlitSweep<'a> {
     }
 }
 
+/// The profiles of pixel `i`, channel `c` from every training projector that lights it, with the
+/// `E W` product of each (for absolute weights).
+pub(crate) fn pixel_profiles(
+    i: usize,
+    c: usize,
+    geometries: &[Vec<Option<PixelGeometry>>],
+    sweeps: &[SlitSweep],
+) -> (Vec<Profile>, Vec<f64>) {
+    let mut profiles = Vec::new();
+    let mut ew = Vec::new();
+    for (geo, sweep) in geometries.iter().zip(sweeps) {
+        let Some(g) = geo[i] else { continue };
+        for a in 0..2 {
+            if let Some(p) = sweep.profile(i, c, a, &g) {
+                ew.push(g.irradiance * p.slit_width);
+                profiles.push(p);
+            }
+        }
+    }
+    (profiles, ew)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -394,7 +426,7 @@ mod tests {
         let coords: Vec<Option<(f32, f32)>> = (0..w * h)
             .map(|i| Some((0.4 * (i % w) as f32, 0.5 * (i / w) as f32)))
             .collect();
-        let view = ProjectorView {
+        let view = ProjectorIllumination {
             centre: Vector3::new(-998.0, 1.0, 1000.0),
             falloff: Falloff::Isotropic,
             coords: &coords,

@@ -6,7 +6,7 @@
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-use super::profiles::{ProjectorView, irradiance};
+use super::profiles::{ProjectorIllumination, irradiance};
 use super::render::{LayerModel, RenderError, RenderOptions, render_global};
 use super::surface::{Surface, ViewRay, shift_per_depth};
 use mlsss_core::capture::Pattern;
@@ -62,7 +62,7 @@ pub fn pattern_level(pattern: &Pattern, u: f32, v: f32, blur_px: f32) -> f32 {
 /// calibration), the level blurred by `blur_px` (see [`pattern_level`]).
 pub fn pattern_irradiance(
     surface: &Surface,
-    view: &ProjectorView,
+    view: &ProjectorIllumination,
     pattern: &Pattern,
     black_level: f32,
     blur_px: f32,
@@ -198,7 +198,7 @@ mod tests {
         let coords: Vec<Option<(f32, f32)>> = (0..w * h)
             .map(|i| Some(((i % w) as f32, (i / w) as f32)))
             .collect();
-        let view = ProjectorView {
+        let view = ProjectorIllumination {
             centre: light,
             falloff: Falloff::Isotropic,
             coords: &coords,
@@ -298,7 +298,7 @@ impl Relit {
 #[allow(clippy::too_many_arguments)]
 pub fn relight(
     surface: &Surface,
-    view: &ProjectorView,
+    view: &ProjectorIllumination,
     pattern: &Pattern,
     black_level: f32,
     blur_px: f32,

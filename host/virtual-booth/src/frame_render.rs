@@ -53,8 +53,9 @@ impl FrameRadiance {
     }
 }
 
-/// One projector's view of the scene: precomputed illumination geometry and transport.
-pub struct ProjectorView<'a> {
+/// One projector's light transport into the scene: precomputed illumination geometry and
+/// (skin subjects) subsurface transport, from which its frames are rendered.
+pub struct ProjectorTransport<'a> {
     pub k: usize,
     scene: &'a Scene,
     sub_uv: Vec<[f64; 2]>,
@@ -69,7 +70,7 @@ pub struct ProjectorView<'a> {
     operator: Option<SubsurfaceOperator<'a>>,
 }
 
-impl<'a> ProjectorView<'a> {
+impl<'a> ProjectorTransport<'a> {
     /// Prepares projector `k`; `kernel` is the subsurface transport (skin subjects only).
     pub fn new(scene: &'a Scene, k: usize, kernel: Option<&'a SubsurfaceKernel>) -> Self {
         let geo = &scene.geometry;

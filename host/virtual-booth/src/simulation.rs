@@ -20,7 +20,7 @@ use serde::Serialize;
 
 use super::VirtualBoothError;
 use super::camera::CameraModel;
-use super::frame_render::{FrameRadiance, ProjectorView, Scene};
+use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::material_maps::MaterialMaps;
 use super::projector::ProjectorModel;
 use super::response_cache::{CacheStats, McSettings, ResponseCache};
@@ -602,7 +602,7 @@ fn render_frames(
             .collect();
         progress.stage("white frames", alone.len() as u64);
         for &k in &alone {
-            let view = ProjectorView::new(scene, k, kernel);
+            let view = ProjectorTransport::new(scene, k, kernel);
             let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
             whites[k] = Some(
                 white
@@ -626,7 +626,7 @@ fn render_frames(
     let mut strays: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
     let mut held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)> = Vec::new();
     for (k, specs) in specs.iter().enumerate() {
-        let view = ProjectorView::new(scene, k, kernel);
+        let view = ProjectorTransport::new(scene, k, kernel);
         truth_writer::write_projector_coords(truth_dir, &view, dims)?;
         let hold = k < held;
         if opts.stray_black && !hold {

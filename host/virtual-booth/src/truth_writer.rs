@@ -9,9 +9,8 @@ use image::Rgb32FImage;
 use serde::Serialize;
 
 use super::VirtualBoothError;
-use super::frame_render::{FrameRadiance, ProjectorView, Scene};
+use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::subjects::Chessboard;
-use mlsss_core::calibration::Calibration;
 use mlsss_core::capture::{Pattern, truth};
 use mlsss_core::imageio::{GrayF32, linear_to_srgb, write_exr_gray, write_exr_rgb};
 
@@ -27,7 +26,7 @@ pub fn write_geometry(
 ) -> Result<(), VirtualBoothError> {
     let geo = &scene.geometry;
     let (w, h) = (geo.width, geo.height);
-    Calibration::from_booth(booth).save(&truth::calibration(dir))?;
+    booth.calibration().save(&truth::calibration(dir))?;
     let mask = image::GrayImage::from_fn(w, h, |x, y| {
         let hit = geo.centre[(y * w + x) as usize].is_some();
         image::Luma([if hit { 255 } else { 0 }])
@@ -67,7 +66,7 @@ pub fn write_geometry(
 /// Projector coordinates seen through `view` (camera-sized `(w, h)`).
 pub fn write_projector_coords(
     dir: &Path,
-    view: &ProjectorView,
+    view: &ProjectorTransport,
     (w, h): (u32, u32),
 ) -> Result<(), VirtualBoothError> {
     write_exr_rgb(

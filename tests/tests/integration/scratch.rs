@@ -7,14 +7,24 @@ use std::process::Command;
 /// Set in the child test process of [`scratch_dir_is_removed_when_the_test_process_exits`].
 const PROBE_VAR: &str = "MLSSS_SCRATCH_PROBE";
 
-/// In the child: fills the scratch directory and prints its path. In the parent: a no-op.
+/// The contract of [`scratch_dir`]: `$TMPDIR/mlsss-tests-<pid>`, a directory this process can
+/// write, the same one on every call. In the child of
+/// [`scratch_dir_is_removed_when_the_test_process_exits`] it also leaves a file in it and prints
+/// its path; in the parent it removes the file again.
 #[test]
 fn scratch_probe() {
+    let dir = scratch_dir();
+    let expected = std::env::temp_dir().join(format!("mlsss-tests-{}", std::process::id()));
+    assert_eq!(dir, expected);
+    assert!(dir.is_dir(), "{} is not a directory", dir.display());
+    assert_eq!(scratch_dir(), dir, "one scratch directory per process");
+    let file = dir.join("probe.bin");
+    std::fs::write(&file, vec![0u8; 4096]).unwrap();
+    assert_eq!(std::fs::metadata(&file).unwrap().len(), 4096);
     if std::env::var_os(PROBE_VAR).is_none() {
+        std::fs::remove_file(&file).unwrap();
         return;
     }
-    let dir = scratch_dir();
-    std::fs::write(dir.join("scan.bin"), vec![0u8; 4096]).unwrap();
     println!("scratch={}", dir.display());
 }
 

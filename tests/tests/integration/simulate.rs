@@ -140,7 +140,7 @@ fn global_light_on_a_plane_matches_the_monte_carlo_albedo() {
     let booth = &cap.manifest.booth;
     let global = read_exr_rgb(&truth::global(&out.join("truth"), 0, &Pattern::White)).unwrap();
     // The camera looks at the origin along +z; there the plane's irradiance is cos(theta_i).
-    let calib = Calibration::from_booth(booth);
+    let calib = booth.calibration();
     let centre = calib.camera.project(&Point3::origin()).unwrap();
     let (cx, cy) = (centre.x.round() as u32, centre.y.round() as u32);
     let p = nalgebra::Vector3::from(booth.projectors[0].position_mm);

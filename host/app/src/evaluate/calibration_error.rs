@@ -147,7 +147,7 @@ mod tests {
 
     #[test]
     fn the_truth_in_its_camera_frame_has_no_error() {
-        let truth = Calibration::from_booth(&Booth::builtin(true));
+        let truth = Booth::builtin(true).calibration();
         let est = in_camera_frame(&truth);
         assert_relative_eq!(
             est.camera.extrinsics.r(),
@@ -170,7 +170,7 @@ mod tests {
 
     #[test]
     fn known_perturbations_are_reported_exactly() {
-        let truth = Calibration::from_booth(&Booth::builtin(true));
+        let truth = Booth::builtin(true).calibration();
         let mut est = in_camera_frame(&truth);
         est.camera.intrinsics.fx *= 1.01;
         est.camera.intrinsics.cy += 3.0;

@@ -24,7 +24,7 @@ use mlsss_core::capture::truth;
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::geometry::grid_mesh::{GridMesh, GridMeshError, shaded_preview};
 use mlsss_vision::geometry::triangulation::{
-    DepthErrors, DepthMap, ProjectorView, TriangulationParams, triangulate,
+    DecodedProjector, DepthErrors, DepthMap, TriangulationParams, triangulate,
 };
 
 /// The geometry stage.
@@ -142,9 +142,9 @@ fn run_geometry(
     if coords.is_empty() {
         return Err(GeometryStageError::NothingDecoded(decode_dir));
     }
-    let views: Vec<ProjectorView> = coords
+    let views: Vec<DecodedProjector> = coords
         .iter()
-        .map(|(k, c)| ProjectorView {
+        .map(|(k, c)| DecodedProjector {
             calibration: &calib.projectors[*k].device,
             coords: c,
         })

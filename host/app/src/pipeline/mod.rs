@@ -678,7 +678,7 @@ mod tests {
         let mut booth = Booth::builtin(true);
         booth.projectors.truncate(2);
         let cam = booth.camera_calibration();
-        let calib = Calibration::from_booth(&booth);
+        let calib = booth.calibration();
         let (w, h) = (cam.width, cam.height);
         let surface: Vec<Point3<f64>> = (0..h)
             .flat_map(|y| (0..w).map(move |x| (x, y)))

@@ -40,7 +40,8 @@ use mlsss_core::calibration::DeviceCalibration;
 use mlsss_core::capture::{Axis, CaptureError, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_layer_model::profiles::{
-    Falloff, PixelGeometry, ProfileError, ProjectorView, SlitFrame, SlitSweep, pixel_geometry,
+    Falloff, PixelGeometry, ProfileError, ProjectorIllumination, SlitFrame, SlitSweep,
+    pixel_geometry,
 };
 use mlsss_layer_model::slit_global::{SlitGlobalError, WhiteSeparation, slit_global};
 use mlsss_layer_model::surface::{Surface, ViewRay};
@@ -294,8 +295,8 @@ pub struct ProjectorInputs {
 
 impl ProjectorInputs {
     /// The projector as the subsurface library sees it.
-    pub fn view(&self) -> ProjectorView<'_> {
-        ProjectorView {
+    pub fn view(&self) -> ProjectorIllumination<'_> {
+        ProjectorIllumination {
             centre: self.centre,
             falloff: self.falloff,
             coords: &self.coords,
@@ -491,7 +492,7 @@ impl ProfileInputs {
                 SlitCoordinates::Decoded => coords,
                 SlitCoordinates::Projected => projected_coords(&surface, device, &coords),
             };
-            let view = ProjectorView {
+            let view = ProjectorIllumination {
                 centre,
                 falloff,
                 coords: &coords,

@@ -228,34 +228,32 @@ fn pairs(frames: Vec<Vec<f32>>) -> Vec<BitPair> {
     out
 }
 
-/// The real data folder (`../shared/data` beside the repository, or `$MLSSS_DATA`), if present.
-pub fn real_data_dir() -> Option<PathBuf> {
-    let candidates = [
-        std::env::var_os("MLSSS_DATA").map(PathBuf::from),
-        Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data")),
-        Some(PathBuf::from("/work/shared/data")),
-    ];
-    candidates.into_iter().flatten().find(|p| p.is_dir())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::geometry::gray_code::{DecodeParams, decode};
 
-    fn procam() -> Option<PathBuf> {
-        let dir = real_data_dir()?.join("procam-calibration/sample_data");
-        if dir.is_dir() {
-            Some(dir)
-        } else {
-            eprintln!("real data not found; set MLSSS_DATA");
-            None
-        }
+    /// The real procam-calibration set: `$MLSSS_DATA`, or `shared/data` beside the repository
+    /// (where CI has it). Missing data fails the test: it must not pass without looking.
+    fn procam() -> PathBuf {
+        [
+            std::env::var_os("MLSSS_DATA").map(PathBuf::from),
+            Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data")),
+            Some(PathBuf::from("/work/shared/data")),
+        ]
+        .into_iter()
+        .flatten()
+        .map(|d| d.join("procam-calibration/sample_data"))
+        .find(|d| d.is_dir())
+        .expect(
+            "the real data set shared/data/procam-calibration must be beside the repository \
+             (or set MLSSS_DATA to its data folder)",
+        )
     }
 
     #[test]
     fn opencv_pattern_files_are_our_gray_code_in_opencv_order() {
-        let Some(dir) = procam() else { return };
+        let dir = procam();
         let files = png_files(&dir.join("graycode_pattern")).unwrap();
         assert_eq!(files.len(), 42);
         let checks = [
@@ -317,7 +315,7 @@ mod tests {
 
     #[test]
     fn real_opencv_capture_decodes_with_codes_increasing_across_the_image() {
-        let Some(dir) = procam() else { return };
+        let dir = procam();
         let frames = from_opencv_dir(&dir.join("capture_0"), (1024, 768)).unwrap();
         assert_eq!((frames.width, frames.height), (1280, 1024));
         // The centre of the board (the full image takes too long for the test budget).

@@ -39,7 +39,7 @@ impl Default for TriangulationParams {
 
 /// One projector's decoded coordinates and calibration.
 #[derive(Debug, Clone, Copy)]
-pub struct ProjectorView<'a> {
+pub struct DecodedProjector<'a> {
     pub calibration: &'a DeviceCalibration,
     /// `Some((u, v))` per camera pixel, row-major.
     pub coords: &'a [Option<(f64, f64)>],
@@ -99,7 +99,7 @@ pub fn closest_point_on_first_ray(
 /// Triangulates every camera pixel against every projector and fuses the results.
 pub fn triangulate(
     camera: &DeviceCalibration,
-    views: &[ProjectorView],
+    views: &[DecodedProjector],
     params: &TriangulationParams,
 ) -> DepthMap {
     let (w, h) = (camera.width, camera.height);
@@ -130,7 +130,7 @@ pub fn triangulate(
 
 fn fuse_pixel(
     camera: &DeviceCalibration,
-    views: &[ProjectorView],
+    views: &[DecodedProjector],
     i: usize,
     x: f64,
     y: f64,
@@ -271,7 +271,7 @@ mod tests {
     #[test]
     fn exact_coordinates_of_a_plane_give_its_depth_and_outliers_are_rejected() {
         let booth = Booth::builtin(true);
-        let calib = mlsss_core::calibration::Calibration::from_booth(&booth);
+        let calib = booth.calibration();
         let z0 = 10.0;
         let mut coords: Vec<Vec<Option<(f64, f64)>>> =
             (0..4).map(|k| plane_coords(&booth, k, z0)).collect();
@@ -284,11 +284,11 @@ mod tests {
                 }
             }
         }
-        let views: Vec<ProjectorView> = calib
+        let views: Vec<DecodedProjector> = calib
             .projectors
             .iter()
             .zip(&coords)
-            .map(|(p, c)| ProjectorView {
+            .map(|(p, c)| DecodedProjector {
                 calibration: &p.device,
                 coords: c,
             })

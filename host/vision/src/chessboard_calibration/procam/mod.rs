@@ -197,6 +197,50 @@ fn fit_device(
     distortion: [bool; 5],
     select: bool,
 ) -> Result<DeviceFit, ProcamError> {
+    let model = closed_form_model(device, views, size)?;
+    let observations: Vec<Observation> = views
+        .iter()
+        .enumerate()
+        .flat_map(|(view, points)| {
+            points.iter().map(move |&(board, pixel)| Observation {
+                device: 0,
+                view,
+                board,
+                pixel,
+            })
+        })
+        .collect();
+    let (model, distortion) = refine_device(device, &model, &observations, distortion, select)?;
+    let residuals = model.residuals(&observations);
+    let view_rms = (0..views.len())
+        .map(|v| {
+            rms(observations
+                .iter()
+                .zip(&residuals)
+                .filter(|(o, _)| o.view == v)
+                .map(|(_, r)| r.unwrap_or(Vector2::repeat(1e6))))
+            .unwrap_or(0.0)
+        })
+        .collect();
+    Ok(DeviceFit {
+        intrinsics: model.intrinsics[0],
+        poses: model.view_poses,
+        view_rms,
+        rms: rms(residuals
+            .into_iter()
+            .map(|r| r.unwrap_or(Vector2::repeat(1e6))))
+        .unwrap_or(0.0),
+        distortion,
+    })
+}
+
+/// The closed-form start of a one-device fit: a homography per view, Zhang's pinhole (no
+/// distortion) and the board pose of every view.
+fn closed_form_model(
+    device: &str,
+    views: &[ViewPoints],
+    size: ImageSize,
+) -> Result<RigModel, ProcamError> {
     let homographies: Vec<Matrix3<f64>> = views
         .iter()
         .map(|v| {
@@ -230,7 +274,7 @@ fn fit_device(
                 })
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let model = RigModel {
+    Ok(RigModel {
         intrinsics: vec![Intrinsics {
             fx: pinhole.fx,
             fy: pinhole.fy,
@@ -240,19 +284,19 @@ fn fit_device(
         }],
         device_poses: vec![Pose::identity()],
         view_poses: poses,
-    };
-    let observations: Vec<Observation> = views
-        .iter()
-        .enumerate()
-        .flat_map(|(view, points)| {
-            points.iter().map(move |&(board, pixel)| Observation {
-                device: 0,
-                view,
-                board,
-                pixel,
-            })
-        })
-        .collect();
+    })
+}
+
+/// A one-device model refined from its closed form: pinhole and poses first, then with the
+/// `distortion` terms (or, with `select`, the fewest nested sets of them the corners support).
+/// Returns the model and the terms it estimated.
+fn refine_device(
+    device: &str,
+    model: &RigModel,
+    observations: &[Observation],
+    distortion: [bool; 5],
+    select: bool,
+) -> Result<(RigModel, [bool; 5]), ProcamError> {
     let refine_err = |source| ProcamError::Refinement {
         device: device.into(),
         source,
@@ -262,7 +306,7 @@ fn fit_device(
         distortion: [false; 5],
         ..RefineOptions::default()
     };
-    let pinhole_model = refine(&model, &observations, &pinhole_only).map_err(refine_err)?;
+    let pinhole_model = refine(model, observations, &pinhole_only).map_err(refine_err)?;
     let candidates = if select {
         nested_distortion_sets(distortion)
     } else {
@@ -275,41 +319,20 @@ fn fit_device(
                 distortion: terms,
                 ..RefineOptions::default()
             };
-            refine(&pinhole_model, &observations, &options).map_err(refine_err)
+            refine(&pinhole_model, observations, &options).map_err(refine_err)
         })
         .collect::<Result<Vec<_>, _>>()?;
     let squared_sums: Vec<f64> = fits
         .iter()
         .map(|m| {
-            m.residuals(&observations)
+            m.residuals(observations)
                 .into_iter()
                 .map(|r| r.map_or(1e12, |r| r.norm_squared()))
                 .sum()
         })
         .collect();
     let chosen = select_distortion(&candidates, &squared_sums, observations.len());
-    let (model, distortion) = (fits[chosen].clone(), candidates[chosen]);
-    let residuals = model.residuals(&observations);
-    let view_rms = (0..views.len())
-        .map(|v| {
-            rms(observations
-                .iter()
-                .zip(&residuals)
-                .filter(|(o, _)| o.view == v)
-                .map(|(_, r)| r.unwrap_or(Vector2::repeat(1e6))))
-            .unwrap_or(0.0)
-        })
-        .collect();
-    Ok(DeviceFit {
-        intrinsics: model.intrinsics[0],
-        poses: model.view_poses,
-        view_rms,
-        rms: rms(residuals
-            .into_iter()
-            .map(|r| r.unwrap_or(Vector2::repeat(1e6))))
-        .unwrap_or(0.0),
-        distortion,
-    })
+    Ok((fits[chosen].clone(), candidates[chosen]))
 }
 
 /// Names of the distortion terms set in `terms` (`[k1, k2, p1, p2, k3]` order), for reports.
@@ -439,7 +462,68 @@ pub fn calibrate_procam(
     options: &ProcamOptions,
 ) -> Result<ProcamResult, ProcamError> {
     let points = board.points();
-    let mut reports: Vec<PoseReport> = poses
+    let mut reports = initial_reports(poses, projector_sizes.len());
+    let camera_views = camera_views(poses, &points, &mut reports);
+    let camera = fit_camera(&camera_views, camera_size, options, &mut reports)?;
+    let mut projectors = Vec::new();
+    for (k, size) in projector_sizes.iter().enumerate() {
+        let views = projector_views(poses, &points, k);
+        projectors.push(fit_projector(
+            k,
+            views,
+            &camera.kept,
+            *size,
+            points.len(),
+            options,
+            &mut reports,
+        )?);
+    }
+    let (model, distortion_terms) = initial_joint_model(&camera, &projectors);
+    let observations = joint_observations(&camera_views, &camera.kept, &projectors);
+    let joint = refine(
+        &model,
+        &observations,
+        &RefineOptions {
+            distortion: options.distortion,
+            device_distortion: Some(distortion_terms.clone()),
+            ..RefineOptions::default()
+        },
+    )
+    .map_err(|source| ProcamError::Refinement {
+        device: "joint refinement".into(),
+        source,
+    })?;
+    let residuals = JointResiduals::new(&joint, observations);
+    residuals.report_poses(&camera.kept, projector_sizes.len(), &mut reports);
+    let camera_rms_px = residuals.rms_where(&|o| o.device == 0).unwrap_or(0.0);
+    let projector_rms_px: Vec<f64> = (0..projector_sizes.len())
+        .map(|k| residuals.rms_where(&|o| o.device == k + 1).unwrap_or(0.0))
+        .collect();
+    let stereo_rms_px = rms(residuals.residuals.iter().copied()).unwrap_or(0.0);
+    let calibration = joint_calibration(
+        &joint,
+        camera_size,
+        projector_sizes,
+        camera_rms_px,
+        &projector_rms_px,
+    );
+    Ok(ProcamResult {
+        calibration,
+        camera_rms_px,
+        projector_rms_px,
+        stereo_rms_px,
+        separate: SeparateFits {
+            camera_rms_px: camera.fit.rms,
+            projector_rms_px: projectors.iter().map(|p| p.fit.rms).collect(),
+        },
+        poses: reports,
+        distortion_terms,
+    })
+}
+
+/// One report per pose, nothing used yet; poses whose board was not found say so.
+fn initial_reports(poses: &[PoseCorners], projectors: usize) -> Vec<PoseReport> {
+    poses
         .iter()
         .map(|p| PoseReport {
             name: p.name.clone(),
@@ -450,12 +534,20 @@ pub fn calibrate_procam(
                 .err()
                 .map(|e| format!("chessboard not found: {e}")),
             camera_rms_px: None,
-            projector_rms_px: vec![None; projector_sizes.len()],
-            projector_corners: vec![0; projector_sizes.len()],
+            projector_rms_px: vec![None; projectors],
+            projector_corners: vec![0; projectors],
             projector_reasons: Vec::new(),
         })
-        .collect();
-    // Camera views: every pose whose board was found with the full corner count.
+        .collect()
+}
+
+/// Camera views: every pose whose board was found with the full corner count (empty for the
+/// others, whose reports say why).
+fn camera_views(
+    poses: &[PoseCorners],
+    points: &[Vector3<f64>],
+    reports: &mut [PoseReport],
+) -> Vec<ViewPoints> {
     let camera_views: Vec<ViewPoints> = poses
         .iter()
         .map(|p| match &p.camera {
@@ -470,85 +562,130 @@ pub fn calibrate_procam(
             report.reason = Some(format!("expected {} camera corners", points.len()));
         }
     }
-    let candidates: Vec<usize> = (0..poses.len())
+    camera_views
+}
+
+/// The camera alone on every pose with a view, outlier poses dropped (and reported).
+fn fit_camera(
+    camera_views: &[ViewPoints],
+    camera_size: ImageSize,
+    options: &ProcamOptions,
+    reports: &mut [PoseReport],
+) -> Result<RobustFit, ProcamError> {
+    let candidates: Vec<usize> = (0..camera_views.len())
         .filter(|&i| !camera_views[i].is_empty())
         .collect();
-    let RobustFit {
-        fit: camera_fit,
-        kept,
-        dropped,
-    } = fit_device_robust("camera", &camera_views, candidates, camera_size, options)?;
-    for (i, view_rms) in dropped {
+    let RobustFit { fit, kept, dropped } =
+        fit_device_robust("camera", camera_views, candidates, camera_size, options)?;
+    for &(i, view_rms) in &dropped {
         reports[i].reason = Some(format!(
             "bad pose: camera reprojection RMS {view_rms:.2} px is far above the other poses'"
         ));
     }
-    // Projector views, restricted to the poses the camera kept.
+    Ok(RobustFit { fit, kept, dropped })
+}
+
+/// Projector `k`'s views: per pose, the board corners it measured.
+fn projector_views(poses: &[PoseCorners], points: &[Vector3<f64>], k: usize) -> Vec<ViewPoints> {
+    poses
+        .iter()
+        .map(|p| {
+            p.projectors
+                .get(k)
+                .map(|corners| {
+                    points
+                        .iter()
+                        .zip(corners)
+                        .filter_map(|(b, c)| c.map(|c| (*b, c)))
+                        .collect()
+                })
+                .unwrap_or_default()
+        })
+        .collect()
+}
+
+/// A projector's separate fit, with its views (one per pose) and the poses it kept.
+struct ProjectorFit {
+    fit: DeviceFit,
+    views: Vec<ViewPoints>,
+    kept: Vec<usize>,
+}
+
+/// Projector `k` alone on the poses the camera kept where it measured enough of the board's
+/// `corners`, outlier views dropped; every pose left out is reported.
+fn fit_projector(
+    k: usize,
+    views: Vec<ViewPoints>,
+    camera_kept: &[usize],
+    size: ImageSize,
+    corners: usize,
+    options: &ProcamOptions,
+    reports: &mut [PoseReport],
+) -> Result<ProjectorFit, ProcamError> {
+    let name = format!("projector {k}");
     let min_corners =
-        ((points.len() as f64 * options.min_projector_corner_fraction).ceil() as usize).max(6);
-    let mut projector_fits = Vec::new();
-    let mut projector_kept: Vec<Vec<usize>> = Vec::new();
-    for (k, size) in projector_sizes.iter().enumerate() {
-        let name = format!("projector {k}");
-        let views: Vec<ViewPoints> = poses
-            .iter()
-            .map(|p| {
-                p.projectors
-                    .get(k)
-                    .map(|corners| {
-                        points
-                            .iter()
-                            .zip(corners)
-                            .filter_map(|(b, c)| c.map(|c| (*b, c)))
-                            .collect()
-                    })
-                    .unwrap_or_default()
-            })
-            .collect();
-        let mut candidates = Vec::new();
-        for &i in &kept {
-            reports[i].projector_corners[k] = views[i].len();
-            if views[i].len() >= min_corners {
-                candidates.push(i);
-            } else {
-                reports[i].projector_reasons.push(format!(
-                    "{name}: only {} of {} corners measured",
-                    views[i].len(),
-                    points.len()
-                ));
-            }
-        }
-        let RobustFit {
-            fit,
-            kept: kept_k,
-            dropped: dropped_k,
-        } = fit_device_robust(&name, &views, candidates, *size, options)?;
-        for (i, view_rms) in dropped_k {
+        ((corners as f64 * options.min_projector_corner_fraction).ceil() as usize).max(6);
+    let mut candidates = Vec::new();
+    for &i in camera_kept {
+        reports[i].projector_corners[k] = views[i].len();
+        if views[i].len() >= min_corners {
+            candidates.push(i);
+        } else {
             reports[i].projector_reasons.push(format!(
-                "{name}: bad view, reprojection RMS {view_rms:.2} px is far above the other poses'"
+                "{name}: only {} of {} corners measured",
+                views[i].len(),
+                corners
             ));
         }
-        projector_fits.push((fit, views));
-        projector_kept.push(kept_k);
     }
-    // Joint model: camera = device 0, projector k = device k + 1; views = camera-kept poses.
-    let view_of_pose = |pose: usize| kept.iter().position(|&i| i == pose);
+    let RobustFit { fit, kept, dropped } =
+        fit_device_robust(&name, &views, candidates, size, options)?;
+    for (i, view_rms) in dropped {
+        reports[i].projector_reasons.push(format!(
+            "{name}: bad view, reprojection RMS {view_rms:.2} px is far above the other poses'"
+        ));
+    }
+    Ok(ProjectorFit { fit, views, kept })
+}
+
+/// The joint model's start from the separate fits: camera = device 0, projector k = device
+/// k + 1; views = the camera-kept poses. Also the distortion terms of every device.
+fn initial_joint_model(
+    camera: &RobustFit,
+    projectors: &[ProjectorFit],
+) -> (RigModel, Vec<[bool; 5]>) {
     let mut device_poses = vec![Pose::identity()];
-    for ((fit, _), kept_k) in projector_fits.iter().zip(&projector_kept) {
-        device_poses.push(initial_device_pose(&camera_fit, &kept, fit, kept_k));
+    for p in projectors {
+        device_poses.push(initial_device_pose(
+            &camera.fit,
+            &camera.kept,
+            &p.fit,
+            &p.kept,
+        ));
     }
-    let distortion_terms: Vec<[bool; 5]> = std::iter::once(camera_fit.distortion)
-        .chain(projector_fits.iter().map(|(f, _)| f.distortion))
+    let distortion_terms: Vec<[bool; 5]> = std::iter::once(camera.fit.distortion)
+        .chain(projectors.iter().map(|p| p.fit.distortion))
         .collect();
     let model = RigModel {
-        intrinsics: std::iter::once(camera_fit.intrinsics)
-            .chain(projector_fits.iter().map(|(f, _)| f.intrinsics))
+        intrinsics: std::iter::once(camera.fit.intrinsics)
+            .chain(projectors.iter().map(|p| p.fit.intrinsics))
             .collect(),
         device_poses,
-        view_poses: camera_fit.poses.clone(),
+        view_poses: camera.fit.poses.clone(),
     };
+    (model, distortion_terms)
+}
+
+/// Every observation of the joint model: the camera's in its kept poses, then each projector's
+/// in its kept poses that the camera kept too.
+fn joint_observations(
+    camera_views: &[ViewPoints],
+    camera_kept: &[usize],
+    projectors: &[ProjectorFit],
+) -> Vec<Observation> {
+    let view_of_pose = |pose: usize| camera_kept.iter().position(|&i| i == pose);
     let mut observations = Vec::new();
-    for (view, &pose) in kept.iter().enumerate() {
+    for (view, &pose) in camera_kept.iter().enumerate() {
         observations.extend(
             camera_views[pose]
                 .iter()
@@ -560,12 +697,12 @@ pub fn calibrate_procam(
                 }),
         );
     }
-    for (k, ((_, views), kept_k)) in projector_fits.iter().zip(&projector_kept).enumerate() {
-        for &pose in kept_k {
+    for (k, p) in projectors.iter().enumerate() {
+        for &pose in &p.kept {
             let Some(view) = view_of_pose(pose) else {
                 continue;
             };
-            observations.extend(views[pose].iter().map(|&(board, pixel)| Observation {
+            observations.extend(p.views[pose].iter().map(|&(board, pixel)| Observation {
                 device: k + 1,
                 view,
                 board,
@@ -573,44 +710,60 @@ pub fn calibrate_procam(
             }));
         }
     }
-    let joint = refine(
-        &model,
-        &observations,
-        &RefineOptions {
-            distortion: options.distortion,
-            device_distortion: Some(distortion_terms.clone()),
-            ..RefineOptions::default()
-        },
-    )
-    .map_err(|source| ProcamError::Refinement {
-        device: "joint refinement".into(),
-        source,
-    })?;
-    let residuals: Vec<Vector2<f64>> = joint
-        .residuals(&observations)
-        .into_iter()
-        .map(|r| r.unwrap_or(Vector2::repeat(1e6)))
-        .collect();
-    let rms_where = |pred: &dyn Fn(&Observation) -> bool| {
-        rms(observations
-            .iter()
-            .zip(&residuals)
-            .filter(|(o, _)| pred(o))
-            .map(|(_, r)| *r))
-    };
-    for (view, &pose) in kept.iter().enumerate() {
-        let r = &mut reports[pose];
-        r.used = true;
-        r.camera_rms_px = rms_where(&|o| o.device == 0 && o.view == view);
-        for k in 0..projector_sizes.len() {
-            r.projector_rms_px[k] = rms_where(&|o| o.device == k + 1 && o.view == view);
+    observations
+}
+
+/// The joint model's reprojection residual of every observation (1e6 px where it does not
+/// project).
+struct JointResiduals {
+    observations: Vec<Observation>,
+    residuals: Vec<Vector2<f64>>,
+}
+
+impl JointResiduals {
+    fn new(joint: &RigModel, observations: Vec<Observation>) -> Self {
+        let residuals: Vec<Vector2<f64>> = joint
+            .residuals(&observations)
+            .into_iter()
+            .map(|r| r.unwrap_or(Vector2::repeat(1e6)))
+            .collect();
+        Self {
+            observations,
+            residuals,
         }
     }
-    let camera_rms_px = rms_where(&|o| o.device == 0).unwrap_or(0.0);
-    let projector_rms_px: Vec<f64> = (0..projector_sizes.len())
-        .map(|k| rms_where(&|o| o.device == k + 1).unwrap_or(0.0))
-        .collect();
-    let stereo_rms_px = rms(residuals.iter().copied()).unwrap_or(0.0);
+
+    /// RMS of the observations `pred` selects; `None` without any.
+    fn rms_where(&self, pred: &dyn Fn(&Observation) -> bool) -> Option<f64> {
+        rms(self
+            .observations
+            .iter()
+            .zip(&self.residuals)
+            .filter(|(o, _)| pred(o))
+            .map(|(_, r)| *r))
+    }
+
+    /// Marks the camera-kept poses used, with their RMS per device.
+    fn report_poses(&self, camera_kept: &[usize], projectors: usize, reports: &mut [PoseReport]) {
+        for (view, &pose) in camera_kept.iter().enumerate() {
+            let r = &mut reports[pose];
+            r.used = true;
+            r.camera_rms_px = self.rms_where(&|o| o.device == 0 && o.view == view);
+            for k in 0..projectors {
+                r.projector_rms_px[k] = self.rms_where(&|o| o.device == k + 1 && o.view == view);
+            }
+        }
+    }
+}
+
+/// The refined joint model as a calibration with its RMS figures.
+fn joint_calibration(
+    joint: &RigModel,
+    camera_size: ImageSize,
+    projector_sizes: &[ImageSize],
+    camera_rms_px: f64,
+    projector_rms_px: &[f64],
+) -> Calibration {
     let device = |d: usize, size: ImageSize| DeviceCalibration {
         width: size.width,
         height: size.height,
@@ -620,7 +773,7 @@ pub fn calibrate_procam(
             &joint.device_poses[d].translation,
         ),
     };
-    let calibration = Calibration {
+    Calibration {
         camera: device(0, camera_size),
         camera_rms_px: Some(camera_rms_px),
         projectors: projector_sizes
@@ -632,19 +785,7 @@ pub fn calibrate_procam(
                 rms_px: Some(projector_rms_px[k]),
             })
             .collect(),
-    };
-    Ok(ProcamResult {
-        calibration,
-        camera_rms_px,
-        projector_rms_px,
-        stereo_rms_px,
-        separate: SeparateFits {
-            camera_rms_px: camera_fit.rms,
-            projector_rms_px: projector_fits.iter().map(|(f, _)| f.rms).collect(),
-        },
-        poses: reports,
-        distortion_terms,
-    })
+    }
 }
 
 /// Camera -> projector pose from the views both fits share: `T_pc = T_pb T_cb^-1` per view, then
@@ -677,294 +818,4 @@ fn initial_device_pose(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A camera and one projector observing a 9x7 board of 30 mm squares in `views` poses, with
-    /// exact corners (independent truth for the tests below).
-    fn synthetic_rig(views: usize) -> (RigModel, BoardSpec) {
-        let board = BoardSpec {
-            cols: 9,
-            rows: 7,
-            square_mm: 30.0,
-        };
-        let rig = RigModel {
-            intrinsics: vec![
-                Intrinsics {
-                    fx: 1500.0,
-                    fy: 1495.0,
-                    cx: 655.0,
-                    cy: 505.0,
-                    distortion: [-0.1, 0.05, 0.0005, -0.0003, 0.0],
-                },
-                Intrinsics {
-                    fx: 1900.0,
-                    fy: 1890.0,
-                    cx: 500.0,
-                    cy: 850.0,
-                    distortion: [0.03, -0.02, 0.0, 0.0, 0.0],
-                },
-            ],
-            device_poses: vec![
-                Pose::identity(),
-                Pose {
-                    rotation: Vector3::new(0.02, -0.12, 0.01),
-                    translation: Vector3::new(120.0, -40.0, 20.0),
-                },
-            ],
-            view_poses: (0..views)
-                .map(|j| {
-                    let a = j as f64;
-                    Pose {
-                        rotation: Vector3::new(
-                            0.25 * (a * 1.3).sin(),
-                            0.3 * (a * 0.7).cos(),
-                            0.1 * a.sin(),
-                        ),
-                        translation: Vector3::new(-120.0 + 5.0 * a, -90.0, 700.0 + 25.0 * a),
-                    }
-                })
-                .collect(),
-        };
-        (rig, board)
-    }
-
-    fn measure(rig: &RigModel, board: &BoardSpec, view: usize, device: usize) -> Vec<Vector2<f64>> {
-        board
-            .points()
-            .iter()
-            .map(|p| {
-                rig.project(device, view, p)
-                    .expect("board in front of the device")
-            })
-            .collect()
-    }
-
-    fn sizes() -> (ImageSize, Vec<ImageSize>) {
-        (
-            ImageSize {
-                width: 1280,
-                height: 1024,
-            },
-            vec![ImageSize {
-                width: 1024,
-                height: 768,
-            }],
-        )
-    }
-
-    #[test]
-    fn exact_corners_give_the_true_rig() {
-        let (rig, board) = synthetic_rig(5);
-        let poses: Vec<PoseCorners> = (0..5)
-            .map(|v| PoseCorners {
-                name: format!("pose{v}"),
-                camera: Ok(measure(&rig, &board, v, 0)),
-                projectors: vec![measure(&rig, &board, v, 1).into_iter().map(Some).collect()],
-            })
-            .collect();
-        let (cam, proj) = sizes();
-        let options = ProcamOptions {
-            distortion: [true, true, true, true, false],
-            ..ProcamOptions::default()
-        };
-        let result = calibrate_procam(&poses, &board, cam, &proj, &options).unwrap();
-        assert!(result.stereo_rms_px < 1e-6, "{}", result.stereo_rms_px);
-        let k = &result.calibration.camera.intrinsics;
-        assert!(
-            (k.fx - 1500.0).abs() < 1e-3 && (k.cy - 505.0).abs() < 1e-3,
-            "{k:?}"
-        );
-        let p = &result.calibration.projectors[0].device;
-        assert!((p.intrinsics.fy - 1890.0).abs() < 1e-3, "{p:?}");
-        assert!((p.extrinsics.t() - Vector3::new(120.0, -40.0, 20.0)).norm() < 1e-3);
-        assert!(result.poses.iter().all(|p| p.used && p.reason.is_none()));
-    }
-
-    #[test]
-    fn a_bad_pose_is_reported_and_dropped_and_a_missing_board_skipped() {
-        let (rig, board) = synthetic_rig(7);
-        let mut poses: Vec<PoseCorners> = (0..7)
-            .map(|v| PoseCorners {
-                name: format!("pose{v}"),
-                camera: Ok(measure(&rig, &board, v, 0)),
-                projectors: vec![measure(&rig, &board, v, 1).into_iter().map(Some).collect()],
-            })
-            .collect();
-        // Pose 3: the board moved while the frames were taken -- its camera corners belong to a
-        // different, non-planar-consistent arrangement (every other row shifted by 6 px).
-        if let Ok(corners) = &mut poses[3].camera {
-            for (i, c) in corners.iter_mut().enumerate() {
-                if (i / 9) % 2 == 1 {
-                    c.x += 6.0;
-                }
-            }
-        }
-        // Pose 5: the board was not found.
-        poses[5].camera = Err("no complete 9x7 grid".into());
-        // Pose 1: the projector view is corrupted (decoding failed on half the board).
-        for c in poses[1].projectors[0].iter_mut().take(40) {
-            *c = None;
-        }
-        let (cam, proj) = sizes();
-        let options = ProcamOptions {
-            distortion: [true, true, true, true, false],
-            ..ProcamOptions::default()
-        };
-        let result = calibrate_procam(&poses, &board, cam, &proj, &options).unwrap();
-        let used: Vec<bool> = result.poses.iter().map(|p| p.used).collect();
-        assert_eq!(used, [true, true, true, false, true, false, true]);
-        let reason3 = result.poses[3].reason.as_deref().unwrap_or("");
-        assert!(reason3.contains("bad pose"), "{reason3}");
-        let reason5 = result.poses[5].reason.as_deref().unwrap_or("");
-        assert!(reason5.contains("chessboard not found"), "{reason5}");
-        assert!(
-            result.poses[1].projector_reasons[0].contains("23 of 63"),
-            "{:?}",
-            result.poses[1]
-        );
-        assert_eq!(result.poses[1].projector_rms_px[0], None);
-        // What remains is exact, so the calibration is too: the bad pose was not used.
-        assert!(result.stereo_rms_px < 1e-6, "{}", result.stereo_rms_px);
-        let k = &result.calibration.camera.intrinsics;
-        assert!((k.fx - 1500.0).abs() < 1e-3, "{k:?}");
-    }
-
-    /// The quick booth's geometry: a narrow camera (fx 2000 on 460 x 343 px, radial k1 only, as
-    /// the virtual booth's lens) and a projector without distortion see a 9 x 7 board of 9 mm
-    /// squares 500 mm away in 5 tilted poses, with 0.05 px corner noise (seeded). Only k1 moves
-    /// the corners by more than the noise here: k2, k3 and the tangential terms must not be
-    /// estimated, and the principal points must come out closer to the truth than when they are.
-    #[test]
-    fn narrow_field_of_view_estimates_only_the_distortion_the_corners_support() {
-        use rand::{Rng, SeedableRng};
-        let board = BoardSpec {
-            cols: 9,
-            rows: 7,
-            square_mm: 9.0,
-        };
-        let tilt = |j: usize| {
-            let sx = if j.is_multiple_of(2) { 1.0 } else { -1.0 };
-            let sy = if (j / 2).is_multiple_of(2) { 1.0 } else { -1.0 };
-            let a = (20.0 + 3.0 * j as f64).to_radians();
-            Vector3::new(sx * a, sy * a, 0.1 * j as f64)
-        };
-        let rig = RigModel {
-            intrinsics: vec![
-                Intrinsics {
-                    fx: 2000.0,
-                    fy: 2000.0,
-                    cx: 229.5,
-                    cy: 171.0,
-                    distortion: [-0.08, 0.0, 0.0, 0.0, 0.0],
-                },
-                Intrinsics {
-                    fx: 900.0,
-                    fy: 900.0,
-                    cx: 128.0,
-                    cy: 100.0,
-                    distortion: [0.0; 5],
-                },
-            ],
-            device_poses: vec![
-                Pose::identity(),
-                Pose {
-                    rotation: Vector3::new(0.0, -0.25, 0.0),
-                    translation: Vector3::new(130.0, 0.0, 10.0),
-                },
-            ],
-            view_poses: (0..5)
-                .map(|j| Pose {
-                    rotation: tilt(j),
-                    translation: Vector3::new(-36.0, -27.0, 500.0),
-                })
-                .collect(),
-        };
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
-        let mut noisy = |points: Vec<Vector2<f64>>| -> Vec<Vector2<f64>> {
-            points
-                .into_iter()
-                .map(|p| {
-                    // Box-Muller: two independent N(0, 0.05^2) offsets.
-                    let (u, v): (f64, f64) = (1.0 - rng.r#gen::<f64>(), rng.r#gen());
-                    let r = 0.05 * (-2.0 * u.ln()).sqrt();
-                    let phi = std::f64::consts::TAU * v;
-                    p + Vector2::new(r * phi.cos(), r * phi.sin())
-                })
-                .collect()
-        };
-        let poses: Vec<PoseCorners> = (0..5)
-            .map(|v| PoseCorners {
-                name: format!("pose{v}"),
-                camera: Ok(noisy(measure(&rig, &board, v, 0))),
-                projectors: vec![
-                    noisy(measure(&rig, &board, v, 1))
-                        .into_iter()
-                        .map(Some)
-                        .collect(),
-                ],
-            })
-            .collect();
-        let cam = ImageSize {
-            width: 460,
-            height: 343,
-        };
-        let proj = [ImageSize {
-            width: 256,
-            height: 200,
-        }];
-        let result =
-            calibrate_procam(&poses, &board, cam, &proj, &ProcamOptions::default()).unwrap();
-        let [camera_terms, projector_terms] = result.distortion_terms[..] else {
-            panic!("{:?}", result.distortion_terms)
-        };
-        assert!(
-            camera_terms[0] && !camera_terms[1..].iter().any(|&t| t),
-            "camera terms {camera_terms:?}"
-        );
-        assert!(
-            !projector_terms[1..].iter().any(|&t| t),
-            "projector terms {projector_terms:?}"
-        );
-        // Estimating every term fits the noise as well but moves the principal points away.
-        let all = ProcamOptions {
-            select_distortion: false,
-            ..ProcamOptions::default()
-        };
-        let overfit = calibrate_procam(&poses, &board, cam, &proj, &all).unwrap();
-        let centre_error = |r: &ProcamResult| {
-            let k = &r.calibration.camera.intrinsics;
-            let p = &r.calibration.projectors[0].device.intrinsics;
-            (k.cx - 229.5)
-                .hypot(k.cy - 171.0)
-                .max((p.cx - 128.0).hypot(p.cy - 100.0))
-        };
-        let (selected, every) = (centre_error(&result), centre_error(&overfit));
-        // Seed 7: 3.3 px against 8.2 px, at the same RMS (0.0698 against 0.0697 px).
-        assert!(
-            selected < 5.0 && selected < 0.5 * every,
-            "{selected} vs {every}"
-        );
-        let k = &result.calibration.camera.intrinsics;
-        assert!((k.fx / 2000.0 - 1.0).abs() < 3e-3, "{k:?}");
-    }
-
-    #[test]
-    fn too_few_poses_is_a_clear_error() {
-        let (rig, board) = synthetic_rig(2);
-        let poses: Vec<PoseCorners> = (0..2)
-            .map(|v| PoseCorners {
-                name: format!("pose{v}"),
-                camera: Ok(measure(&rig, &board, v, 0)),
-                projectors: vec![],
-            })
-            .collect();
-        let (cam, _) = sizes();
-        let err =
-            calibrate_procam(&poses, &board, cam, &[], &ProcamOptions::default()).unwrap_err();
-        assert!(
-            matches!(err, ProcamError::TooFewPoses { usable: 2, .. }),
-            "{err}"
-        );
-    }
-}
+mod tests;

@@ -1,0 +1,287 @@
+//! Steps 3 and 4 of the algorithm for one axis: integer codes, repair of unreliable bits against
+//! the neighbours' plane, the outlier check and the sub-pixel fit.
+
+use rayon::prelude::*;
+
+use super::bits::PixelBits;
+use super::plane::{jump_limit, robust_plane_at_centre};
+use super::{AxisDecode, DecodeParams, PixelStatus};
+use mlsss_core::capture::patterns::gray_decode;
+
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Grid {
+    pub(super) width: usize,
+    pub(super) height: usize,
+}
+
+impl Grid {
+    pub(super) fn len(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Indices and offsets of the pixels in the window around `i`, excluding `i`.
+    fn window(&self, i: usize, radius: usize) -> impl Iterator<Item = (usize, f64, f64)> + '_ {
+        let (x, y) = ((i % self.width) as isize, (i / self.width) as isize);
+        let r = radius as isize;
+        let (w, h) = (self.width as isize, self.height as isize);
+        (-r..=r)
+            .flat_map(move |dy| (-r..=r).map(move |dx| (dx, dy)))
+            .filter(move |&(dx, dy)| {
+                (dx, dy) != (0, 0) && (0..w).contains(&(x + dx)) && (0..h).contains(&(y + dy))
+            })
+            .map(move |(dx, dy)| (((y + dy) * w + x + dx) as usize, dx as f64, dy as f64))
+    }
+}
+
+/// Integer codes of one axis: direct decode, repair of low bits, consistency and sub-pixel fit.
+pub(super) fn decode_axis(
+    grid: Grid,
+    bits: &[PixelBits],
+    nbits: u32,
+    size: u32,
+    params: &DecodeParams,
+) -> AxisDecode {
+    // Pass 1: pixels whose bits are all reliable.
+    let first: Vec<(i32, PixelStatus)> = bits
+        .par_iter()
+        .map(|b| initial_code(b, nbits, size, params))
+        .collect();
+    // Pass 2: repair from the neighbours, growing into regions where most pixels need it: each
+    // round uses the codes decoded or repaired by the previous one.
+    let mut repaired = first;
+    for _ in 0..REPAIR_ROUNDS {
+        let previous = repaired;
+        repaired = (0..grid.len())
+            .into_par_iter()
+            .map(|i| match previous[i].1 {
+                PixelStatus::RepairFailed => {
+                    repair(grid, i, &bits[i], nbits, &previous, size, params)
+                }
+                _ => previous[i],
+            })
+            .collect();
+    }
+    // Pass 3: consistency with the neighbours, and sub-pixel coordinate.
+    let checked: Vec<(i32, f32, PixelStatus)> = (0..grid.len())
+        .into_par_iter()
+        .map(|i| check_and_refine(grid, i, &repaired, params))
+        .collect();
+    let mut out = AxisDecode {
+        code: Vec::with_capacity(grid.len()),
+        coord: Vec::with_capacity(grid.len()),
+        status: Vec::with_capacity(grid.len()),
+    };
+    for (code, coord, status) in checked {
+        out.code.push(code);
+        out.coord.push(coord);
+        out.status.push(status);
+    }
+    out
+}
+
+/// Rounds of neighbour repair (each can reach `2 * window_radius` further into a blurred region).
+const REPAIR_ROUNDS: usize = 3;
+
+/// Pass 1 for one pixel. Pixels that need repair are marked `RepairFailed` until pass 2 succeeds.
+fn initial_code(b: &PixelBits, nbits: u32, size: u32, params: &DecodeParams) -> (i32, PixelStatus) {
+    if !b.lit {
+        return (-1, PixelStatus::Unlit);
+    }
+    let unreliable = !b.reliable & bit_mask(nbits);
+    if unreliable == 0 {
+        return in_range(gray_decode(b.gray as u32), size, PixelStatus::Decoded);
+    }
+    if unreliable.count_ones() > params.max_repaired_bits {
+        return (-1, PixelStatus::UnreliableBits);
+    }
+    (-1, PixelStatus::RepairFailed)
+}
+
+fn in_range(code: u32, size: u32, status: PixelStatus) -> (i32, PixelStatus) {
+    if code < size {
+        (code as i32, status)
+    } else {
+        (-1, PixelStatus::OutOfRange)
+    }
+}
+
+fn bit_mask(bits: u32) -> u16 {
+    if bits >= 16 {
+        u16::MAX
+    } else {
+        (1u16 << bits) - 1
+    }
+}
+
+/// Pass 2 for one pixel: the candidate code closest to the neighbours' plane, if close enough.
+fn repair(
+    grid: Grid,
+    i: usize,
+    b: &PixelBits,
+    nbits: u32,
+    first: &[(i32, PixelStatus)],
+    size: u32,
+    params: &DecodeParams,
+) -> (i32, PixelStatus) {
+    // A wider window than for the checks: in blurred regions the reliable pixels are sparse.
+    let radius = 2 * params.window_radius as usize;
+    let Some(predicted) = neighbour_prediction(grid, i, radius, first, params) else {
+        return (-1, PixelStatus::RepairFailed);
+    };
+    let unreliable = !b.reliable & bit_mask(nbits);
+    let fixed = b.gray & !unreliable;
+    // Enumerate every setting of the unreliable bits (at most 2^max_repaired_bits).
+    let mut best: Option<(f64, u32)> = None;
+    let mut subset: u16 = 0;
+    loop {
+        let code = gray_decode((fixed | subset) as u32);
+        let distance = (code as f64 - predicted).abs();
+        if code < size && best.is_none_or(|(d, _)| distance < d) {
+            best = Some((distance, code));
+        }
+        // Next subset of `unreliable` (standard subset enumeration).
+        subset = subset.wrapping_sub(unreliable) & unreliable;
+        if subset == 0 {
+            break;
+        }
+    }
+    match best {
+        Some((d, code)) if d <= params.repair_tolerance_px as f64 => {
+            (code as i32, PixelStatus::Repaired)
+        }
+        _ => (-1, PixelStatus::RepairFailed),
+    }
+}
+
+/// Pass 3 for one pixel: flag codes that disagree with the neighbours, fit the sub-pixel value.
+fn check_and_refine(
+    grid: Grid,
+    i: usize,
+    codes: &[(i32, PixelStatus)],
+    params: &DecodeParams,
+) -> (i32, f32, PixelStatus) {
+    let (code, status) = codes[i];
+    if !status.is_valid() {
+        return (-1, f32::NAN, status);
+    }
+    let radius = params.window_radius as usize;
+    let stats = WindowStats::new(grid, i, radius, codes);
+    if stats.is_full_and_smooth(radius) {
+        // Fast path: over a complete symmetric window the least-squares plane's value at the
+        // centre is the mean, so no fit is needed.
+        let predicted = stats.sum / stats.count as f64;
+        if (code as f64 - predicted).abs() > params.outlier_px as f64 {
+            return (-1, f32::NAN, PixelStatus::Inconsistent);
+        }
+        let refined = ((stats.sum + code as f64) / (stats.count + 1) as f64)
+            .clamp(code as f64 - 0.5, code as f64 + 0.5);
+        return (code, refined as f32, status);
+    }
+    let samples: Vec<(f64, f64, f64)> = grid
+        .window(i, radius)
+        .filter(|&(j, _, _)| codes[j].1.is_valid())
+        .map(|(j, dx, dy)| (dx, dy, codes[j].0 as f64))
+        .collect();
+    if samples.len() < params.min_neighbours as usize {
+        return (-1, f32::NAN, PixelStatus::Inconsistent);
+    }
+    let Some(predicted) = robust_plane_at_centre(&samples, params) else {
+        return (-1, f32::NAN, PixelStatus::Inconsistent);
+    };
+    if (code as f64 - predicted).abs() > params.outlier_px as f64 {
+        return (-1, f32::NAN, PixelStatus::Inconsistent);
+    }
+    // The fit with the pixel itself, restricted to the same inliers, gives the sub-pixel value.
+    let mut with_self: Vec<(f64, f64, f64)> = samples
+        .iter()
+        .copied()
+        .filter(|&(_, _, c)| (c - code as f64).abs() <= jump_limit(params))
+        .collect();
+    with_self.push((0.0, 0.0, code as f64));
+    // The code says which projector pixel is seen: keep the refined value inside it.
+    let refined = robust_plane_at_centre(&with_self, params)
+        .map(|p| p.clamp(code as f64 - 0.5, code as f64 + 0.5))
+        .unwrap_or(code as f64);
+    (code, refined as f32, status)
+}
+
+/// The neighbours' plane value at pixel `i` (valid neighbours within `radius`), if there are
+/// enough of them.
+fn neighbour_prediction(
+    grid: Grid,
+    i: usize,
+    radius: usize,
+    codes: &[(i32, PixelStatus)],
+    params: &DecodeParams,
+) -> Option<f64> {
+    let stats = WindowStats::new(grid, i, radius, codes);
+    if stats.is_full_and_smooth(radius) {
+        return Some(stats.sum / stats.count as f64);
+    }
+    if stats.count < params.min_neighbours as usize {
+        return None;
+    }
+    let samples: Vec<(f64, f64, f64)> = grid
+        .window(i, radius)
+        .filter(|&(j, _, _)| codes[j].1.is_valid())
+        .map(|(j, dx, dy)| (dx, dy, codes[j].0 as f64))
+        .collect();
+    // Interpolate, never extrapolate: a plane through integer codes on one side only (image
+    // border, shadow edge) is biased by the staircase of the codes.
+    let has = |side: fn(f64, f64) -> bool| samples.iter().any(|s| side(s.0, s.1));
+    let surrounded = has(|dx, _| dx < 0.0)
+        && has(|dx, _| dx > 0.0)
+        && has(|_, dy| dy < 0.0)
+        && has(|_, dy| dy > 0.0);
+    if !surrounded {
+        return None;
+    }
+    robust_plane_at_centre(&samples, params)
+}
+
+/// Count, sum and range of the valid codes around a pixel (itself excluded), without allocating.
+#[derive(Debug, Clone, Copy)]
+struct WindowStats {
+    count: usize,
+    sum: f64,
+    min: i32,
+    max: i32,
+    /// Pixels of the window inside the image (excluding the centre).
+    size: usize,
+}
+
+impl WindowStats {
+    fn new(grid: Grid, i: usize, radius: usize, codes: &[(i32, PixelStatus)]) -> Self {
+        let (x, y) = (i % grid.width, i / grid.width);
+        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
+        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(grid.height - 1));
+        let mut s = Self {
+            count: 0,
+            sum: 0.0,
+            min: i32::MAX,
+            max: i32::MIN,
+            size: (x1 - x0 + 1) * (y1 - y0 + 1) - 1,
+        };
+        for row in y0..=y1 {
+            for (j, &(code, status)) in codes[row * grid.width + x0..=row * grid.width + x1]
+                .iter()
+                .enumerate()
+            {
+                if status.is_valid() && row * grid.width + x0 + j != i {
+                    s.count += 1;
+                    s.sum += code as f64;
+                    s.min = s.min.min(code);
+                    s.max = s.max.max(code);
+                }
+            }
+        }
+        s
+    }
+
+    /// Every pixel of the full square window is decoded and the codes span no more than a surface
+    /// with a gradient of about one projector pixel per camera pixel would.
+    fn is_full_and_smooth(&self, radius: usize) -> bool {
+        let full = (2 * radius + 1).pow(2) - 1;
+        self.size == full && self.count == full && self.max - self.min <= 2 * radius as i32 + 2
+    }
+}

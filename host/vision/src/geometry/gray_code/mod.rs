@@ -1,0 +1,506 @@
+//! Gray-code decoding: projector column and row for every camera pixel (DESIGN section 4, stage 1).
+//!
+//! Conventions
+//! - Camera pixel `(x, y)` is column `x`, row `y`, origin top-left; images are row-major
+//!   (`index = y * width + x`), one channel, linear values (any scale: thresholds are relative or
+//!   follow [`DecodeParams`]'s noise model in the frames' own units).
+//! - Projector coordinates follow `capture::patterns`: column `u`, row `v`, pixel centres at integer
+//!   coordinates, so integer code `n` means the projector pixel centred at `n` (covering
+//!   `[n - 0.5, n + 0.5)`). Sub-pixel coordinates use the same origin.
+//! - Bit pairs are given MSB first (the capture order); bit `k` of the reflected Gray code of the
+//!   coordinate is lit in the pattern and dark in its inverse.
+//!
+//! Algorithm
+//! 1. Lit mask: `white - black` (or, with no black frame, the largest pattern/inverse difference of
+//!    the coarse bits) must exceed `min_amplitude`.
+//! 2. Each bit is decided by the sign of `pattern - inverse`. The bit is *reliable* when the
+//!    difference exceeds both `min_bit_snr` standard deviations of the sensor noise and
+//!    `min_bit_contrast` of the pixel's amplitude. Subsurface scattering washes out the finest
+//!    stripes, so low bits are the ones that fail.
+//! 3. Pixels with at most `max_repaired_bits` unreliable bits are repaired: among the codes the
+//!    unreliable bits allow, the one closest to a plane fitted to the decoded neighbours is kept if
+//!    it is within `repair_tolerance_px`; otherwise the pixel is flagged. This covers both the
+//!    blurred fine bits and any bit seen right at its own stripe edge (where either value gives
+//!    one of the two adjacent codes).
+//! 4. Every decoded pixel is checked against a robust plane through its neighbours' codes; a pixel
+//!    off by more than `outlier_px` is flagged (interreflections, specular glints, noise). The same
+//!    local plane, fitted with the pixel itself, gives the sub-pixel coordinate: integer codes are
+//!    a staircase of the smooth projector coordinate and the fit averages the quantisation out.
+//!
+//! Flagging is preferred to guessing: a pixel that is not clearly decodable is reported with a
+//! [`PixelStatus`] saying why, never given a silently wrong code.
+
+mod axis;
+mod bits;
+mod plane;
+#[cfg(test)]
+mod tests;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use axis::{Grid, decode_axis};
+use bits::decide_bits;
+
+/// Errors of the Gray-code decoder.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GrayCodeError {
+    /// A frame has a different number of pixels than `width * height`.
+    #[error("frame `{frame}` has {len} pixels, expected {width}x{height} = {}", width * height)]
+    FrameSize {
+        frame: String,
+        len: usize,
+        width: usize,
+        height: usize,
+    },
+    /// The sequence has too few bit pairs to address every projector column or row.
+    #[error(
+        "{axis} axis: {bits} Gray-code bits cannot address {size} projector pixels (need {needed})"
+    )]
+    TooFewBits {
+        axis: &'static str,
+        bits: usize,
+        size: u32,
+        needed: u32,
+    },
+    /// More than 16 bits per axis (codes are stored in 16 bits).
+    #[error("{axis} axis: {bits} Gray-code bits is more than the 16 supported")]
+    TooManyBits { axis: &'static str, bits: usize },
+    /// No camera pixel is lit: all frames dark, a wrong bit depth, or the projector was off.
+    #[error(
+        "no camera pixel is lit (largest white-black difference {max_amplitude:.4}, threshold \
+         {min_amplitude}): are the frames all dark, or were 8-bit frames read as 12-bit?"
+    )]
+    NothingLit {
+        max_amplitude: f32,
+        min_amplitude: f32,
+    },
+}
+
+/// One bit of the code: the camera frame under the pattern and under its inverse.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BitPair {
+    pub pattern: Vec<f32>,
+    pub inverse: Vec<f32>,
+}
+
+/// The camera frames of one projector's Gray-code sequence, reduced to one channel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GrayCodeFrames {
+    /// Camera width and height in pixels.
+    pub width: u32,
+    pub height: u32,
+    /// Full-field white, if captured (lit mask and contrast reference).
+    pub white: Option<Vec<f32>>,
+    /// Full-field black, if captured (ambient and projector black level).
+    pub black: Option<Vec<f32>>,
+    /// Column-code bits, MSB first.
+    pub x: Vec<BitPair>,
+    /// Row-code bits, MSB first.
+    pub y: Vec<BitPair>,
+}
+
+/// Thresholds of the decoder. Noise terms are in the frames' units (linear, full scale 1).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecodeParams {
+    /// Smallest `white - black` for a pixel to count as lit.
+    pub min_amplitude: f32,
+    /// Smallest |pattern - inverse| relative to the pixel's amplitude for a reliable bit.
+    pub min_bit_contrast: f32,
+    /// Smallest |pattern - inverse| in noise standard deviations for a reliable bit.
+    pub min_bit_snr: f32,
+    /// Shot noise: variance per unit of signal (1 / full-well electrons for a linear sensor).
+    pub shot_noise_gain: f32,
+    /// Read (and quantisation) noise standard deviation per frame.
+    pub read_noise: f32,
+    /// Most unreliable bits a pixel may have and still be repaired from its neighbours.
+    pub max_repaired_bits: u32,
+    /// Half-size of the square neighbourhood used for repair, consistency and sub-pixel fits.
+    pub window_radius: u32,
+    /// Largest distance between a repaired code and the neighbours' plane, projector pixels.
+    pub repair_tolerance_px: f32,
+    /// Largest distance between a decoded code and the neighbours' plane, projector pixels.
+    pub outlier_px: f32,
+    /// Smallest number of decoded neighbours for a pixel to be trusted.
+    pub min_neighbours: u32,
+}
+
+impl Default for DecodeParams {
+    fn default() -> Self {
+        Self {
+            min_amplitude: 0.02,
+            min_bit_contrast: 0.03,
+            min_bit_snr: 3.0,
+            shot_noise_gain: 1.0 / 12_000.0,
+            read_noise: 2.0 / 4095.0,
+            max_repaired_bits: 4,
+            window_radius: 2,
+            repair_tolerance_px: 1.0,
+            outlier_px: 2.0,
+            min_neighbours: 5,
+        }
+    }
+}
+
+impl DecodeParams {
+    /// Parameters for 8-bit frames (quantisation dominates the read noise).
+    pub fn for_8_bit() -> Self {
+        Self {
+            read_noise: 1.5 / 255.0,
+            ..Self::default()
+        }
+    }
+}
+
+/// Why a pixel has (or has no) code, per axis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+#[repr(u8)]
+pub enum PixelStatus {
+    /// Every bit was reliable and the code agrees with the neighbours.
+    Decoded = 0,
+    /// Low bits were unreliable and were repaired from the neighbours.
+    Repaired = 1,
+    /// The projector does not light this pixel (shadow, background, outside its field).
+    Unlit = 2,
+    /// A bit above the repairable ones was unreliable.
+    UnreliableBits = 3,
+    /// Low bits were unreliable and no candidate code fits the neighbours.
+    RepairFailed = 4,
+    /// The code disagrees with its neighbours, or too few neighbours were decoded.
+    Inconsistent = 5,
+    /// The code is beyond the projector's width or height.
+    OutOfRange = 6,
+}
+
+impl PixelStatus {
+    /// True when the pixel has a code.
+    pub fn is_valid(self) -> bool {
+        matches!(self, PixelStatus::Decoded | PixelStatus::Repaired)
+    }
+}
+
+/// The decoded coordinate along one projector axis for every camera pixel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AxisDecode {
+    /// Integer projector coordinate, or -1 where the status is not valid.
+    pub code: Vec<i32>,
+    /// Sub-pixel projector coordinate, NaN where the status is not valid.
+    pub coord: Vec<f32>,
+    pub status: Vec<PixelStatus>,
+}
+
+/// Result of decoding one projector's sequence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProjectorDecode {
+    /// Camera size.
+    pub width: u32,
+    pub height: u32,
+    /// Projector size.
+    pub projector_width: u32,
+    pub projector_height: u32,
+    /// Column coordinate (`u`).
+    pub u: AxisDecode,
+    /// Row coordinate (`v`).
+    pub v: AxisDecode,
+    /// Per-pixel confidence in [0, 1]: mean relative bit contrast, halved for repaired pixels,
+    /// 0 where either axis is not valid.
+    pub confidence: Vec<f32>,
+}
+
+impl ProjectorDecode {
+    /// True when both axes decoded at pixel index `i`.
+    pub fn is_valid(&self, i: usize) -> bool {
+        self.u.status[i].is_valid() && self.v.status[i].is_valid()
+    }
+
+    /// Sub-pixel `(u, v)` at pixel index `i`, when both axes decoded.
+    pub fn coords(&self, i: usize) -> Option<(f32, f32)> {
+        self.is_valid(i).then(|| (self.u.coord[i], self.v.coord[i]))
+    }
+
+    /// Pixel counts per outcome.
+    pub fn summary(&self) -> DecodeSummary {
+        let n = self.u.status.len();
+        let mut s = DecodeSummary {
+            pixels: n,
+            ..DecodeSummary::default()
+        };
+        for i in 0..n {
+            let (a, b) = (self.u.status[i], self.v.status[i]);
+            if a == PixelStatus::Unlit {
+                s.unlit += 1;
+            } else if self.is_valid(i) {
+                s.valid += 1;
+                if a == PixelStatus::Repaired || b == PixelStatus::Repaired {
+                    s.repaired += 1;
+                }
+            } else {
+                s.flagged += 1;
+            }
+        }
+        s
+    }
+}
+
+/// Pixel counts of a decode.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DecodeSummary {
+    pub pixels: usize,
+    /// Both axes decoded (including repaired).
+    pub valid: usize,
+    /// Valid pixels where at least one axis needed repair.
+    pub repaired: usize,
+    /// Not lit by the projector.
+    pub unlit: usize,
+    /// Lit but not decodable (unreliable, inconsistent, out of range).
+    pub flagged: usize,
+}
+
+impl DecodeSummary {
+    /// Valid pixels over all camera pixels.
+    pub fn valid_fraction(&self) -> f64 {
+        self.valid as f64 / self.pixels.max(1) as f64
+    }
+
+    /// Flagged pixels over lit pixels.
+    pub fn flagged_fraction(&self) -> f64 {
+        self.flagged as f64 / (self.pixels - self.unlit).max(1) as f64
+    }
+}
+
+/// Decodes one projector's Gray-code sequence.
+pub fn decode(
+    frames: &GrayCodeFrames,
+    projector_size: (u32, u32),
+    params: &DecodeParams,
+) -> Result<ProjectorDecode, GrayCodeError> {
+    frames.validate(projector_size)?;
+    let amplitude = frames.amplitude();
+    let max_amplitude = amplitude.iter().copied().fold(0.0f32, f32::max);
+    if max_amplitude < params.min_amplitude {
+        return Err(GrayCodeError::NothingLit {
+            max_amplitude,
+            min_amplitude: params.min_amplitude,
+        });
+    }
+    let grid = Grid {
+        width: frames.width as usize,
+        height: frames.height as usize,
+    };
+    let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, params);
+    let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, params);
+    let u = decode_axis(
+        grid,
+        &u_bits,
+        frames.x.len() as u32,
+        projector_size.0,
+        params,
+    );
+    let v = decode_axis(
+        grid,
+        &v_bits,
+        frames.y.len() as u32,
+        projector_size.1,
+        params,
+    );
+    let nbits = (frames.x.len() + frames.y.len()).max(1) as f32;
+    let confidence = (0..grid.len())
+        .map(|i| {
+            if !(u.status[i].is_valid() && v.status[i].is_valid()) {
+                return 0.0;
+            }
+            let c = (u_conf[i] + v_conf[i]) / nbits;
+            let repaired =
+                u.status[i] == PixelStatus::Repaired || v.status[i] == PixelStatus::Repaired;
+            if repaired { 0.5 * c } else { c }
+        })
+        .collect();
+    Ok(ProjectorDecode {
+        width: frames.width,
+        height: frames.height,
+        projector_width: projector_size.0,
+        projector_height: projector_size.1,
+        u,
+        v,
+        confidence,
+    })
+}
+
+/// Number of Gray-code bits needed to address `size` pixels.
+pub fn bits_for(size: u32) -> u32 {
+    u32::BITS - size.saturating_sub(1).leading_zeros()
+}
+
+impl GrayCodeFrames {
+    /// The frames cropped to the camera rectangle at `(x0, y0)` of size `width` x `height`
+    /// (clipped to the image), e.g. to decode around a calibration corner only.
+    pub fn crop(&self, x0: u32, y0: u32, width: u32, height: u32) -> Self {
+        let x0 = x0.min(self.width);
+        let y0 = y0.min(self.height);
+        let w = width.min(self.width - x0);
+        let h = height.min(self.height - y0);
+        let cut = |f: &Vec<f32>| -> Vec<f32> {
+            (y0..y0 + h)
+                .flat_map(|y| {
+                    let start = (y * self.width + x0) as usize;
+                    f.get(start..start + w as usize)
+                        .unwrap_or(&[])
+                        .iter()
+                        .copied()
+                })
+                .collect()
+        };
+        let cut_pairs = |pairs: &Vec<BitPair>| {
+            pairs
+                .iter()
+                .map(|p| BitPair {
+                    pattern: cut(&p.pattern),
+                    inverse: cut(&p.inverse),
+                })
+                .collect()
+        };
+        Self {
+            width: w,
+            height: h,
+            white: self.white.as_ref().map(cut),
+            black: self.black.as_ref().map(cut),
+            x: cut_pairs(&self.x),
+            y: cut_pairs(&self.y),
+        }
+    }
+
+    fn validate(&self, projector_size: (u32, u32)) -> Result<(), GrayCodeError> {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let check = |name: String, f: &Vec<f32>| {
+            if f.len() == w * h {
+                Ok(())
+            } else {
+                Err(GrayCodeError::FrameSize {
+                    frame: name,
+                    len: f.len(),
+                    width: w,
+                    height: h,
+                })
+            }
+        };
+        if let Some(f) = &self.white {
+            check("white".into(), f)?;
+        }
+        if let Some(f) = &self.black {
+            check("black".into(), f)?;
+        }
+        for (axis, pairs, size) in [
+            ("x", &self.x, projector_size.0),
+            ("y", &self.y, projector_size.1),
+        ] {
+            if pairs.len() > 16 {
+                return Err(GrayCodeError::TooManyBits {
+                    axis,
+                    bits: pairs.len(),
+                });
+            }
+            let needed = bits_for(size);
+            if (pairs.len() as u32) < needed {
+                return Err(GrayCodeError::TooFewBits {
+                    axis,
+                    bits: pairs.len(),
+                    size,
+                    needed,
+                });
+            }
+            for (i, p) in pairs.iter().enumerate() {
+                let bit = pairs.len() - 1 - i;
+                check(format!("{axis} bit {bit}"), &p.pattern)?;
+                check(format!("{axis} bit {bit} inverse"), &p.inverse)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Per-pixel modulation: white - black, or without black the largest coarse-bit difference.
+    fn amplitude(&self) -> Vec<f32> {
+        match (&self.white, &self.black) {
+            (Some(white), Some(black)) => white
+                .par_iter()
+                .zip(black.par_iter())
+                .map(|(w, b)| w - b)
+                .collect(),
+            _ => {
+                // Without a black frame, the coarse stripes (wide, hardly blurred) show the full
+                // modulation on one side or the other.
+                let coarse: Vec<&BitPair> =
+                    self.x.iter().take(3).chain(self.y.iter().take(3)).collect();
+                let n = self.width as usize * self.height as usize;
+                (0..n)
+                    .into_par_iter()
+                    .map(|i| {
+                        coarse
+                            .iter()
+                            .map(|p| (p.pattern[i] - p.inverse[i]).abs())
+                            .fold(0.0, f32::max)
+                    })
+                    .collect()
+            }
+        }
+    }
+}
+
+/// Decoded coordinates compared with the true ones (simulated captures, synthetic frames).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TruthComparison {
+    /// Valid pixels whose integer codes equal the rounded true coordinates (both axes).
+    pub exact_fraction: f64,
+    /// Valid pixels off by more than 0.5 projector pixel on either axis, or unlit in truth.
+    pub wrong_fraction: f64,
+    /// Mean |decoded - true| over both axes of valid pixels lit in truth, projector pixels.
+    pub mean_abs_error_px: f64,
+    /// Pixels lit in truth that the decoder flagged or called unlit, over pixels lit in truth.
+    pub missed_fraction: f64,
+}
+
+impl TruthComparison {
+    /// Compares `decoded` with `truth[i]` = true (u, v) at camera pixel index `i`, `None` where the
+    /// projector does not light it.
+    pub fn new(decoded: &ProjectorDecode, truth: &[Option<(f64, f64)>]) -> Self {
+        let (mut valid, mut exact, mut wrong, mut lit, mut missed) = (0usize, 0, 0, 0, 0);
+        let mut abs_sum = 0.0;
+        let mut abs_count = 0usize;
+        for (i, t) in truth.iter().enumerate() {
+            let decoded_here = decoded.coords(i);
+            if t.is_some() {
+                lit += 1;
+            }
+            match (decoded_here, t) {
+                (None, Some(_)) => missed += 1,
+                (None, None) => {}
+                (Some(_), None) => {
+                    valid += 1;
+                    wrong += 1;
+                }
+                (Some((u, v)), Some((tu, tv))) => {
+                    valid += 1;
+                    let (du, dv) = ((u as f64 - tu).abs(), (v as f64 - tv).abs());
+                    abs_sum += du + dv;
+                    abs_count += 2;
+                    if du > 0.5 || dv > 0.5 {
+                        wrong += 1;
+                    }
+                    if decoded.u.code[i] as f64 == tu.round()
+                        && decoded.v.code[i] as f64 == tv.round()
+                    {
+                        exact += 1;
+                    }
+                }
+            }
+        }
+        let frac = |a: usize, b: usize| a as f64 / b.max(1) as f64;
+        Self {
+            exact_fraction: frac(exact, valid),
+            wrong_fraction: frac(wrong, valid),
+            mean_abs_error_px: abs_sum / abs_count.max(1) as f64,
+            missed_fraction: frac(missed, lit),
+        }
+    }
+}

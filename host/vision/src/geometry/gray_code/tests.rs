@@ -1,0 +1,127 @@
+//! Tests of Gray-code decoding on synthetic scenes.
+
+use super::*;
+use crate::geometry::synthetic::SyntheticGrayScene;
+
+fn truth_of(scene: &SyntheticGrayScene) -> Vec<Option<(f64, f64)>> {
+    let (w, h) = scene.camera_size;
+    (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| scene.projector_coords(x, y))
+        .collect()
+}
+
+fn decode_scene(scene: &SyntheticGrayScene) -> (ProjectorDecode, TruthComparison) {
+    let frames = scene.render();
+    let decoded = decode(&frames, scene.projector_size, &DecodeParams::default()).unwrap();
+    let cmp = TruthComparison::new(&decoded, &truth_of(scene));
+    (decoded, cmp)
+}
+
+#[test]
+fn sharp_frames_decode_every_lit_pixel_to_the_true_column_and_row() {
+    // About 2 camera pixels per projector pixel, as in the booth.
+    let mut scene = SyntheticGrayScene::new((160, 120), (256, 192));
+    scene.u = [40.3, 0.47, 0.03];
+    scene.v = [30.6, -0.02, 0.52];
+    let (decoded, cmp) = decode_scene(&scene);
+    let summary = decoded.summary();
+    assert_eq!(summary.unlit, 0);
+    assert!(summary.valid_fraction() > 0.99, "{summary:?}");
+    assert_eq!(cmp.wrong_fraction, 0.0, "{cmp:?}");
+    assert!(cmp.exact_fraction > 0.95, "{cmp:?}");
+    // Sub-pixel refinement beats the 0.25 px mean error of integer codes.
+    assert!(cmp.mean_abs_error_px < 0.12, "{cmp:?}");
+}
+
+#[test]
+fn shadowed_pixels_are_unlit_and_never_decoded() {
+    let mut scene = SyntheticGrayScene::new((120, 90), (256, 192));
+    scene.shadow_disc = Some([60.0, 45.0, 20.0]);
+    let (decoded, cmp) = decode_scene(&scene);
+    for (i, t) in truth_of(&scene).iter().enumerate() {
+        if t.is_none() {
+            assert_eq!(decoded.u.status[i], PixelStatus::Unlit, "pixel {i}");
+            assert!(decoded.coords(i).is_none());
+        }
+    }
+    // Integer codes are all right; sub-pixel fits at the shadow's rim may stray a little.
+    assert_eq!(cmp.exact_fraction, 1.0, "{cmp:?}");
+    assert!(cmp.wrong_fraction < 0.002, "{cmp:?}");
+}
+
+#[test]
+fn subsurface_blur_of_fine_bits_is_repaired_or_flagged_never_silently_wrong() {
+    // 70% of the light is blurred over 3 projector pixels: the two finest bits (2- and 4-px
+    // stripes) lose most of their contrast, with 12-bit-like noise on top.
+    let mut scene = SyntheticGrayScene::new((160, 120), (256, 192));
+    scene.u = [40.3, 0.47, 0.03];
+    scene.v = [30.6, -0.02, 0.52];
+    scene.direct_fraction = 0.06;
+    scene.global_blur_px = 3.0;
+    scene.albedo = 0.5;
+    scene.seed = 7;
+    let (decoded, cmp) = decode_scene(&scene);
+    let summary = decoded.summary();
+    eprintln!("{summary:?} {cmp:?}");
+    assert!(
+        summary.repaired > 0,
+        "the blur must make some bits unreliable: {summary:?}"
+    );
+    assert!(summary.valid_fraction() > 0.8, "{summary:?}");
+    assert!(
+        cmp.wrong_fraction * (summary.valid as f64) < summary.flagged as f64,
+        "wrong must be rarer than flagged: {cmp:?} {summary:?}"
+    );
+    assert!(cmp.wrong_fraction < 0.005, "{cmp:?}");
+    assert!(cmp.mean_abs_error_px < 0.2, "{cmp:?}");
+}
+
+#[test]
+fn frames_without_black_use_the_coarse_pairs_for_the_lit_mask() {
+    let mut scene = SyntheticGrayScene::new((120, 90), (256, 192));
+    scene.shadow_disc = Some([30.0, 30.0, 15.0]);
+    let mut frames = scene.render();
+    frames.black = None;
+    frames.white = None;
+    let decoded = decode(&frames, scene.projector_size, &DecodeParams::default()).unwrap();
+    let cmp = TruthComparison::new(&decoded, &truth_of(&scene));
+    assert!(cmp.wrong_fraction < 0.002, "{cmp:?}");
+    assert!(decoded.summary().valid_fraction() > 0.9);
+    assert!(decoded.summary().unlit > 500);
+}
+
+#[test]
+fn bad_inputs_are_errors_naming_the_problem() {
+    let scene = SyntheticGrayScene::new((40, 30), (256, 192));
+    let frames = scene.render();
+    let params = DecodeParams::default();
+
+    let mut short = frames.clone();
+    short.x[3].inverse.truncate(100);
+    let err = decode(&short, (256, 192), &params).unwrap_err();
+    assert!(err.to_string().contains("x bit 4 inverse"), "{err}");
+
+    let err = decode(&frames, (1024, 192), &params).unwrap_err();
+    assert!(
+        matches!(err, GrayCodeError::TooFewBits { needed: 10, .. }),
+        "{err}"
+    );
+
+    // 8-bit codes read as 12-bit: everything 16 times too dark.
+    let mut dark = frames.clone();
+    let scale = |f: &mut Vec<f32>| f.iter_mut().for_each(|v| *v /= 16.0 * 4.0);
+    dark.white.as_mut().map(scale);
+    dark.black.as_mut().map(scale);
+    let err = decode(&dark, (256, 192), &params).unwrap_err();
+    assert!(err.to_string().contains("8-bit"), "{err}");
+}
+
+#[test]
+fn bits_for_counts_code_bits() {
+    assert_eq!(bits_for(1024), 10);
+    assert_eq!(bits_for(768), 10);
+    assert_eq!(bits_for(1025), 11);
+    assert_eq!(bits_for(256), 8);
+    assert_eq!(bits_for(192), 8);
+}
