@@ -23,6 +23,8 @@
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
+use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
+
 /// The exit response of one material at one incidence angle, on a square grid centred on the entry
 /// point (odd number of cells, cell `(cells - 1) / 2` holds the entry point).
 #[derive(Debug, Clone, PartialEq)]
@@ -144,11 +146,15 @@ impl BandTable {
                 }
             }
         }
-        let filtered = gaussian_filter(&boxed, side, FILTER_SIGMA_CELLS * cell_size_mm / spacing);
+        gaussian_filter(
+            &mut boxed,
+            side,
+            FILTER_SIGMA_CELLS * cell_size_mm / spacing,
+        );
         Self {
             spacing,
             half,
-            values: filtered.into_iter().map(|v| v.map(|x| x as f32)).collect(),
+            values: boxed.into_iter().map(|v| v.map(|x| x as f32)).collect(),
         }
     }
 
@@ -334,42 +340,16 @@ const TABLE_SPACING_CELLS: f64 = 0.15;
 /// How far the filtered tables reach beyond the band, in cells.
 const FILTER_REACH_CELLS: f64 = 2.0;
 
-/// Separable convolution with a normalised Gaussian of `sigma` samples.
-fn gaussian_filter(data: &[[f64; 3]], side: usize, sigma: f64) -> Vec<[f64; 3]> {
+/// Separable convolution with a normalised Gaussian of `sigma` samples (truncated at 3.5 sigma),
+/// zero outside; the identity below a quarter sample.
+fn gaussian_filter(data: &mut [[f64; 3]], side: usize, sigma: f64) {
     if sigma < 0.25 {
-        return data.to_vec();
+        return;
     }
-    let radius = (3.5 * sigma).ceil() as isize;
-    let kernel: Vec<f64> = (-radius..=radius)
-        .map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp())
-        .collect();
-    let norm: f64 = kernel.iter().sum();
-    let pass = |src: &[[f64; 3]], horizontal: bool| -> Vec<[f64; 3]> {
-        let mut dst = vec![[0.0; 3]; src.len()];
-        for y in 0..side {
-            for x in 0..side {
-                let mut acc = [0.0; 3];
-                for (k, w) in kernel.iter().enumerate() {
-                    let o = k as isize - radius;
-                    let (sx, sy) = if horizontal {
-                        (x as isize + o, y as isize)
-                    } else {
-                        (x as isize, y as isize + o)
-                    };
-                    if sx < 0 || sy < 0 || sx as usize >= side || sy as usize >= side {
-                        continue;
-                    }
-                    let v = src[sy as usize * side + sx as usize];
-                    for c in 0..3 {
-                        acc[c] += w * v[c];
-                    }
-                }
-                dst[y * side + x] = acc.map(|a| a / norm);
-            }
-        }
-        dst
-    };
-    pass(&pass(data, true), false)
+    let kernel = GaussianKernel::new(sigma, 3.5, Normalisation::Outputs);
+    if let Err(e) = blur_2d(data, side, side, &kernel, Border::Zero) {
+        unreachable!("the table is side x side: {e}");
+    }
 }
 
 /// Per-pixel data of the entry side, for one projector.
