@@ -19,7 +19,9 @@ fn parse_vm_hwm_kib(status: &str) -> Option<u64> {
 }
 
 /// CPU time (user + system, all threads, exited ones included) this process has used, in
-/// seconds, from `/proc/self/stat`; `None` where the platform does not expose it.
+/// seconds, from `/proc/self/stat` (resolution one clock tick, 10 ms); `None` where the platform
+/// does not expose it. The one CPU-time probe of the workspace: reports and benches take
+/// differences of two readings.
 pub fn cpu_seconds() -> Option<f64> {
     let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
     parse_stat_cpu_ticks(&stat).map(|ticks| ticks as f64 / USER_HZ)
@@ -48,16 +50,49 @@ mod tests {
         let stat = "4242 (ml (sss) x) R 1 4242 4242 0 -1 4194304 900 0 0 0 1234 56 0 0 20 0 3 0";
         assert_eq!(parse_stat_cpu_ticks(stat), Some(1290));
         assert_eq!(parse_stat_cpu_ticks("4242 (x) R 1"), None);
-        if cfg!(target_os = "linux") {
-            let before = cpu_seconds().expect("linux has /proc/self/stat");
-            let mut x = 0u64;
-            for i in 0..30_000_000u64 {
-                x = x.wrapping_mul(6364136223846793005).wrapping_add(i);
-            }
-            std::hint::black_box(x);
-            let after = cpu_seconds().expect("linux has /proc/self/stat");
-            assert!(after >= before, "{before} -> {after}");
+    }
+
+    /// On-CPU time of the calling thread, nanoseconds, from the scheduler's own account
+    /// (`/proc/thread-self/schedstat`, first field): a measure independent of the probe.
+    fn thread_cpu_nanos() -> Option<u64> {
+        let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+        text.split_whitespace().next()?.parse().ok()
+    }
+
+    #[test]
+    fn cpu_time_rises_by_what_an_exited_thread_burnt() {
+        if !cfg!(target_os = "linux") {
+            assert_eq!(cpu_seconds(), None);
+            return;
         }
+        let before = cpu_seconds().expect("linux has /proc/self/stat");
+        // A thread burns 0.3 s of CPU as counted by the scheduler, then exits.
+        let burnt = std::thread::spawn(|| {
+            let start = thread_cpu_nanos()?;
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+            let mut x = 0u64;
+            loop {
+                for i in 0..1_000_000u64 {
+                    x = x.wrapping_mul(6364136223846793005).wrapping_add(i);
+                }
+                std::hint::black_box(x);
+                let spent = thread_cpu_nanos()? - start;
+                if spent >= 300_000_000 || std::time::Instant::now() > deadline {
+                    return Some(spent as f64 * 1e-9);
+                }
+            }
+        })
+        .join()
+        .expect("the burner does not panic")
+        .expect("linux has /proc/thread-self/schedstat");
+        assert!(burnt >= 0.3, "burnt only {burnt} s in a minute");
+        let after = cpu_seconds().expect("linux has /proc/self/stat");
+        // The probe counts in 10 ms ticks, sampled: allow two ticks and a tenth of slack.
+        let rise = after - before;
+        assert!(
+            rise >= 0.9 * burnt - 0.02,
+            "burnt {burnt} s, probe rose {rise} s"
+        );
     }
 
     #[test]

@@ -27,6 +27,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::surface::Surface;
+use mlsss_core::gaussian_blur::{BlurError, Border, GaussianKernel, Normalisation, blur_2d};
 
 /// Errors of the renderer.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -42,6 +43,9 @@ pub enum RenderError {
     /// A render option is out of range.
     #[error("invalid render option: {0}")]
     BadOption(&'static str),
+    /// A bin's image does not have its level's size (an internal inconsistency).
+    #[error("blurring a bin: {0}")]
+    Blur(#[from] BlurError),
 }
 
 /// One layer of one pixel and channel.
@@ -406,7 +410,7 @@ pub fn render_global(
     }
     let mut bins = splat_sources(surface, irradiance, shift, model, opts);
     // Each bin is blurred on its own level; bins are independent jobs.
-    bins.par_iter_mut().for_each(|bin| {
+    bins.par_iter_mut().try_for_each(|bin| {
         let (gw, gh) = level_grid(w, h, bin.level);
         let f = f64::from(1u32 << bin.level);
         // The bilinear splat and read-back each widen the kernel by a tent of half-width f
@@ -416,8 +420,8 @@ pub fn render_global(
         } else {
             (bin.sigma_px * bin.sigma_px - f * f / 3.0).max(0.0).sqrt() / f
         };
-        gaussian_blur(&mut bin.image, gw, gh, sigma, opts.truncate_sigmas);
-    });
+        gaussian_blur(&mut bin.image, gw, gh, sigma, opts.truncate_sigmas)
+    })?;
     // Sum the blurred bins per channel and level, then bring every level back to full resolution.
     let mut out = vec![[0.0f32; 3]; n];
     let levels: std::collections::BTreeSet<u32> = bins.iter().map(|b| b.level).collect();
@@ -594,54 +598,18 @@ fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f
     }
 }
 
-/// Normalised discrete Gaussian kernel, radius `ceil(truncate * sigma)`.
-fn kernel(sigma: f64, truncate: f64) -> Vec<f32> {
-    if sigma <= 0.0 {
-        return vec![1.0];
-    }
-    let r = (truncate * sigma).ceil().max(1.0) as i64;
-    let raw: Vec<f64> = (-r..=r)
-        .map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp())
-        .collect();
-    let sum: f64 = raw.iter().sum();
-    raw.iter().map(|v| (v / sum) as f32).collect()
-}
-
 /// In-place separable Gaussian blur with zero borders (light leaving the image is lost), on one
-/// thread (the renderer runs bins in parallel). Rows are convolved along the row; columns as
-/// weighted sums of whole rows (contiguous, vectorisable), with no transposes.
-pub fn gaussian_blur(img: &mut [f32], w: usize, h: usize, sigma: f64, truncate: f64) {
-    let k = kernel(sigma, truncate);
-    if k.len() == 1 {
-        return;
-    }
-    let r = k.len() / 2;
-    // Rows.
-    let mut line = vec![0.0f32; w + 2 * r];
-    for row in img.chunks_mut(w) {
-        line[r..r + w].copy_from_slice(row);
-        for (x, o) in row.iter_mut().enumerate() {
-            *o = line[x..x + k.len()]
-                .iter()
-                .zip(&k)
-                .map(|(v, k)| v * k)
-                .sum();
-        }
-    }
-    // Columns.
-    let src = img.to_vec();
-    for y in 0..h {
-        let out = &mut img[y * w..(y + 1) * w];
-        out.iter_mut().for_each(|v| *v = 0.0);
-        let lo = y.saturating_sub(r);
-        let hi = (y + r).min(h - 1);
-        for yy in lo..=hi {
-            let kv = k[yy + r - y];
-            for (o, v) in out.iter_mut().zip(&src[yy * w..(yy + 1) * w]) {
-                *o += kv * v;
-            }
-        }
-    }
+/// thread (the renderer runs bins in parallel): weights normalised in `f64` and rounded to `f32`,
+/// radius `ceil(truncate * sigma)`. A `w * h` mismatch is an error.
+pub fn gaussian_blur(
+    img: &mut [f32],
+    w: usize,
+    h: usize,
+    sigma: f64,
+    truncate: f64,
+) -> Result<(), BlurError> {
+    let kernel = GaussianKernel::new(sigma, truncate, Normalisation::Weights).to_f32();
+    blur_2d(img, w, h, &kernel, Border::Zero)
 }
 
 #[cfg(test)]

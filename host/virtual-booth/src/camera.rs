@@ -12,9 +12,9 @@ use std::f64::consts::PI;
 
 use rand::Rng;
 
-use super::ziggurat;
 use mlsss_core::booth::Booth;
 use mlsss_core::calibration::DeviceCalibration;
+use rand_distr::StandardNormal;
 
 /// Camera value per unit radiance: a white Lambertian surface under unit irradiance (radiance
 /// 1/pi) reads 0.85, leaving headroom below saturation for skin, not for strong highlights.
@@ -45,10 +45,11 @@ impl CameraModel {
     /// are approximated by a Gaussian of the same variance (exact enough above ~20 electrons,
     /// and read noise dominates below).
     pub fn add_noise<R: Rng>(&self, values: &mut [f32], rng: &mut R) {
-        // Ziggurat deviates: no logarithm or square root for almost every value (the noise was
-        // a quarter of a calibration capture's CPU time with polar Box-Muller).
+        // rand_distr's ziggurat deviates: no logarithm or square root for almost every value
+        // (the noise was a quarter of a calibration capture's CPU time with polar Box-Muller).
         for v in values.iter_mut() {
-            *v = (*v as f64 + self.noise_sigma(*v as f64) * ziggurat::standard_normal(rng)) as f32;
+            *v = (*v as f64 + self.noise_sigma(*v as f64) * rng.sample::<f64, _>(StandardNormal))
+                as f32;
         }
     }
 

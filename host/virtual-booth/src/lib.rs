@@ -8,8 +8,8 @@
 //! - light below the surface from Monte Carlo exit responses of layered skin (`skin_optics`,
 //!   `material_maps`, `subsurface`), blended by the material maps and interpolated over the angle
 //!   of incidence;
-//! - a camera with distortion, shot and read noise (`ziggurat` deviates), saturation and 12-bit
-//!   codes (`camera`).
+//! - a camera with distortion, shot and read noise (`rand_distr` normal deviates), saturation
+//!   and 12-bit codes (`camera`).
 
 pub mod camera;
 pub mod frame_render;
@@ -24,7 +24,6 @@ pub mod subjects;
 pub mod subsurface_transport;
 pub mod surface_reflection;
 pub mod truth_writer;
-pub mod ziggurat;
 
 use std::path::PathBuf;
 

@@ -16,6 +16,7 @@ use nalgebra::{Point3, Vector3};
 use mlsss_core::booth::{Booth, ProjectorSpec};
 use mlsss_core::calibration::DeviceCalibration;
 use mlsss_core::capture::{Axis, Pattern};
+use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_1d};
 
 /// Samples per projector pixel of the tabulated emission profiles.
 const PROFILE_OVERSAMPLING: usize = 8;
@@ -198,7 +199,9 @@ impl BlurredProfile {
             .map(|i| 0.5 * (level_at(coord(i) - quarter) + level_at(coord(i) + quarter)))
             .collect();
         let samples = if sigma_px > 0.0 {
-            gaussian_blur(&sharp, sigma_px * os)
+            // Truncated at 3.5 sigma, zero outside, each output divided by the weights' sum.
+            let kernel = GaussianKernel::new(sigma_px * os, 3.5, Normalisation::Outputs);
+            blur_1d(&sharp, &kernel, Border::Zero)
         } else {
             sharp
         };
@@ -230,28 +233,6 @@ impl BlurredProfile {
             _ => 0.0,
         }
     }
-}
-
-/// Convolution with a normalised Gaussian of `sigma` samples, zero outside.
-fn gaussian_blur(data: &[f64], sigma: f64) -> Vec<f64> {
-    let radius = (3.5 * sigma).ceil() as isize;
-    let kernel: Vec<f64> = (-radius..=radius)
-        .map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp())
-        .collect();
-    let norm: f64 = kernel.iter().sum();
-    (0..data.len() as isize)
-        .map(|i| {
-            kernel
-                .iter()
-                .enumerate()
-                .filter_map(|(j, w)| {
-                    let idx = i + j as isize - radius;
-                    (idx >= 0 && (idx as usize) < data.len()).then(|| w * data[idx as usize])
-                })
-                .sum::<f64>()
-                / norm
-        })
-        .collect()
 }
 
 #[cfg(test)]

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use mlsss::mc::{self, Layer, LayersFile, McConfig, McResult, Medium};
+use mlsss_core::resources::cpu_seconds;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -192,21 +193,21 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
         .context("building the thread pool")?;
     let medium = bench_skin();
     let cfg = McConfig::new(args.photons, 1);
-    // Warm the pool's threads so the CPU-time reading covers them.
+    // Warm the pool's threads (start-up cost is not the bench's).
     pool.install(|| mc::run(&medium, &McConfig::new(1000, 0)))
         .context("Monte Carlo warm-up")?;
-    let cpu_before = process_cpu_seconds();
+    let cpu_before = cpu_seconds();
     let result = pool
         .install(|| mc::run(&medium, &cfg))
         .context("Monte Carlo run")?;
-    let cpu_seconds = cpu_before
-        .zip(process_cpu_seconds())
+    let cpu_used = cpu_before
+        .zip(cpu_seconds())
         .map(|(before, after)| after - before);
     drop(pool);
     let per_core = result.photons_per_second / args.threads as f64;
     // On a shared machine wall-clock throughput understates the code's speed; photons per CPU
     // second is what one uncontended core would do.
-    let per_cpu_second = cpu_seconds
+    let per_cpu_second = cpu_used
         .filter(|&s| s > 0.0)
         .map(|s| result.photons as f64 / s);
     if cfg!(debug_assertions) {
@@ -220,7 +221,7 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
             "photons_per_second": result.photons_per_second,
             "photons_per_second_per_core": per_core,
             "photons_per_cpu_second": per_cpu_second,
-            "cpu_seconds": cpu_seconds,
+            "cpu_seconds": cpu_used,
             "diffuse_reflectance": result.diffuse_reflectance,
             "interactions_per_photon": result.interactions_per_photon,
         });
@@ -238,16 +239,4 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-/// CPU time used so far by all live threads of this process, from Linux's per-thread
-/// `/proc/self/task/*/schedstat` (first field: nanoseconds on a CPU); `None` elsewhere.
-fn process_cpu_seconds() -> Option<f64> {
-    let mut nanos: u64 = 0;
-    for task in std::fs::read_dir("/proc/self/task").ok()? {
-        let path = task.ok()?.path().join("schedstat");
-        let text = std::fs::read_to_string(path).ok()?;
-        nanos += text.split_whitespace().next()?.parse::<u64>().ok()?;
-    }
-    Some(nanos as f64 * 1e-9)
 }

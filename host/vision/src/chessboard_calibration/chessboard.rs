@@ -26,6 +26,7 @@ use std::collections::HashMap;
 
 use nalgebra::{Matrix2, Point2, Vector2};
 
+use mlsss_core::gaussian_blur::{BlurError, Border, GaussianKernel, Normalisation, blur_2d};
 use mlsss_core::imageio::GrayF32;
 
 /// Why no chessboard was found in an image.
@@ -49,6 +50,9 @@ pub enum ChessboardError {
         best_cols: usize,
         best_rows: usize,
     },
+    /// The image's pixel buffer does not hold `width x height` values.
+    #[error("image buffer: {0}")]
+    Shape(#[from] BlurError),
 }
 
 /// Tuning of the detector. The defaults work for boards whose squares are 12 to 200 pixels wide.
@@ -100,7 +104,7 @@ pub fn find_chessboard_corners(
             range,
         });
     }
-    let smoothed = gaussian_blur(image, options.response_sigma);
+    let smoothed = gaussian_blur(image, options.response_sigma)?;
     let response = saddle_response(&smoothed);
     let candidates = ring_tested_candidates(&smoothed, &response, range, options);
     let needed = cols * rows;
@@ -116,7 +120,7 @@ pub fn find_chessboard_corners(
     let half = options
         .refine_half_window
         .unwrap_or_else(|| ((step / 3.0).round() as usize).clamp(2, 10));
-    let fine = gaussian_blur(image, 0.8);
+    let fine = gaussian_blur(image, 0.8)?;
     Ok(ordered
         .iter()
         .map(|p| refine_corner(&fine, Point2::from(*p), half))
@@ -137,39 +141,19 @@ fn intensity_range(image: &GrayF32) -> f32 {
     }
 }
 
-/// Separable Gaussian blur with clamped borders.
-pub fn gaussian_blur(image: &GrayF32, sigma: f32) -> GrayF32 {
-    let radius = (3.0 * sigma).ceil().max(1.0) as isize;
-    let kernel: Vec<f32> = (-radius..=radius)
-        .map(|i| (-(i * i) as f32 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let norm: f32 = kernel.iter().sum();
-    let kernel: Vec<f32> = kernel.iter().map(|k| k / norm).collect();
-    let (w, h) = (image.width as isize, image.height as isize);
-    let mut tmp = GrayF32::new(image.width, image.height);
-    for y in 0..h {
-        let row = &image.data[(y * w) as usize..((y + 1) * w) as usize];
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (k, &kv) in kernel.iter().enumerate() {
-                let xx = (x + k as isize - radius).clamp(0, w - 1);
-                acc += kv * row[xx as usize];
-            }
-            tmp.data[(y * w + x) as usize] = acc;
-        }
-    }
-    let mut out = GrayF32::new(image.width, image.height);
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (k, &kv) in kernel.iter().enumerate() {
-                let yy = (y + k as isize - radius).clamp(0, h - 1);
-                acc += kv * tmp.data[(yy * w + x) as usize];
-            }
-            out.data[(y * w + x) as usize] = acc;
-        }
-    }
-    out
+/// Separable Gaussian blur with clamped borders, truncated at 3 sigma; the kernel is built and
+/// applied in `f32`.
+pub fn gaussian_blur(image: &GrayF32, sigma: f32) -> Result<GrayF32, BlurError> {
+    let kernel = GaussianKernel::new(sigma, 3.0, Normalisation::Weights);
+    let mut out = image.clone();
+    blur_2d(
+        &mut out.data,
+        image.width as usize,
+        image.height as usize,
+        &kernel,
+        Border::Clamp,
+    )?;
+    Ok(out)
 }
 
 /// `Lxy^2 - Lxx Lyy`: positive at saddle points (X-junctions), about zero on straight edges.

@@ -239,47 +239,123 @@ fn parse_numbers(text: &str) -> Result<Vec<f64>, String> {
         .collect()
 }
 
-/// Text between `<tag>` and `</tag>` inside `body`.
-fn xml_child<'a>(body: &'a str, tag: &str) -> Option<&'a str> {
-    let open = format!("<{tag}>");
-    let start = body.find(&open)? + open.len();
-    let end = body[start..].find(&format!("</{tag}>"))? + start;
-    Some(&body[start..end])
+/// An XML element: its name, attributes, text (all text children, concatenated) and child
+/// elements.
+#[derive(Debug, Default)]
+struct Element {
+    name: String,
+    attributes: Vec<(String, String)>,
+    text: String,
+    children: Vec<Element>,
 }
 
-/// The top-level entries of `<opencv_storage>`: matrices and numeric scalars (other entries, such
-/// as strings or nested maps, are skipped).
+impl Element {
+    fn child(&self, name: &str) -> Option<&Element> {
+        self.children.iter().find(|c| c.name == name)
+    }
+
+    fn attribute(&self, key: &str) -> Option<&str> {
+        self.attributes
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    }
+}
+
+fn element_of(start: &quick_xml::events::BytesStart) -> Result<Element, String> {
+    let name = String::from_utf8_lossy(start.name().as_ref()).into_owned();
+    let attributes = start
+        .attributes()
+        .map(|a| {
+            let a = a.map_err(|e| format!("<{name}>: {e}"))?;
+            let key = String::from_utf8_lossy(a.key.as_ref()).into_owned();
+            let value = a
+                .unescape_value()
+                .map_err(|e| format!("<{name}> {key}: {e}"))?
+                .into_owned();
+            Ok((key, value))
+        })
+        .collect::<Result<_, String>>()?;
+    Ok(Element {
+        name,
+        attributes,
+        ..Element::default()
+    })
+}
+
+/// The document's root element (comments, processing instructions, the declaration and the
+/// doctype are skipped; CDATA counts as text).
+fn parse_xml_tree(text: &str) -> Result<Element, String> {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(text);
+    // Open elements, innermost last; the bottom one collects the document's top-level elements.
+    let mut stack = vec![Element::default()];
+    loop {
+        let event = reader
+            .read_event()
+            .map_err(|e| format!("at byte {}: {e}", reader.error_position()))?;
+        match event {
+            Event::Start(start) => stack.push(element_of(&start)?),
+            Event::Empty(start) => {
+                let element = element_of(&start)?;
+                if let Some(parent) = stack.last_mut() {
+                    parent.children.push(element);
+                }
+            }
+            Event::End(_) => {
+                // quick-xml checks that end tags match their start tags.
+                let element = stack.pop().ok_or("unbalanced end tag")?;
+                let parent = stack.last_mut().ok_or("unbalanced end tag")?;
+                parent.children.push(element);
+            }
+            Event::Text(t) => {
+                let t = t.unescape().map_err(|e| e.to_string())?;
+                if let Some(open) = stack.last_mut() {
+                    open.text.push_str(&t);
+                }
+            }
+            Event::CData(t) => {
+                if let Some(open) = stack.last_mut() {
+                    open.text.push_str(&String::from_utf8_lossy(&t));
+                }
+            }
+            Event::Comment(_) | Event::Decl(_) | Event::PI(_) | Event::DocType(_) => {}
+            Event::Eof => break,
+        }
+    }
+    let mut document = stack.pop().ok_or("unbalanced end tag")?;
+    if !stack.is_empty() {
+        return Err(format!("<{}> is not closed", document.name));
+    }
+    if document.children.len() != 1 {
+        return Err(format!(
+            "{} top-level elements, not one",
+            document.children.len()
+        ));
+    }
+    document
+        .children
+        .pop()
+        .ok_or_else(|| "no root element".to_string())
+}
+
+/// The top-level entries of `<opencv_storage>`: matrices (`type_id="opencv-matrix"`) and numeric
+/// scalars (other entries, such as strings or nested maps, are skipped).
 fn parse_xml(text: &str) -> Result<HashMap<String, Node>, String> {
-    let body = xml_child(text, "opencv_storage").ok_or("no <opencv_storage> element")?;
+    let root = parse_xml_tree(text)?;
+    if root.name != "opencv_storage" {
+        return Err(format!("the root is <{}>, not <opencv_storage>", root.name));
+    }
     let mut nodes = HashMap::new();
-    let mut rest = body;
-    while let Some(open) = rest.find('<') {
-        rest = &rest[open + 1..];
-        let close = rest.find('>').ok_or("unterminated tag")?;
-        let tag = &rest[..close];
-        if tag.starts_with('!') || tag.starts_with('?') || tag.starts_with('/') {
-            rest = &rest[close + 1..];
-            continue;
-        }
-        let name = tag
-            .split_whitespace()
-            .next()
-            .ok_or("empty tag")?
-            .to_string();
-        let self_closing = tag.ends_with('/');
-        rest = &rest[close + 1..];
-        if self_closing {
-            continue;
-        }
-        let end_tag = format!("</{name}>");
-        let end = rest
-            .find(&end_tag)
-            .ok_or_else(|| format!("<{name}> is not closed"))?;
-        let inner = &rest[..end];
-        rest = &rest[end + end_tag.len()..];
-        if tag.contains("opencv-matrix") {
-            let field =
-                |f: &str| xml_child(inner, f).ok_or_else(|| format!("<{name}> has no <{f}>"));
+    for entry in &root.children {
+        let name = &entry.name;
+        if entry.attribute("type_id") == Some("opencv-matrix") {
+            let field = |f: &str| {
+                entry
+                    .child(f)
+                    .map(|c| c.text.as_str())
+                    .ok_or_else(|| format!("<{name}> has no <{f}>"))
+            };
             let rows = field("rows")?
                 .trim()
                 .parse()
@@ -289,9 +365,15 @@ fn parse_xml(text: &str) -> Result<HashMap<String, Node>, String> {
                 .parse()
                 .map_err(|_| format!("<{name}> cols"))?;
             let data = parse_numbers(field("data")?)?;
-            nodes.insert(name, Node::Matrix { rows, cols, data });
-        } else if let Ok(v) = inner.trim().parse::<f64>() {
-            nodes.insert(name, Node::Scalar(v));
+            nodes.insert(name.clone(), Node::Matrix { rows, cols, data });
+        } else if let Some(v) = entry
+            .text
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|_| entry.children.is_empty())
+        {
+            nodes.insert(name.clone(), Node::Scalar(v));
         }
     }
     Ok(nodes)
@@ -604,6 +686,70 @@ mod tests {
         assert!((p.intrinsics.fy - 3893.2555903450616).abs() < 1e-9);
         assert!((p.extrinsics.translation[1] + 630.4571881956325).abs() < 1e-9);
         assert!((p.extrinsics.rotation[1][2] - 0.07874092016164905).abs() < 1e-12);
+    }
+
+    /// What OpenCV itself writes and the old hand parser broke on: comments (also holding
+    /// tags), attributes on the matrix and its fields, and a declaration with an encoding.
+    #[test]
+    fn xml_comments_and_attributes_are_understood() {
+        let xml = r#"<?xml version="1.0" encoding="UTF-8"?>
+<!-- written by hand; <camera_matrix> here is not an entry -->
+<opencv_storage>
+<!-- <camera_size type_id="opencv-matrix"><rows>1</rows><cols>2</cols><dt>d</dt><data>1 1</data></camera_size> -->
+<camera_size type_id="opencv-matrix">
+  <rows>1</rows>
+  <cols>2</cols>
+  <dt>d</dt>
+  <data>1280 1024</data></camera_size>
+<camera_matrix type_id="opencv-matrix" note='from "calib"'>
+  <rows>3</rows><!-- three rows -->
+  <cols>3</cols>
+  <dt>d</dt>
+  <data encoding="ascii">
+    3452.5 0. 587.25 <!-- first row --> 0. 3449.75 521.5 0. 0. 1.</data></camera_matrix>
+<camera_distortion type_id="opencv-matrix"><rows>1</rows><cols>5</cols><dt>d</dt>
+  <data>-0.25 -0.875 0 0 3.125</data></camera_distortion>
+<camera_rms>0.5</camera_rms>
+<calibration_time>"Mon Jan  1 2024"</calibration_time>
+<empty_entry/>
+</opencv_storage>
+"#;
+        let nodes = parse_xml(xml).unwrap();
+        assert_eq!(nodes["camera_size"], matrix(1, 2, vec![1280.0, 1024.0]));
+        assert_eq!(
+            nodes["camera_matrix"],
+            matrix(
+                3,
+                3,
+                vec![3452.5, 0.0, 587.25, 0.0, 3449.75, 521.5, 0.0, 0.0, 1.0]
+            )
+        );
+        assert_eq!(nodes["camera_rms"], Node::Scalar(0.5));
+        assert!(!nodes.contains_key("calibration_time"));
+        assert_eq!(nodes.len(), 4);
+        // And as a whole file: a camera-only calibration.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("commented.xml");
+        std::fs::write(&path, xml).unwrap();
+        let c = read_opencv(&path, None).unwrap();
+        assert_eq!((c.camera.width, c.camera.height), (1280, 1024));
+        assert_eq!(c.camera.intrinsics.fx, 3452.5);
+        assert_eq!(c.camera.intrinsics.distortion[4], 3.125);
+        assert_eq!(c.camera_rms_px, Some(0.5));
+        assert!(c.projectors.is_empty());
+    }
+
+    #[test]
+    fn broken_xml_is_a_syntax_error() {
+        for bad in [
+            "<opencv_storage><camera_rms>1</opencv_storage>",
+            "<opencv_storage><a>1</a>",
+            "<other><a>1</a></other>",
+            "<opencv_storage/><opencv_storage/>",
+            "<opencv_storage><m type_id=\"opencv-matrix\"><rows>x</rows></m></opencv_storage>",
+        ] {
+            assert!(parse_xml(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -14,6 +14,7 @@ use rand_pcg::Pcg64;
 
 use super::gray_code::{BitPair, GrayCodeFrames, bits_for};
 use mlsss_core::capture::{Axis, Pattern};
+use mlsss_core::gaussian_blur::{GaussianKernel, Normalisation};
 
 /// A synthetic view of a projector pattern sequence.
 #[derive(Debug, Clone, PartialEq)]
@@ -170,21 +171,12 @@ impl SyntheticGrayScene {
 
 /// Offsets (projector pixels) and weights of a sampled 1-D Gaussian; a single tap for sigma 0.
 fn gaussian_kernel(sigma: f64) -> Vec<(f64, f32)> {
-    if sigma <= 0.0 {
-        return vec![(0.0, 1.0)];
-    }
     // Quarter-pixel steps out to 3 sigma: fine enough to resolve 1-px stripes.
     let step = 0.25;
-    let n = (3.0 * sigma / step).ceil() as i32;
-    let taps: Vec<(f64, f64)> = (-n..=n)
-        .map(|i| {
-            let o = i as f64 * step;
-            (o, (-0.5 * (o / sigma).powi(2)).exp())
-        })
-        .collect();
-    let total: f64 = taps.iter().map(|t| t.1).sum();
-    taps.into_iter()
-        .map(|(o, w)| (o, (w / total) as f32))
+    GaussianKernel::new(sigma / step, 3.0, Normalisation::Weights)
+        .to_f32()
+        .taps()
+        .map(|(k, w)| (k as f64 * step, w))
         .collect()
 }
 

@@ -372,6 +372,7 @@ fn normal_cdf(z: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_1d};
 
     /// A 1-D booth: camera pixels looking at a row of projector pixels through a footprint of
     /// `footprint` projector px starting at `phase`, with Gaussian projector defocus `defocus`
@@ -385,24 +386,10 @@ mod tests {
         kernel: f64,
     }
 
+    /// Circular blur (the row is one period), truncated at 4 sigma.
     fn gauss_blur(signal: &[f64], sigma: f64) -> Vec<f64> {
-        if sigma <= 0.0 {
-            return signal.to_vec();
-        }
-        let r = (4.0 * sigma).ceil() as i64;
-        let weights: Vec<f64> = (-r..=r)
-            .map(|k| (-(k as f64).powi(2) / (2.0 * sigma * sigma)).exp())
-            .collect();
-        let norm: f64 = weights.iter().sum();
-        let n = signal.len() as i64;
-        (0..n)
-            .map(|i| {
-                (-r..=r)
-                    .map(|k| signal[(i + k).rem_euclid(n) as usize] * weights[(k + r) as usize])
-                    .sum::<f64>()
-                    / norm
-            })
-            .collect()
+        let kernel = GaussianKernel::new(sigma, 4.0, Normalisation::Outputs);
+        blur_1d(signal, &kernel, Border::Wrap)
     }
 
     fn v_len(n: usize) -> usize {

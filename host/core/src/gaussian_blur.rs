@@ -1,0 +1,330 @@
+//! The one Gaussian blur: a sampled, truncated kernel and separable 1-D and 2-D passes with an
+//! explicit border policy.
+//!
+//! Every output is a weighted sum accumulated from zero in kernel order (offset `-radius` first),
+//! so a caller gets the same numbers whatever the element type; taps that fall outside the data
+//! under [`Border::Zero`] add nothing. A 2-D blur runs along rows first, then along columns; the
+//! column pass sums whole rows (contiguous, vectorisable) without transposing.
+//!
+//! Normalisation is the kernel's: [`Normalisation::Weights`] divides the weights by their sum
+//! when the kernel is built, [`Normalisation::Outputs`] keeps the raw weights and divides each
+//! output of a pass by their sum. The two agree to rounding; each caller keeps the one its
+//! numbers were produced with.
+
+use std::ops::{Add, Div, Mul};
+
+/// What a kernel tap reads beyond the ends of the data.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Border {
+    /// Zero: what leaves the data is lost (and nothing comes in).
+    Zero,
+    /// The nearest element (edge replication).
+    Clamp,
+    /// Periodic data: the index wraps around.
+    Wrap,
+}
+
+impl Border {
+    /// The element index that offset position `i` reads from data of length `n` (> 0), or
+    /// `None` for a zero tap.
+    #[inline]
+    fn index(self, i: isize, n: usize) -> Option<usize> {
+        let n = n as isize;
+        match self {
+            Border::Zero => (0..n).contains(&i).then_some(i as usize),
+            Border::Clamp => Some(i.clamp(0, n - 1) as usize),
+            Border::Wrap => Some(i.rem_euclid(n) as usize),
+        }
+    }
+}
+
+/// Where a kernel's weights are normalised to unit sum.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Normalisation {
+    /// The weights are divided by their sum when the kernel is built.
+    Weights,
+    /// The weights stay raw; each output of a pass is divided by the sum of all of them (also
+    /// at a border where some taps fell outside: no renormalisation).
+    Outputs,
+}
+
+/// Errors of the blur passes.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum BlurError {
+    /// The image buffer does not hold `width * height` elements.
+    #[error("image buffer holds {len} elements, not {width} x {height}")]
+    Shape {
+        len: usize,
+        width: usize,
+        height: usize,
+    },
+}
+
+/// A floating-point type kernels are built and applied in (`f32` or `f64`).
+///
+/// The weight of offset `k` is `exp(-k^2 / (2 sigma^2))` evaluated in the type itself, with the
+/// expression its callers' numbers were produced with: `exp(-0.5 (k / sigma)^2)` in `f64`,
+/// `exp(-(k k) / (2 sigma sigma))` in `f32`.
+pub trait KernelFloat:
+    Copy + PartialOrd + Add<Output = Self> + Mul<Output = Self> + Div<Output = Self>
+{
+    /// Zero.
+    const ZERO: Self;
+    /// One.
+    const ONE: Self;
+    /// `ceil(truncate * sigma)`, at least 1, in taps.
+    fn radius(sigma: Self, truncate: Self) -> usize;
+    /// The unnormalised weight of integer offset `k`.
+    fn weight(k: isize, sigma: Self) -> Self;
+}
+
+impl KernelFloat for f64 {
+    const ZERO: Self = 0.0;
+    const ONE: Self = 1.0;
+    fn radius(sigma: Self, truncate: Self) -> usize {
+        (truncate * sigma).ceil().max(1.0) as usize
+    }
+    fn weight(k: isize, sigma: Self) -> Self {
+        (-0.5 * (k as f64 / sigma).powi(2)).exp()
+    }
+}
+
+impl KernelFloat for f32 {
+    const ZERO: Self = 0.0;
+    const ONE: Self = 1.0;
+    fn radius(sigma: Self, truncate: Self) -> usize {
+        (truncate * sigma).ceil().max(1.0) as usize
+    }
+    fn weight(k: isize, sigma: Self) -> Self {
+        (-((k * k) as f32) / (2.0 * sigma * sigma)).exp()
+    }
+}
+
+/// An element that can be blurred with weights of type `W`: a number, or a tuple of channels
+/// blurred independently.
+pub trait Sample<W>: Copy {
+    /// The empty sum.
+    const ZERO: Self;
+    /// `self + w * v`.
+    fn add_weighted(self, w: W, v: Self) -> Self;
+    /// `self / d`.
+    fn divide(self, d: W) -> Self;
+}
+
+impl Sample<f32> for f32 {
+    const ZERO: Self = 0.0;
+    #[inline(always)]
+    fn add_weighted(self, w: f32, v: Self) -> Self {
+        self + w * v
+    }
+    #[inline(always)]
+    fn divide(self, d: f32) -> Self {
+        self / d
+    }
+}
+
+impl Sample<f64> for f64 {
+    const ZERO: Self = 0.0;
+    #[inline(always)]
+    fn add_weighted(self, w: f64, v: Self) -> Self {
+        self + w * v
+    }
+    #[inline(always)]
+    fn divide(self, d: f64) -> Self {
+        self / d
+    }
+}
+
+impl<const N: usize> Sample<f64> for [f64; N] {
+    const ZERO: Self = [0.0; N];
+    #[inline(always)]
+    fn add_weighted(mut self, w: f64, v: Self) -> Self {
+        for (a, v) in self.iter_mut().zip(v) {
+            *a += w * v;
+        }
+        self
+    }
+    #[inline(always)]
+    fn divide(self, d: f64) -> Self {
+        self.map(|a| a / d)
+    }
+}
+
+/// A sampled Gaussian truncated at `radius` taps each side: weights of offsets
+/// `-radius..=radius`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GaussianKernel<W> {
+    weights: Vec<W>,
+    /// The sum outputs are divided by ([`Normalisation::Outputs`]), if any.
+    divisor: Option<W>,
+}
+
+impl<W: KernelFloat> GaussianKernel<W> {
+    /// The Gaussian of standard deviation `sigma` (in taps), truncated at
+    /// `ceil(truncate * sigma)` taps (at least 1). A `sigma` that is not positive gives the
+    /// identity (a single unit tap).
+    pub fn new(sigma: W, truncate: W, normalisation: Normalisation) -> Self {
+        if sigma.partial_cmp(&W::ZERO) != Some(std::cmp::Ordering::Greater) {
+            return Self::identity();
+        }
+        let r = W::radius(sigma, truncate) as isize;
+        let raw: Vec<W> = (-r..=r).map(|k| W::weight(k, sigma)).collect();
+        let sum = raw.iter().fold(W::ZERO, |a, &w| a + w);
+        match normalisation {
+            Normalisation::Weights => Self {
+                weights: raw.iter().map(|&w| w / sum).collect(),
+                divisor: None,
+            },
+            Normalisation::Outputs => Self {
+                weights: raw,
+                divisor: Some(sum),
+            },
+        }
+    }
+
+    /// The single unit tap.
+    pub fn identity() -> Self {
+        Self {
+            weights: vec![W::ONE],
+            divisor: None,
+        }
+    }
+
+    /// Taps each side of the centre.
+    pub fn radius(&self) -> usize {
+        self.weights.len() / 2
+    }
+
+    /// The weights of offsets `-radius..=radius` (unnormalised under
+    /// [`Normalisation::Outputs`]).
+    pub fn weights(&self) -> &[W] {
+        &self.weights
+    }
+
+    /// `(offset, weight)` of every tap, offset `-radius` first.
+    pub fn taps(&self) -> impl Iterator<Item = (isize, W)> + '_ {
+        let r = self.radius() as isize;
+        self.weights
+            .iter()
+            .enumerate()
+            .map(move |(i, &w)| (i as isize - r, w))
+    }
+
+    /// Whether blurring with this kernel leaves the data unchanged (a single tap).
+    pub fn is_identity(&self) -> bool {
+        self.weights.len() == 1
+    }
+
+    /// The output of a pass from its accumulated weighted sum.
+    #[inline(always)]
+    fn finish<S: Sample<W>>(&self, acc: S) -> S {
+        match self.divisor {
+            Some(d) => acc.divide(d),
+            None => acc,
+        }
+    }
+}
+
+impl GaussianKernel<f64> {
+    /// The kernel with its weights (and divisor) rounded to `f32`.
+    pub fn to_f32(&self) -> GaussianKernel<f32> {
+        GaussianKernel {
+            weights: self.weights.iter().map(|&w| w as f32).collect(),
+            divisor: self.divisor.map(|d| d as f32),
+        }
+    }
+}
+
+/// `line` = `data` with `r` border elements each side under `border`.
+fn pad<S: Copy>(line: &mut [S], data: &[S], r: usize, border: Border, zero: S) {
+    for (i, l) in line.iter_mut().enumerate() {
+        *l = match border.index(i as isize - r as isize, data.len()) {
+            Some(j) => data[j],
+            None => zero,
+        };
+    }
+}
+
+/// One pass along `line` (already padded by the kernel radius) into `out`.
+#[inline]
+fn convolve_padded<W: KernelFloat, S: Sample<W>>(
+    out: &mut [S],
+    line: &[S],
+    kernel: &GaussianKernel<W>,
+) {
+    let k = &kernel.weights;
+    for (x, o) in out.iter_mut().enumerate() {
+        let acc = line[x..x + k.len()]
+            .iter()
+            .zip(k)
+            .fold(S::ZERO, |a, (&v, &w)| a.add_weighted(w, v));
+        *o = kernel.finish(acc);
+    }
+}
+
+/// `data` convolved with `kernel` under `border`.
+pub fn blur_1d<W: KernelFloat, S: Sample<W>>(
+    data: &[S],
+    kernel: &GaussianKernel<W>,
+    border: Border,
+) -> Vec<S> {
+    if kernel.is_identity() || data.is_empty() {
+        return data.to_vec();
+    }
+    let r = kernel.radius();
+    let mut line = vec![S::ZERO; data.len() + 2 * r];
+    pad(&mut line, data, r, border, S::ZERO);
+    let mut out = vec![S::ZERO; data.len()];
+    convolve_padded(&mut out, &line, kernel);
+    out
+}
+
+/// In-place separable blur of a row-major `width` x `height` image: rows, then columns, both
+/// with `kernel` under `border`.
+pub fn blur_2d<W: KernelFloat, S: Sample<W>>(
+    image: &mut [S],
+    width: usize,
+    height: usize,
+    kernel: &GaussianKernel<W>,
+    border: Border,
+) -> Result<(), BlurError> {
+    if width.checked_mul(height) != Some(image.len()) {
+        return Err(BlurError::Shape {
+            len: image.len(),
+            width,
+            height,
+        });
+    }
+    if kernel.is_identity() || image.is_empty() {
+        return Ok(());
+    }
+    let r = kernel.radius();
+    // Rows.
+    let mut line = vec![S::ZERO; width + 2 * r];
+    for row in image.chunks_exact_mut(width) {
+        pad(&mut line, row, r, border, S::ZERO);
+        convolve_padded(row, &line, kernel);
+    }
+    // Columns: each output row is a weighted sum of whole input rows, in kernel order.
+    let src = image.to_vec();
+    for (y, out) in image.chunks_exact_mut(width).enumerate() {
+        out.fill(S::ZERO);
+        for (j, &w) in kernel.weights.iter().enumerate() {
+            let Some(yy) = border.index((y + j) as isize - r as isize, height) else {
+                continue;
+            };
+            for (o, &v) in out.iter_mut().zip(&src[yy * width..(yy + 1) * width]) {
+                *o = o.add_weighted(w, v);
+            }
+        }
+        if kernel.divisor.is_some() {
+            out.iter_mut().for_each(|o| *o = kernel.finish(*o));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+#[path = "gaussian_blur_tests.rs"]
+mod tests;

@@ -1,0 +1,298 @@
+//! The response tables of the hierarchical evaluation: each material's and angle's exit response
+//! restricted to one radial band, low-passed to the band's cell size and packed texel by texel
+//! for the kernel's lookups.
+
+use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
+
+use super::ResponseGrid;
+
+/// Smooth step from 1 (t <= 1) to 0 (t >= 2).
+pub(super) fn window_step(t: f64) -> f64 {
+    if t <= 1.0 {
+        1.0
+    } else if t >= 2.0 {
+        0.0
+    } else {
+        let u = t - 1.0;
+        1.0 - u * u * (3.0 - 2.0 * u)
+    }
+}
+
+/// One radial band: `W(r) = step(r / rho_outer) - step(r / rho_inner)`.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Band {
+    /// `None` for the innermost band.
+    pub(super) rho_inner: Option<f64>,
+    /// `None` for the outermost band.
+    pub(super) rho_outer: Option<f64>,
+}
+
+impl Band {
+    pub(super) fn weight(&self, r: f64) -> f64 {
+        let outer = self.rho_outer.map_or(1.0, |rho| window_step(r / rho));
+        let inner = self.rho_inner.map_or(0.0, |rho| window_step(r / rho));
+        outer - inner
+    }
+
+    pub(super) fn r_min(&self) -> f64 {
+        self.rho_inner.unwrap_or(0.0)
+    }
+
+    pub(super) fn r_max(&self) -> f64 {
+        self.rho_outer.map_or(f64::INFINITY, |rho| 2.0 * rho)
+    }
+}
+
+/// A response restricted to one band and filtered to one cell size, for bilinear lookup.
+#[derive(Debug, Clone)]
+pub(super) struct BandTable {
+    pub(super) spacing: f64,
+    /// Cells per side = 2 * half + 1, centred on 0.
+    pub(super) half: usize,
+    pub(super) values: Vec<[f32; 3]>,
+}
+
+impl BandTable {
+    /// The band-windowed, low-passed `grid` on the table layout `spacing` (mm) x `half`.
+    pub(super) fn build(
+        grid: &ResponseGrid,
+        band: &Band,
+        cell_size_mm: f64,
+        spacing: f64,
+        half: usize,
+    ) -> Self {
+        let side = 2 * half + 1;
+        // Bin the windowed MC grid into the table samples (keeps the integral).
+        let mut boxed = vec![[0.0f64; 3]; side * side];
+        let centre = grid.centre_index();
+        for iy in 0..grid.cells {
+            let y = (iy as f64 - centre) * grid.cell_mm;
+            for ix in 0..grid.cells {
+                let x = (ix as f64 - centre) * grid.cell_mm;
+                let w = band.weight((x * x + y * y).sqrt());
+                if w == 0.0 {
+                    continue;
+                }
+                let bx = (x / spacing).round() as isize + half as isize;
+                let by = (y / spacing).round() as isize + half as isize;
+                if bx < 0 || by < 0 || bx as usize >= side || by as usize >= side {
+                    continue;
+                }
+                let v = grid.values[iy * grid.cells + ix];
+                let cell = &mut boxed[by as usize * side + bx as usize];
+                let area_ratio = (grid.cell_mm / spacing).powi(2);
+                for c in 0..3 {
+                    cell[c] += w * v[c] as f64 * area_ratio;
+                }
+            }
+        }
+        gaussian_filter(
+            &mut boxed,
+            side,
+            FILTER_SIGMA_CELLS * cell_size_mm / spacing,
+        );
+        Self {
+            spacing,
+            half,
+            values: boxed.into_iter().map(|v| v.map(|x| x as f32)).collect(),
+        }
+    }
+
+    /// Bilinear value and gradient (d/dx, d/dy) at (x, y), mm; zero outside the table. The
+    /// reference for [`PackedTables::lookup`].
+    #[cfg(test)]
+    pub(super) fn lookup(&self, x: f32, y: f32) -> [[f32; 3]; 3] {
+        let inv = 1.0 / self.spacing as f32;
+        let fx = x * inv + self.half as f32;
+        let fy = y * inv + self.half as f32;
+        let side = 2 * self.half + 1;
+        if fx < 0.0 || fy < 0.0 || fx >= (side - 1) as f32 || fy >= (side - 1) as f32 {
+            return [[0.0; 3]; 3];
+        }
+        let (ix, iy) = (fx as usize, fy as usize);
+        let (tx, ty) = (fx - ix as f32, fy - iy as f32);
+        let i = iy * side + ix;
+        let (a, b, c, d) = (
+            self.values[i],
+            self.values[i + 1],
+            self.values[i + side],
+            self.values[i + side + 1],
+        );
+        let mut out = [[0.0; 3]; 3];
+        for k in 0..3 {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            out[0][k] = top + (bottom - top) * ty;
+            out[1][k] = ((b[k] - a[k]) * (1.0 - ty) + (d[k] - c[k]) * ty) * inv;
+            out[2][k] = (bottom - top) * inv;
+        }
+        out
+    }
+}
+
+/// Every (material, angle) table of one level interleaved texel by texel, so that one pair of
+/// cells costs one index computation and four contiguous texel reads whatever the material mix.
+/// Each table's texel is padded to four lanes (R, G, B, 0): a tap then mixes one 4-wide vector
+/// per corner (one SIMD multiply-add) instead of three scalar ones.
+#[derive(Debug, Clone)]
+pub(super) struct PackedTables {
+    pub(super) spacing: f32,
+    pub(super) half: usize,
+    pub(super) side: usize,
+    /// Tables per texel: materials x angles, ordered `[material][angle]`.
+    pub(super) stride: usize,
+    pub(super) values: Vec<[f32; 4]>,
+}
+
+/// One (material, angle) table of a cell's mix: its index in a texel, and weight.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Tap {
+    pub(super) offset: u32,
+    pub(super) weight: f32,
+}
+
+/// At most two angles for each of the four basis materials.
+pub(super) const MAX_TAPS: usize = 8;
+
+/// The tables a cell of these material weights and angle interpolation mixes, with their
+/// weights (materials below 1e-4 are skipped), for tables packed with `angles` angles.
+pub(super) fn mix_taps(
+    materials: &[f32; 4],
+    angle_index: u16,
+    angle_t: f32,
+    angles: usize,
+) -> ([Tap; MAX_TAPS], u8) {
+    let mut taps = [Tap::default(); MAX_TAPS];
+    let mut count = 0;
+    let a0 = angle_index as usize;
+    for (m, &wm) in materials.iter().enumerate() {
+        if wm <= 1e-4 {
+            continue;
+        }
+        let (w_lo, w_hi) = (wm * (1.0 - angle_t), wm * angle_t);
+        let offset = |a: usize| (m * angles + a) as u32;
+        taps[count] = Tap {
+            offset: offset(a0),
+            weight: w_lo,
+        };
+        count += 1;
+        if w_hi > 0.0 && a0 + 1 < angles {
+            taps[count] = Tap {
+                offset: offset(a0 + 1),
+                weight: w_hi,
+            };
+            count += 1;
+        }
+    }
+    (taps, count as u8)
+}
+
+impl PackedTables {
+    /// The tables of every material and angle of `grids[material][angle]` for one band and cell
+    /// size, on one common layout reaching `response_reach_mm` (the largest response extent).
+    pub(super) fn build(
+        grids: &[Vec<ResponseGrid>],
+        angles: usize,
+        band: &Band,
+        cell_size_mm: f64,
+        response_reach_mm: f64,
+    ) -> Self {
+        // Resample finely enough for bilinear lookups of the low-passed table to be accurate
+        // (MC cells finer than this are summed, coarser ones land on one sample each).
+        let spacing = TABLE_SPACING_CELLS * cell_size_mm;
+        let reach = band.r_max().min(response_reach_mm) + FILTER_REACH_CELLS * cell_size_mm;
+        let half = (reach / spacing).ceil() as usize;
+        let side = 2 * half + 1;
+        let stride = grids.len() * angles;
+        let mut values = vec![[0.0f32; 4]; side * side * stride];
+        for (m, per_angle) in grids.iter().enumerate() {
+            for (a, grid) in per_angle.iter().take(angles).enumerate() {
+                let table = BandTable::build(grid, band, cell_size_mm, spacing, half);
+                debug_assert!(table.half == half && table.spacing == spacing);
+                let offset = m * angles + a;
+                for (i, v) in table.values.iter().enumerate() {
+                    values[i * stride + offset] = [v[0], v[1], v[2], 0.0];
+                }
+            }
+        }
+        Self {
+            spacing: spacing as f32,
+            half,
+            side,
+            stride,
+            values,
+        }
+    }
+
+    /// The weighted mix of the tables `taps` at (x, y), mm, bilinearly interpolated, with its
+    /// gradient (d/dx, d/dy) when `GRADIENT`; `None` outside the tables (where they are zero).
+    #[inline]
+    pub(super) fn lookup<const GRADIENT: bool>(
+        &self,
+        x: f32,
+        y: f32,
+        taps: &[Tap],
+    ) -> Option<[[f32; 3]; 3]> {
+        let inv = 1.0 / self.spacing;
+        let fx = x * inv + self.half as f32;
+        let fy = y * inv + self.half as f32;
+        let last = (self.side - 1) as f32;
+        if !(fx >= 0.0 && fy >= 0.0 && fx < last && fy < last) {
+            return None;
+        }
+        let (ix, iy) = (fx as usize, fy as usize);
+        let (tx, ty) = (fx - ix as f32, fy - iy as f32);
+        let base = (iy * self.side + ix) * self.stride;
+        let corners = [
+            base,
+            base + self.stride,
+            base + self.side * self.stride,
+            base + (self.side + 1) * self.stride,
+        ];
+        let mut mix = [[0.0f32; 4]; 4];
+        for (m, &corner) in mix.iter_mut().zip(&corners) {
+            for tap in taps {
+                let texel = self.values[corner + tap.offset as usize];
+                for c in 0..4 {
+                    m[c] += tap.weight * texel[c];
+                }
+            }
+        }
+        let [a, b, c, d] = mix;
+        let mut out = [[0.0f32; 3]; 3];
+        for k in 0..3 {
+            let top = a[k] + (b[k] - a[k]) * tx;
+            let bottom = c[k] + (d[k] - c[k]) * tx;
+            out[0][k] = top + (bottom - top) * ty;
+            if GRADIENT {
+                out[1][k] = ((b[k] - a[k]) * (1.0 - ty) + (d[k] - c[k]) * ty) * inv;
+                out[2][k] = (bottom - top) * inv;
+            }
+        }
+        Some(out)
+    }
+}
+
+/// The tables are low-passed with an isotropic Gaussian of this many cells (standard deviation)
+/// before they are sampled at cell spacing. Pixel offsets are looked up in each entry point's
+/// light-oriented frame, i.e. on a lattice rotated against the tables; an isotropic filter whose
+/// spectrum is ~1e-3 at the lattice frequency keeps the lattice sum equal to the integral (energy
+/// conservation) at any rotation, even for the sharply peaked responses of skin. It stands for
+/// the pixel's integration over its footprint (a box of 1 cell has sigma 0.29 cells).
+pub(super) const FILTER_SIGMA_CELLS: f64 = 0.6;
+/// Table sample spacing, in cells (a quarter of the filter's sigma).
+pub(super) const TABLE_SPACING_CELLS: f64 = 0.15;
+/// How far the filtered tables reach beyond the band, in cells.
+pub(super) const FILTER_REACH_CELLS: f64 = 2.0;
+
+/// Separable convolution with a normalised Gaussian of `sigma` samples (truncated at 3.5 sigma),
+/// zero outside; the identity below a quarter sample.
+pub(super) fn gaussian_filter(data: &mut [[f64; 3]], side: usize, sigma: f64) {
+    if sigma < 0.25 {
+        return;
+    }
+    let kernel = GaussianKernel::new(sigma, 3.5, Normalisation::Outputs);
+    if let Err(e) = blur_2d(data, side, side, &kernel, Border::Zero) {
+        unreachable!("the table is side x side: {e}");
+    }
+}

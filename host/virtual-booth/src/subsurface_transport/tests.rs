@@ -1,0 +1,286 @@
+//! Tests of the subsurface transport.
+
+use super::*;
+
+/// A forward-shifted, anisotropic Gaussian response: per-channel widths, known total.
+fn synthetic_response(cell_mm: f64, cells: usize, total: [f64; 3]) -> ResponseGrid {
+    let centre = (cells as f64 - 1.0) / 2.0;
+    let sigma = [1.5, 0.8, 0.4];
+    let shift = 0.3;
+    let values = (0..cells * cells)
+        .map(|i| {
+            let x = (i % cells) as f64 - centre;
+            let y = (i / cells) as f64 - centre;
+            let (x, y) = (x * cell_mm, y * cell_mm);
+            let mut v = [0.0f32; 3];
+            for c in 0..3 {
+                let s2 = sigma[c] * sigma[c];
+                let g = (-((x - shift).powi(2) + y * y) / (2.0 * s2)).exp()
+                    / (2.0 * std::f64::consts::PI * s2);
+                v[c] = (total[c] * g) as f32;
+            }
+            v
+        })
+        .collect();
+    ResponseGrid {
+        cell_mm,
+        cells,
+        values,
+    }
+}
+
+fn plane_entries(
+    w: usize,
+    h: usize,
+    pixel_mm: f64,
+    light: Vector3<f64>,
+) -> Vec<Option<EntrySample>> {
+    (0..w * h)
+        .map(|i| {
+            let (x, y) = ((i % w) as f64, (i / w) as f64);
+            Some(EntrySample {
+                point: Point3::new(x * pixel_mm, y * pixel_mm, 0.0),
+                normal: -Vector3::z(),
+                to_light: light,
+                area_mm2: pixel_mm * pixel_mm,
+                materials: [1.0, 0.0, 0.0, 0.0],
+            })
+        })
+        .collect()
+}
+
+fn response_set(grid: ResponseGrid) -> ResponseSet {
+    ResponseSet {
+        angles_deg: vec![0.0],
+        grids: vec![
+            vec![grid.clone()],
+            vec![grid.clone()],
+            vec![grid.clone()],
+            vec![grid],
+        ],
+    }
+}
+
+/// The packed, interleaved tables give the same mix as looking every (material, angle)
+/// table up on its own and weighting the results (the evaluation before packing).
+#[test]
+fn packed_lookup_equals_the_weighted_per_table_lookups() {
+    let angles = [0.0, 40.0, 80.0];
+    let grids: Vec<Vec<ResponseGrid>> = (0..4)
+        .map(|m| {
+            angles
+                .iter()
+                .map(|&a| {
+                    let t = 0.1 * (m + 1) as f64 + a / 400.0;
+                    synthetic_response(0.2, 41, [t, 0.5 * t, 0.25 * t])
+                })
+                .collect()
+        })
+        .collect();
+    let band = Band {
+        rho_inner: Some(0.5),
+        rho_outer: Some(1.0),
+    };
+    let (cell_mm, reach) = (0.4, 0.5 * 41.0 * 0.2 * std::f64::consts::SQRT_2);
+    let packed = PackedTables::build(&grids, angles.len(), &band, cell_mm, reach);
+    let spacing = TABLE_SPACING_CELLS * cell_mm;
+    let reference: Vec<Vec<BandTable>> = grids
+        .iter()
+        .map(|per_angle| {
+            per_angle
+                .iter()
+                .map(|g| BandTable::build(g, &band, cell_mm, spacing, packed.half))
+                .collect()
+        })
+        .collect();
+    let materials = [0.55, 0.3, 0.0, 0.15];
+    let (angle_index, angle_t) = (1u16, 0.3f32);
+    let (taps, count) = mix_taps(&materials, angle_index, angle_t, angles.len());
+    assert_eq!(count, 6, "three materials x two angles");
+    for i in 0..200 {
+        let (x, y) = (-3.0 + 0.031 * i as f32, 2.5 * (0.37 * i as f32).sin());
+        let mut expected = [[0.0f32; 3]; 3];
+        for (m, &wm) in materials.iter().enumerate() {
+            if wm <= 1e-4 {
+                continue;
+            }
+            for (a, wa) in [(1, 1.0 - angle_t), (2, angle_t)] {
+                let v = reference[m][a].lookup(x, y);
+                for (e, v) in expected.iter_mut().zip(v) {
+                    for c in 0..3 {
+                        e[c] += wm * wa * v[c];
+                    }
+                }
+            }
+        }
+        let got = packed
+            .lookup::<true>(x, y, &taps[..count as usize])
+            .unwrap_or([[0.0; 3]; 3]);
+        // Only float rounding may differ (the mix is summed in another order; gradients
+        // are differences scaled by 1 / spacing).
+        let scale = expected
+            .iter()
+            .flatten()
+            .fold(1e-6f32, |m, v| m.max(v.abs()));
+        for (g, e) in got.iter().zip(&expected) {
+            for c in 0..3 {
+                assert!(
+                    (g[c] - e[c]).abs() <= 1e-5 * scale,
+                    "({x}, {y}): packed {got:?}, per table {expected:?}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn bands_partition_the_response() {
+    let rho0 = 0.75;
+    let count = 5;
+    for i in 0..200 {
+        let r = i as f64 * 0.1;
+        let total: f64 = (0..count)
+            .map(|j| {
+                Band {
+                    rho_inner: (j > 0).then(|| rho0 * f64::powi(2.0, j - 1)),
+                    rho_outer: (j + 1 < count).then(|| rho0 * f64::powi(2.0, j)),
+                }
+                .weight(r)
+            })
+            .sum();
+        assert!((total - 1.0).abs() < 1e-12, "r {r}: {total}");
+    }
+}
+
+#[test]
+fn uniform_light_with_pixels_wider_than_the_response_keeps_the_total() {
+    let (w, h, pixel_mm) = (40, 40, 1.0);
+    let mut grid = synthetic_response(0.333, 61, [0.6, 0.4, 0.2]);
+    // Blue: half the energy in the central cell (much sharper than a pixel), like skin.
+    let centre = 30 * 61 + 30;
+    let cell_area = 0.333 * 0.333;
+    for v in grid.values.iter_mut() {
+        v[2] *= 0.5;
+    }
+    grid.values[centre][2] += (0.1 / cell_area) as f32;
+    let totals = grid.total();
+    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    // Light from a diagonal: the pixel lattice is rotated 45 degrees against the tables.
+    let light = Vector3::new(-0.4, -0.4, -0.82).normalize();
+    let entries = plane_entries(w, h, pixel_mm, light);
+    let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
+    let flux = vec![(pixel_mm * pixel_mm) as f32; w * h];
+    let out = op.apply(&flux, 1);
+    let centre = (h / 2) * w + w / 2;
+    for c in 0..3 {
+        let m = out[centre * 3 + c] as f64;
+        assert!(
+            (m / totals[c] - 1.0).abs() < 0.01,
+            "channel {c}: {m} vs {}",
+            totals[c]
+        );
+    }
+}
+
+#[test]
+fn uniform_light_on_a_plane_gives_the_response_total() {
+    // Far from the edges, uniform entry flux E per area gives exitance E * total.
+    let (w, h, pixel_mm) = (96, 96, 0.25);
+    let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
+    let totals = grid.total();
+    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    let entries = plane_entries(w, h, pixel_mm, -Vector3::z());
+    let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
+    let flux = vec![(pixel_mm * pixel_mm) as f32; w * h];
+    let out = op.apply(&flux, 1);
+    let centre = (h / 2) * w + w / 2;
+    for c in 0..3 {
+        let m = out[centre * 3 + c] as f64;
+        assert!(
+            (m / totals[c] - 1.0).abs() < 0.01,
+            "channel {c}: {m} vs {}",
+            totals[c]
+        );
+    }
+}
+
+#[test]
+fn a_lit_line_gives_the_brute_force_profile() {
+    // One lit column: the exitance profile across it matches the direct pairwise sum of the
+    // (unfiltered) response, including its forward shift.
+    let (w, h, pixel_mm) = (128, 64, 0.25);
+    let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
+    // Light from -x: forward is +x.
+    let light = Vector3::new(-0.5, 0.0, -(0.75f64).sqrt());
+    let entries = plane_entries(w, h, pixel_mm, light);
+    let kernel = SubsurfaceKernel::new(&response_set(grid.clone()), pixel_mm, pixel_mm, w.max(h));
+    let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
+    let lit_x = 50;
+    let flux: Vec<f32> = (0..w * h)
+        .map(|i| {
+            if i % w == lit_x {
+                (pixel_mm * pixel_mm) as f32
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let out = op.apply(&flux, 1);
+    let row = h / 2;
+    // Brute force: sum over the lit column of the response sampled with 5x5 sub-cells.
+    let centre = grid.centre_index();
+    let sample = |x: f64, y: f64, c: usize| -> f64 {
+        let fx = x / grid.cell_mm + centre;
+        let fy = y / grid.cell_mm + centre;
+        if fx < 0.0 || fy < 0.0 || fx >= grid.cells as f64 - 1.0 || fy >= grid.cells as f64 - 1.0 {
+            return 0.0;
+        }
+        let (ix, iy) = (fx.round() as usize, fy.round() as usize);
+        grid.values[iy * grid.cells + ix][c] as f64
+    };
+    let dxs = [-12i32, -6, -3, -1, 0, 1, 2, 4, 8, 16, 30];
+    let mut results = Vec::new();
+    for dx in dxs {
+        let ox = (lit_x as i32 + dx) as usize;
+        for c in 0..3 {
+            // Direct sum over the lit column, each pair weighted by the pixel footprint
+            // model (isotropic Gaussian of FILTER_SIGMA_CELLS pixels, 9x9 quadrature).
+            let sigma = FILTER_SIGMA_CELLS;
+            let taps: Vec<(f64, f64)> = (-4..=4)
+                .map(|k| {
+                    let o = k as f64 * sigma * 0.75;
+                    (o, (-0.5 * (o / sigma).powi(2)).exp())
+                })
+                .collect();
+            let norm: f64 = taps.iter().map(|t| t.1).sum::<f64>().powi(2);
+            let mut brute = 0.0;
+            for sy in 0..h {
+                for &(ox_, wx) in &taps {
+                    for &(oy_, wy) in &taps {
+                        let x = (dx as f64 + ox_) * pixel_mm;
+                        let y = (row as f64 - sy as f64 + oy_) * pixel_mm;
+                        brute += sample(x, y, c) * (pixel_mm * pixel_mm) * wx * wy / norm;
+                    }
+                }
+            }
+            let got = out[(row * w + ox) * 3 + c] as f64;
+            results.push((dx, c, got, brute));
+        }
+    }
+    // Within 1 % of the peak at the line, within 3 % of the peak everywhere (the band
+    // transitions are where cell aggregation errs most).
+    for c in 0..3 {
+        let peak = results
+            .iter()
+            .filter(|r| r.1 == c)
+            .map(|r| r.3)
+            .fold(0.0, f64::max);
+        for &(dx, _, got, brute) in results.iter().filter(|r| r.1 == c) {
+            let tolerance = if dx.abs() <= 1 { 0.01 } else { 0.03 } * peak;
+            assert!(
+                (got - brute).abs() < tolerance,
+                "dx {dx} channel {c}: hierarchical {got}, brute force {brute}, peak {peak}"
+            );
+        }
+    }
+}
