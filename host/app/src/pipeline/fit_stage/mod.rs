@@ -269,17 +269,42 @@ fn cpu_span(a: Option<f64>, b: Option<f64>) -> Option<f64> {
     a.zip(b).map(|(a, b)| b - a)
 }
 
+/// Per training projector, per pixel: the profile geometry.
+type Geometries = Vec<Vec<Option<PixelGeometry>>>;
+
 /// The training projectors' profile geometry and slit sweeps, borrowed from the inputs.
 struct TrainingProfiles<'a> {
     geometries: Vec<Vec<Option<PixelGeometry>>>,
     sweeps: Vec<SlitSweep<'a>>,
 }
 
+impl<'a> TrainingProfiles<'a> {
+    /// The training projectors' slit sweeps, borrowed from `inputs`, beside their `geometries`.
+    fn new(
+        inputs: &'a ProfileInputs,
+        training: &[usize],
+        geometries: Geometries,
+    ) -> Result<Self, FitStageError> {
+        Ok(Self {
+            sweeps: training
+                .iter()
+                .map(|&k| inputs.projectors[k].sweep())
+                .collect::<Result<_, _>>()?,
+            geometries,
+        })
+    }
+}
+
 /// The layers fitted to every pixel, regularised and filled, with the dipole baseline.
 struct FittedLayers {
-    stats: mlsss_layer_model::fit::FitStats,
     layers: LayerModel,
     dipole: Option<LayerModel>,
+    summary: FitSummary,
+}
+
+/// What the report says of the fitted layers.
+struct FitSummary {
+    stats: mlsss_layer_model::fit::FitStats,
     prior: Option<mlsss_layer_model::spatial_prior::PriorReport>,
     /// Per pixel: fitted (before filling).
     fitted: Vec<bool>,
@@ -289,6 +314,60 @@ struct FittedLayers {
     dipole_s: f64,
     /// CPU reading when the EM ended and the prior and dipole began.
     cpu_after_em: Option<f64>,
+}
+
+/// What the fit stage gathered as it ran, for [`FitReport::new`].
+struct FitOutcome {
+    training: Vec<usize>,
+    shading: Option<ShadingReport>,
+    fit: FitSummary,
+    heldout: Option<BTreeMap<String, BTreeMap<String, f64>>>,
+    model_file: PathBuf,
+    model_bytes: u64,
+    timing_s: FitTimings,
+    timing_cpu_s: FitCpuTimings,
+}
+
+impl FitReport {
+    /// The report of a fit with `params` over the surface `mask`.
+    fn new(params: &FitParams, mask: &[bool], outcome: FitOutcome) -> Self {
+        let FitOutcome {
+            training,
+            shading,
+            fit,
+            heldout,
+            model_file,
+            model_bytes,
+            timing_s,
+            timing_cpu_s,
+        } = outcome;
+        let stats = &fit.stats;
+        Self {
+            em: params.em,
+            components: params.components,
+            components_mean: stats.mean_layers,
+            depth_spacing_mm: stats.depth_spacing_mm,
+            depth_estimate: stats.depth.clone(),
+            pixels_fitted: fit.fitted.iter().filter(|f| **f).count(),
+            pixels_skipped: mask
+                .iter()
+                .zip(&fit.fitted)
+                .filter(|(m, f)| **m && !**f)
+                .count(),
+            pixels_filled: fit.filled,
+            fits: stats.fits,
+            mean_iterations: stats.mean_iterations,
+            holdout: params.holdout,
+            training_projectors: training,
+            model_file: model_file.display().to_string(),
+            model_bytes,
+            spatial_prior: serde_json::to_value(&fit.prior).unwrap_or(Value::Null),
+            shading: serde_json::to_value(&shading).unwrap_or(Value::Null),
+            heldout_global_rel_rmse: heldout,
+            timing_s,
+            timing_cpu_s,
+        }
+    }
 }
 
 fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStageError> {
@@ -302,42 +381,20 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     let c1 = cpu_seconds();
 
     let t1 = Instant::now();
-    // Moved out, not cloned (375 MB at full size); nothing below reads them from `inputs`.
-    let mut geometries: Vec<Vec<Option<PixelGeometry>>> = training
-        .iter()
-        .map(|&k| std::mem::take(&mut inputs.projectors[k].geometry))
-        .collect();
-    let shading = if params.refine_normals {
-        Some(refine_surface(&mut inputs, &training, &mut geometries)?)
-    } else {
-        None
-    };
+    let (geometries, shading) = training_geometry(&mut inputs, &training, params)?;
     let inputs = inputs;
-    let profiles = TrainingProfiles {
-        sweeps: training
-            .iter()
-            .map(|&k| inputs.projectors[k].sweep())
-            .collect::<Result<_, _>>()?,
-        geometries,
-    };
+    let profiles = TrainingProfiles::new(&inputs, &training, geometries)?;
     let normals_s = t1.elapsed().as_secs_f64();
     let c_em = cpu_seconds();
     let FittedLayers {
-        stats,
         layers,
         dipole,
-        prior,
-        fitted,
-        filled,
-        em_s,
-        prior_s,
-        dipole_s,
-        cpu_after_em,
+        summary: fit,
     } = fit_layers(&inputs.surface, &profiles, params, record.params.eta)?;
     let fit_s = t1.elapsed().as_secs_f64();
     let c2 = cpu_seconds();
 
-    let model = assemble(ctx, &inputs, params, &training, layers, dipole, &stats)?;
+    let model = assemble(ctx, &inputs, params, &training, layers, dipole, &fit.stats)?;
     let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
         (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
         _ => None,
@@ -348,49 +405,55 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     let model_bytes = std::fs::metadata(&path).map_or(0, |m| m.len());
     let c4 = cpu_seconds();
 
-    let surface = &inputs.surface;
-    Ok(FitReport {
-        em: params.em,
-        components: params.components,
-        components_mean: stats.mean_layers,
-        depth_spacing_mm: stats.depth_spacing_mm,
-        depth_estimate: stats.depth.clone(),
-        pixels_fitted: fitted.iter().filter(|f| **f).count(),
-        pixels_skipped: surface
-            .mask
-            .iter()
-            .zip(&fitted)
-            .filter(|(m, f)| **m && !**f)
-            .count(),
-        pixels_filled: filled,
-        fits: stats.fits,
-        mean_iterations: stats.mean_iterations,
-        holdout: params.holdout,
-        training_projectors: training,
-        model_file: path.display().to_string(),
+    let timing_s = FitTimings {
+        load: load_s,
+        fit: fit_s,
+        fit_normals: normals_s,
+        fit_em: fit.em_s,
+        fit_prior: fit.prior_s,
+        dipole: fit.dipole_s,
+        save: save_s,
+        figures: figures_s,
+    };
+    let timing_cpu_s = FitCpuTimings {
+        load: cpu_span(c0, c1),
+        fit: cpu_span(c1, c2),
+        fit_normals: cpu_span(c1, c_em),
+        fit_em: cpu_span(c_em, fit.cpu_after_em),
+        prior_and_dipole: cpu_span(fit.cpu_after_em, c2),
+        save_and_figures: cpu_span(c2, c4),
+    };
+    let outcome = FitOutcome {
+        training,
+        shading,
+        fit,
+        heldout,
+        model_file: path,
         model_bytes,
-        spatial_prior: serde_json::to_value(&prior).unwrap_or(Value::Null),
-        shading: serde_json::to_value(&shading).unwrap_or(Value::Null),
-        heldout_global_rel_rmse: heldout,
-        timing_s: FitTimings {
-            load: load_s,
-            fit: fit_s,
-            fit_normals: normals_s,
-            fit_em: em_s,
-            fit_prior: prior_s,
-            dipole: dipole_s,
-            save: save_s,
-            figures: figures_s,
-        },
-        timing_cpu_s: FitCpuTimings {
-            load: cpu_span(c0, c1),
-            fit: cpu_span(c1, c2),
-            fit_normals: cpu_span(c1, c_em),
-            fit_em: cpu_span(c_em, cpu_after_em),
-            prior_and_dipole: cpu_span(cpu_after_em, c2),
-            save_and_figures: cpu_span(c2, c4),
-        },
-    })
+        timing_s,
+        timing_cpu_s,
+    };
+    Ok(FitReport::new(params, &inputs.surface.mask, outcome))
+}
+
+/// The training projectors' profile geometry, moved out of `inputs`, with the normals first
+/// corrected by the shading regression when `params` asks (and its report).
+fn training_geometry(
+    inputs: &mut ProfileInputs,
+    training: &[usize],
+    params: &FitParams,
+) -> Result<(Geometries, Option<ShadingReport>), FitStageError> {
+    // Moved out, not cloned (375 MB at full size); nothing downstream reads them from `inputs`.
+    let mut geometries: Geometries = training
+        .iter()
+        .map(|&k| std::mem::take(&mut inputs.projectors[k].geometry))
+        .collect();
+    let shading = if params.refine_normals {
+        Some(refine_surface(inputs, training, &mut geometries)?)
+    } else {
+        None
+    };
+    Ok((geometries, shading))
 }
 
 /// The profiles' inputs with the slits of every candidate training projector (all but the
@@ -516,16 +579,18 @@ fn fit_layers(
     let (prior, fitted, layers, filled, prior_s) = regularised?;
     let (dipole, dipole_s) = dipole?;
     Ok(FittedLayers {
-        stats: fit.stats,
         layers,
         dipole,
-        prior,
-        fitted,
-        filled,
-        em_s,
-        prior_s,
-        dipole_s,
-        cpu_after_em,
+        summary: FitSummary {
+            stats: fit.stats,
+            prior,
+            fitted,
+            filled,
+            em_s,
+            prior_s,
+            dipole_s,
+            cpu_after_em,
+        },
     })
 }
 
@@ -758,6 +823,44 @@ fn model_profile(layers: &[SplatLayer], irradiance: f64, profile: &Profile, s: f
         .sum()
 }
 
+/// The scanline of the profiles stage that both figures sample: its row and the subject's
+/// columns between the record's scanline columns.
+struct Scanline {
+    row: usize,
+    width: usize,
+    columns: Vec<usize>,
+}
+
+impl Scanline {
+    fn new(inputs: &ProfileInputs, record: &ProfilesRecord) -> Self {
+        let surface = &inputs.surface;
+        let w = surface.width;
+        let (row, (c0, c1)) = (record.scanline_row, record.scanline_columns);
+        let columns: Vec<usize> = (c0..=c1.max(c0))
+            .filter(|&x| x < w && surface.mask[row * w + x])
+            .collect();
+        Self {
+            row,
+            width: w,
+            columns,
+        }
+    }
+
+    /// The R channel of `img` (row `r` of it) at the scanline's columns.
+    fn red_along_row(&self, img: &[[f32; 3]], r: usize) -> Vec<(f64, f64)> {
+        self.columns
+            .iter()
+            .map(|&x| (x as f64, f64::from(img[r * self.width + x][0])))
+            .collect()
+    }
+
+    /// The R channel of a full-size image at the scanline.
+    fn red_along(&self, img: &[[f32; 3]]) -> Vec<(f64, f64)> {
+        self.red_along_row(img, self.row)
+    }
+}
+
+/// Draws `fig10` and `pixel_profiles` (SVG and PNG) and writes their data to `fig10.json`.
 fn write_figures(
     ctx: &StageContext,
     inputs: &ProfileInputs,
@@ -767,11 +870,32 @@ fn write_figures(
     sweeps: &[SlitSweep],
     geometries: &[Vec<Option<PixelGeometry>>],
 ) -> Result<(), FitStageError> {
+    let scanline = Scanline::new(inputs, record);
+    let fig10 = fig10_plot(ctx, inputs, model, training, &scanline)?;
+    fig10.write(&ctx.dir().join("fig10"))?;
+    let profiles_plot = pixel_profiles_plot(model, training, sweeps, geometries, &scanline);
+    profiles_plot.write(&ctx.dir().join("pixel_profiles"))?;
+    let data = json!({
+        "fig10": series_json(&fig10),
+        "pixel_profiles": series_json(&profiles_plot),
+    });
+    let path = ctx.dir().join("fig10.json");
+    std::fs::write(&path, data.to_string()).map_err(|source| FitStageError::Io { path, source })
+}
+
+/// Fig. 10: the held-out projector's slit (first training projector without holdout) along the
+/// scanline: measured and (simulated capture) true global light against the model's and the
+/// homogeneous model's.
+fn fig10_plot(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    model: &SubsurfaceModel,
+    training: &[usize],
+    scanline: &Scanline,
+) -> Result<LinePlot, FitStageError> {
     let surface = &inputs.surface;
-    let w = surface.width;
-    let (row, (c0, c1)) = (record.scanline_row, record.scanline_columns);
+    let row = scanline.row;
     let size = (surface.width as u32, surface.height as u32);
-    // Fig. 10: the held-out projector's slit (first training projector without holdout).
     let k = model.header.holdout.unwrap_or(training[0]);
     let spec = &model.header.patterns;
     let slit = Pattern::Slit {
@@ -780,34 +904,13 @@ fn write_figures(
         period: spec.slit_period_px,
         offset: 0,
     };
-    let opts = RenderOptions::default();
-    let columns: Vec<usize> = (c0..=c1.max(c0))
-        .filter(|&x| x < w && surface.mask[row * w + x])
-        .collect();
-    let along = |img: &[[f32; 3]]| -> Vec<(f64, f64)> {
-        columns
-            .iter()
-            .map(|&x| (x as f64, f64::from(img[row * w + x][0])))
-            .collect()
-    };
-    // Measured: the extracted global part when the projector's slits were loaded (training), else
-    // the frame itself minus the rendered direct part and the stray light.
-    let measured = match inputs.projectors.get(k).and_then(|p| {
-        p.slits
-            .iter()
-            .find(|(pat, _)| *pat == slit)
-            .map(|(_, g)| g.clone())
-    }) {
-        Some(g) => Some(g),
-        None => measured_global(ctx, inputs, k, &slit)?,
-    };
     let mut series = Vec::new();
-    if let Some(m) = &measured {
+    if let Some(m) = &measured_slit_global(ctx, inputs, k, &slit)? {
         series.push(Series {
             label: "measured (R)".into(),
             colour: [200, 30, 30],
             mark: Mark::Dots,
-            points: along(m),
+            points: scanline.red_along(m),
         });
     }
     if let Some(t) = ctx.truth_dir()
@@ -818,9 +921,56 @@ fn write_figures(
             label: "true (R)".into(),
             colour: [40, 40, 40],
             mark: Mark::Dashed,
-            points: along(&truth),
+            points: scanline.red_along(&truth),
         });
     }
+    series.extend(rendered_slit_series(model, k, &slit, scanline)?);
+    Ok(LinePlot {
+        title: format!(
+            "Fig. 10: projector {k}{}, {}, row {row}",
+            if model.header.holdout == Some(k) {
+                " (held out)"
+            } else {
+                ""
+            },
+            slit.label()
+        ),
+        x_label: "camera column (px)".into(),
+        y_label: "radiance (camera units)".into(),
+        series,
+    })
+}
+
+/// Measured global light of projector `k`'s `slit`: the extracted global part when the
+/// projector's slits were loaded (training), else the frame itself minus the rendered direct
+/// part and the stray light.
+fn measured_slit_global(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    k: usize,
+    slit: &Pattern,
+) -> Result<Option<Vec<[f32; 3]>>, FitStageError> {
+    match inputs.projectors.get(k).and_then(|p| {
+        p.slits
+            .iter()
+            .find(|(pat, _)| pat == slit)
+            .map(|(_, g)| g.clone())
+    }) {
+        Some(g) => Ok(Some(g)),
+        None => measured_global(ctx, inputs, k, slit),
+    }
+}
+
+/// The model's and the homogeneous model's global light of projector `k`'s `slit` along the
+/// scanline, as the `MLSSS (R)` and `homogeneous (R)` series.
+fn rendered_slit_series(
+    model: &SubsurfaceModel,
+    k: usize,
+    slit: &Pattern,
+    scanline: &Scanline,
+) -> Result<Vec<Series>, FitStageError> {
+    let (row, w) = (scanline.row, scanline.width);
+    let opts = RenderOptions::default();
     // The measured and true curves are the slit's light alone (without the black level's).
     // Rendered from the band of rows whose light reaches the scanline: the same curve as from
     // the whole image, for a fraction of the work.
@@ -842,40 +992,33 @@ fn write_figures(
     let r = row - band.start;
     let mut crop = model.rows(band);
     let homogeneous = LayerModel::uniform(w, crop.header.height, &mean, &crop.surface.mask);
-    let ours_alone = render_pattern_alone(&crop, k, &slit, Baseline::Mlsss, &opts)?.global;
+    let ours_alone = render_pattern_alone(&crop, k, slit, Baseline::Mlsss, &opts)?.global;
     crop.layers = homogeneous;
-    let homogeneous_alone = render_pattern_alone(&crop, k, &slit, Baseline::Mlsss, &opts)?.global;
-    for (label, colour, alone) in [
+    let homogeneous_alone = render_pattern_alone(&crop, k, slit, Baseline::Mlsss, &opts)?.global;
+    Ok([
         ("MLSSS (R)", [30, 90, 200], &ours_alone),
         ("homogeneous (R)", [60, 170, 60], &homogeneous_alone),
-    ] {
-        series.push(Series {
-            label: label.into(),
-            colour,
-            mark: Mark::Line,
-            points: columns
-                .iter()
-                .map(|&x| (x as f64, f64::from(alone[r * w + x][0])))
-                .collect(),
-        });
-    }
-    let fig10 = LinePlot {
-        title: format!(
-            "Fig. 10: projector {k}{}, {}, row {row}",
-            if model.header.holdout == Some(k) {
-                " (held out)"
-            } else {
-                ""
-            },
-            slit.label()
-        ),
-        x_label: "camera column (px)".into(),
-        y_label: "radiance (camera units)".into(),
-        series,
-    };
-    fig10.write(&ctx.dir().join("fig10"))?;
+    ]
+    .into_iter()
+    .map(|(label, colour, alone)| Series {
+        label: label.into(),
+        colour,
+        mark: Mark::Line,
+        points: scanline.red_along_row(alone, r),
+    })
+    .collect())
+}
 
-    // A few pixels' profiles: samples against the fitted model.
+/// A few scanline pixels' profiles (R, first training projector, along x): samples against the
+/// fitted model's profile.
+fn pixel_profiles_plot(
+    model: &SubsurfaceModel,
+    training: &[usize],
+    sweeps: &[SlitSweep],
+    geometries: &[Vec<Option<PixelGeometry>>],
+    scanline: &Scanline,
+) -> LinePlot {
+    let (row, w, columns) = (scanline.row, scanline.width, &scanline.columns);
     let mut profile_series = Vec::new();
     let picks: Vec<usize> = [1usize, 2, 3]
         .iter()
@@ -911,19 +1054,12 @@ fn write_figures(
                 .collect(),
         });
     }
-    let profiles_plot = LinePlot {
+    LinePlot {
         title: format!("Profiles (R, projector {}, x): samples, model", training[0]),
         x_label: "signed distance to the slit centre on the surface (mm)".into(),
         y_label: "global radiance (camera units)".into(),
         series: profile_series,
-    };
-    profiles_plot.write(&ctx.dir().join("pixel_profiles"))?;
-    let data = json!({
-        "fig10": series_json(&fig10),
-        "pixel_profiles": series_json(&profiles_plot),
-    });
-    let path = ctx.dir().join("fig10.json");
-    std::fs::write(&path, data.to_string()).map_err(|source| FitStageError::Io { path, source })
+    }
 }
 
 fn series_json(plot: &LinePlot) -> Value {
