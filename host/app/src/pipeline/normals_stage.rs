@@ -27,10 +27,11 @@ use serde_json::Value;
 
 use super::separate_stage::{direct_path, white_path};
 use super::{Stage, StageContext, StageFailure};
+use mlsss_core::calibration::Calibration;
 use mlsss_core::capture::truth;
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::photometry::photometric_stereo::{
-    LightModel, LightSample, Method, NormalMapStats, PhotometricStereoError, PsParams,
+    LightModel, LightSample, Method, NormalMap, NormalMapStats, PhotometricStereoError, PsParams,
     angular_errors, solve_images,
 };
 
@@ -215,6 +216,36 @@ impl LightModel for ProjectorLights {
     }
 }
 
+impl ProjectorLights {
+    /// The first `count` projectors of `calib` lighting the surface `points` (a `width`-wide map).
+    fn from_calibration(
+        calib: &Calibration,
+        count: usize,
+        width: u32,
+        points: &Rgb32FImage,
+    ) -> Self {
+        let projectors = &calib.projectors[..count];
+        Self {
+            centres: projectors
+                .iter()
+                .map(|p| p.device.extrinsics.centre())
+                .collect(),
+            axes: projectors
+                .iter()
+                .map(|p| p.device.extrinsics.device_to_world_dir(&Vector3::z()))
+                .collect(),
+            // See the module conventions: white at the origin facing a projector gets 1.
+            scales: projectors
+                .iter()
+                .map(|p| p.device.extrinsics.centre().coords.norm_squared())
+                .collect(),
+            camera_centre: calib.camera.extrinsics.centre(),
+            width,
+            points: points.pixels().map(|p| p.0).collect(),
+        }
+    }
+}
+
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
     let params: NormalsParams = ctx.params()?;
     super::fragment(&run_normals(ctx, &params).map_err(StageFailure::new)?)
@@ -235,18 +266,51 @@ fn run_normals(
             captured,
         });
     }
+    let images = read_images(ctx, params.input, captured)?;
+    let (width, height) = images.first().map_or((0, 0), |i| i.dimensions());
+    let points = read_points(ctx, params.points, (width, height))?;
+    let lights = ProjectorLights::from_calibration(calib, captured, width, &points);
+    let ps_params = PsParams {
+        method: params.method,
+        ..PsParams::default()
+    };
+    let refs: Vec<&Rgb32FImage> = images.iter().collect();
+    let map = solve_images(&refs, &lights, None, &ps_params)?;
+    let normals = map.normal_image();
+    write_artefacts(&ctx.dir(), &map, &normals)?;
+    let mut report = NormalsReport::new(&map.stats(), params);
+    if let Some(t) = ctx.truth_dir() {
+        report.truth = truth_errors(&t, &normals)?;
+    }
+    Ok(report)
+}
+
+/// Every projector's image of the separation that photometric stereo reads.
+fn read_images(
+    ctx: &StageContext,
+    input: PsInput,
+    captured: usize,
+) -> Result<Vec<Rgb32FImage>, NormalsStageError> {
     let sep_dir = ctx.stage_dir("separate");
     let images = (0..captured)
         .map(|k| {
-            let path = match params.input {
+            let path = match input {
                 PsInput::Direct => direct_path(&sep_dir, k),
                 PsInput::White => white_path(&sep_dir, k),
             };
             imageio::read_exr_rgb(&path)
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let (width, height) = images.first().map_or((0, 0), |i| i.dimensions());
-    let points_path = match params.points {
+    Ok(images)
+}
+
+/// The surface points from `source`, checked to be the images' `size`.
+fn read_points(
+    ctx: &StageContext,
+    source: PointSource,
+    size: (u32, u32),
+) -> Result<Rgb32FImage, NormalsStageError> {
+    let points_path = match source {
         PointSource::Geometry => ctx.stage_dir("geometry").join("points.exr"),
         PointSource::Truth => ctx
             .truth_dir()
@@ -255,48 +319,24 @@ fn run_normals(
             .ok_or(NormalsStageError::NoTruthPoints)?,
     };
     let points = imageio::read_exr_rgb(&points_path)?;
-    if points.dimensions() != (width, height) {
+    if points.dimensions() != size {
         return Err(NormalsStageError::Size {
             path: points_path,
             got: points.dimensions(),
-            expected: (width, height),
+            expected: size,
         });
     }
-    let lights = ProjectorLights {
-        centres: (0..captured)
-            .map(|k| calib.projectors[k].device.extrinsics.centre())
-            .collect(),
-        axes: (0..captured)
-            .map(|k| {
-                calib.projectors[k]
-                    .device
-                    .extrinsics
-                    .device_to_world_dir(&Vector3::z())
-            })
-            .collect(),
-        scales: (0..captured)
-            .map(|k| {
-                calib.projectors[k]
-                    .device
-                    .extrinsics
-                    .centre()
-                    .coords
-                    .norm_squared()
-            })
-            .collect(),
-        camera_centre: calib.camera.extrinsics.centre(),
-        width,
-        points: points.pixels().map(|p| p.0).collect(),
-    };
-    let ps_params = PsParams {
-        method: params.method,
-        ..PsParams::default()
-    };
-    let refs: Vec<&Rgb32FImage> = images.iter().collect();
-    let map = solve_images(&refs, &lights, None, &ps_params)?;
-    let normals = map.normal_image();
-    let dir = ctx.dir();
-    imageio::write_exr_rgb(&dir.join("normals.exr"), &normals)?;
+    Ok(points)
+}
+
+/// Writes `normals.exr`, `albedo.exr`, `lights_used.exr` and the `normals.png` preview to `dir`.
+fn write_artefacts(
+    dir: &Path,
+    map: &NormalMap,
+    normals: &Rgb32FImage,
+) -> Result<(), NormalsStageError> {
+    let (width, height) = normals.dimensions();
+    imageio::write_exr_rgb(&dir.join("normals.exr"), normals)?;
     imageio::write_exr_rgb(&dir.join("albedo.exr"), &map.albedo_image())?;
     imageio::write_exr_gray(
         &dir.join("lights_used.exr"),
@@ -316,33 +356,38 @@ fn run_normals(
                 .collect(),
         },
     )?;
-    write_preview(&dir.join("normals.png"), &normals)?;
-    let mut report = NormalsReport::new(&map.stats(), params);
-    if let Some(t) = ctx.truth_dir() {
-        let truth_normals = imageio::read_exr_rgb(&truth::normals(&t))?;
-        let mask = image::open(truth::mask(&t)).ok().map(|m| {
-            m.to_luma8()
-                .into_raw()
-                .into_iter()
-                .map(|v| v > 0)
-                .collect::<Vec<bool>>()
-        });
-        if truth_normals.dimensions() == (width, height)
-            && let Some(errors) = angular_errors(&normals, &truth_normals, mask.as_deref())
-        {
-            let skin = mask
-                .as_ref()
-                .map_or(0, |m| m.iter().filter(|v| **v).count());
-            report.truth = Some(NormalErrors {
-                mean_angular_error_deg: errors.mean_deg,
-                median_angular_error_deg: errors.median_deg,
-                p95_angular_error_deg: errors.p95_deg,
-                compared_pixels: errors.pixels,
-                coverage: errors.pixels as f64 / skin.max(1) as f64,
-            });
-        }
+    write_preview(&dir.join("normals.png"), normals)
+}
+
+/// The normals' angular errors against the simulator's in `truth_dir`, over the solved pixels
+/// of the truth mask; none when the truth's size differs or nothing was compared.
+fn truth_errors(
+    truth_dir: &Path,
+    normals: &Rgb32FImage,
+) -> Result<Option<NormalErrors>, NormalsStageError> {
+    let truth_normals = imageio::read_exr_rgb(&truth::normals(truth_dir))?;
+    let mask = image::open(truth::mask(truth_dir)).ok().map(|m| {
+        m.to_luma8()
+            .into_raw()
+            .into_iter()
+            .map(|v| v > 0)
+            .collect::<Vec<bool>>()
+    });
+    if truth_normals.dimensions() == normals.dimensions()
+        && let Some(errors) = angular_errors(normals, &truth_normals, mask.as_deref())
+    {
+        let skin = mask
+            .as_ref()
+            .map_or(0, |m| m.iter().filter(|v| **v).count());
+        return Ok(Some(NormalErrors {
+            mean_angular_error_deg: errors.mean_deg,
+            median_angular_error_deg: errors.median_deg,
+            p95_angular_error_deg: errors.p95_deg,
+            compared_pixels: errors.pixels,
+            coverage: errors.pixels as f64 / skin.max(1) as f64,
+        }));
     }
-    Ok(report)
+    Ok(None)
 }
 
 fn write_preview(path: &Path, normals: &Rgb32FImage) -> Result<(), NormalsStageError> {
