@@ -162,11 +162,32 @@ pub fn write_report(
     processed: &Path,
 ) -> Result<(), DemoReportError> {
     let mut html = HtmlReport::new("MLSSS demo: held-out relighting of a simulated capture");
+    html.paragraph(&intro(report));
+    relighting_section(&mut html, report);
+    if let Some(fig) = relight {
+        figures_section(&mut html, report, fig, processed)?;
+    } else {
+        html.paragraph("No relighting in this run (no fitted model).");
+    }
+    html.heading("Pipeline against the truth");
+    html.table(&["quantity", "value"], pipeline_rows(report));
+    previews_section(&mut html, processed);
+    html.heading("Timings (s)");
+    html.table(&["step", "seconds"], timing_rows(report));
+    html.heading("Full report (JSON)");
+    html.preformatted(&serde_json::to_string_pretty(report).unwrap_or_default());
+    html.save(path)?;
+    Ok(())
+}
+
+/// The opening paragraph: the scene of a demo run (or just the held-out projector) and where
+/// the calibration came from.
+fn intro(report: &DemoReport) -> String {
     let source = report
         .calibration
         .as_ref()
         .map_or("?", |c| c.source.as_str());
-    let intro = match &report.demo {
+    match &report.demo {
         Some(d) => format!(
             "Booth {}, camera [{},{}], subject {}, skin {}, seed {}; projector {} held out of the \
              fit and relit from the model fitted on the other projectors; calibration: {source}.",
@@ -179,8 +200,11 @@ pub fn write_report(
                 .as_ref()
                 .map_or_else(|| "?".to_owned(), |r| r.holdout_projector.to_string()),
         ),
-    };
-    html.paragraph(&intro);
+    }
+}
+
+/// The held-out relighting metrics per renderer, and MLSSS's margins over the baselines.
+fn relighting_section(html: &mut HtmlReport, report: &DemoReport) {
     html.heading("Held-out relighting");
     html.paragraph(
         "PSNR and RMSE: total render (direct + subsurface) against the recorded frames of the \
@@ -203,56 +227,70 @@ pub fn write_report(
             fmt(margins.global_rel_rmse_dipole_over_mlsss, 3),
         ));
     }
-    if let Some(fig) = relight {
-        if let Some(code) = fig.images.iter().find(|i| i.pattern != "white") {
-            html.heading("Fig. 9: recorded vs rendered under a code pattern");
-            html.figure(
-                "The held-out projector's Gray-code pattern: recorded, then each renderer (same \
-                 exposure).",
-                comparison_panels(code, &fig.mask)?,
-            );
-        }
-        html.heading("Fig. 10: forehead scanline");
-        let mut panels = Vec::new();
-        for images in &fig.images {
-            if let Some(plot) = scanline_plot(images, &fig.mask, 0)? {
-                let label = format!("R channel, held-out projector, {}", images.pattern);
-                panels.push(Panel::png(&label, png_bytes(&plot.render()?, &label)?));
-            }
-        }
-        for (file, label) in [
-            (
-                "fit/fig10.svg",
-                "fit stage: R along the scanline, measured vs synthesised",
-            ),
-            (
-                "fit/pixel_profiles.svg",
-                "fit stage: profiles of three scanline pixels",
-            ),
-            (
-                "profiles/scanline.svg",
-                "profiles stage: measured global light on the scanline",
-            ),
-        ] {
-            panels.extend(Panel::from_file(label, &processed.join(file)));
-        }
+}
+
+/// The paper's Figs. 9-11 from the held-out relighting images, then the back-scatter figure.
+fn figures_section(
+    html: &mut HtmlReport,
+    report: &DemoReport,
+    fig: &RelightFigures,
+    processed: &Path,
+) -> Result<(), DemoReportError> {
+    if let Some(code) = fig.images.iter().find(|i| i.pattern != "white") {
+        html.heading("Fig. 9: recorded vs rendered under a code pattern");
         html.figure(
-            "R channel along a forehead row (a quarter down the subject).",
-            panels,
+            "The held-out projector's Gray-code pattern: recorded, then each renderer (same \
+             exposure).",
+            comparison_panels(code, &fig.mask)?,
         );
-        if let Some(white) = fig.images.iter().find(|i| i.pattern == "white") {
-            html.heading("Fig. 11: white light, inhomogeneous vs homogeneous vs recorded");
-            html.figure(
-                "The held-out projector's white frame: recorded, then each renderer.",
-                comparison_panels(white, &fig.mask)?,
-            );
-        }
-        backscatter_section(&mut html, report, processed);
-    } else {
-        html.paragraph("No relighting in this run (no fitted model).");
     }
-    html.heading("Pipeline against the truth");
-    html.table(&["quantity", "value"], pipeline_rows(report));
+    html.heading("Fig. 10: forehead scanline");
+    html.figure(
+        "R channel along a forehead row (a quarter down the subject).",
+        fig10_panels(fig, processed)?,
+    );
+    if let Some(white) = fig.images.iter().find(|i| i.pattern == "white") {
+        html.heading("Fig. 11: white light, inhomogeneous vs homogeneous vs recorded");
+        html.figure(
+            "The held-out projector's white frame: recorded, then each renderer.",
+            comparison_panels(white, &fig.mask)?,
+        );
+    }
+    backscatter_section(html, report, processed);
+    Ok(())
+}
+
+/// Fig. 10's panels: the scanline of each relit pattern, then the fit and profiles stages' own
+/// scanline plots when present.
+fn fig10_panels(fig: &RelightFigures, processed: &Path) -> Result<Vec<Panel>, DemoReportError> {
+    let mut panels = Vec::new();
+    for images in &fig.images {
+        if let Some(plot) = scanline_plot(images, &fig.mask, 0)? {
+            let label = format!("R channel, held-out projector, {}", images.pattern);
+            panels.push(Panel::png(&label, png_bytes(&plot.render()?, &label)?));
+        }
+    }
+    for (file, label) in [
+        (
+            "fit/fig10.svg",
+            "fit stage: R along the scanline, measured vs synthesised",
+        ),
+        (
+            "fit/pixel_profiles.svg",
+            "fit stage: profiles of three scanline pixels",
+        ),
+        (
+            "profiles/scanline.svg",
+            "profiles stage: measured global light on the scanline",
+        ),
+    ] {
+        panels.extend(Panel::from_file(label, &processed.join(file)));
+    }
+    Ok(panels)
+}
+
+/// The stages' preview images found in `processed` (none: no figure).
+fn previews_section(html: &mut HtmlReport, processed: &Path) {
     let previews: Vec<Panel> = [
         (
             "separate/separation.png",
@@ -267,12 +305,6 @@ pub fn write_report(
     if !previews.is_empty() {
         html.figure("Stage previews.", previews);
     }
-    html.heading("Timings (s)");
-    html.table(&["step", "seconds"], timing_rows(report));
-    html.heading("Full report (JSON)");
-    html.preformatted(&serde_json::to_string_pretty(report).unwrap_or_default());
-    html.save(path)?;
-    Ok(())
 }
 
 #[cfg(test)]
