@@ -25,7 +25,9 @@ use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::{CaptureError, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_vision::photometry::response::stray_light;
-use mlsss_vision::photometry::separation::{SeparationError, SeparationParams, separate};
+use mlsss_vision::photometry::separation::{
+    Separation, SeparationError, SeparationParams, separate,
+};
 
 /// The separation stage.
 pub const STAGE: Stage = Stage {
@@ -231,42 +233,10 @@ fn run_separate(
     let dir = ctx.dir();
     let mut per_projector = Vec::new();
     let mut outputs = Vec::new();
-    for (k, (white, hf, stripe)) in frames.into_iter().enumerate() {
+    for (k, frames) in frames.into_iter().enumerate() {
         let offset = stray.as_ref().map(|s| &s[k]);
-        let cleaned: Vec<Rgb32FImage> = hf.into_iter().map(|f| subtract(f, offset)).collect();
-        let refs: Vec<&Rgb32FImage> = cleaned.iter().collect();
-        let blur = if params.blur_correction {
-            stripe_blur(ctx, k)
-        } else {
-            0.0
-        };
-        let sep_params = SeparationParams {
-            black_level: black[k] as f32,
-            blur_px: blur,
-            stripe_px: stripe,
-            ..SeparationParams::default()
-        };
-        let sep =
-            separate(&refs, &sep_params).map_err(|source| SeparateStageError::Separation {
-                projector: k,
-                source,
-            })?;
-        imageio::write_exr_rgb(&direct_path(&dir, k), &sep.direct)?;
-        imageio::write_exr_rgb(&global_path(&dir, k), &sep.global)?;
-        imageio::write_exr_rgb(&white_path(&dir, k), &subtract(white, offset))?;
-        per_projector.push(SeparateProjectorReport {
-            black_level: black[k],
-            black_level_source: if responses[k].is_some() {
-                "calibration"
-            } else {
-                "none (0)"
-            }
-            .into(),
-            blur_px: f64::from(blur),
-            saturated_pixels: sep.stats.saturated_pixels,
-            non_finite_pixels: sep.stats.non_finite_pixels,
-            clamped_negative: sep.stats.clamped_negative,
-        });
+        let (entry, sep) = separate_projector(ctx, params, &dir, k, frames, responses[k], offset)?;
+        per_projector.push(entry);
         outputs.push(sep);
     }
     let mut report = SeparateReport {
@@ -277,15 +247,7 @@ fn run_separate(
     let truth_images = match ctx.truth_dir() {
         Some(t) if truth::direct(&t, 0, &Pattern::White).is_file() => {
             let mask = read_mask(&truth::mask(&t));
-            let pairs = (0..captured)
-                .into_par_iter()
-                .map(|k| {
-                    Ok((
-                        imageio::read_exr_rgb(&truth::direct(&t, k, &Pattern::White))?,
-                        imageio::read_exr_rgb(&truth::global(&t, k, &Pattern::White))?,
-                    ))
-                })
-                .collect::<Result<Vec<_>, SeparateStageError>>()?;
+            let pairs = read_true_separation(&t, captured)?;
             report.truth = Some(relative_errors(&outputs, &pairs, mask.as_deref()));
             Some(pairs)
         }
@@ -297,6 +259,72 @@ fn run_separate(
         truth_images.as_deref(),
     )?;
     Ok(report)
+}
+
+/// Separates projector `k`'s high-frequency `frames` (white, shifts, stripe width) less the
+/// stray light `offset`, writes its direct, global and stray-free white images to `dir`, and
+/// returns its report entry with the separation. `black_level` is the calibration's, if any.
+fn separate_projector(
+    ctx: &StageContext,
+    params: &SeparateParams,
+    dir: &Path,
+    k: usize,
+    (white, hf, stripe): (Rgb32FImage, Vec<Rgb32FImage>, u32),
+    black_level: Option<f64>,
+    offset: Option<&Rgb32FImage>,
+) -> Result<(SeparateProjectorReport, Separation), SeparateStageError> {
+    let black = black_level.unwrap_or(0.0);
+    let cleaned: Vec<Rgb32FImage> = hf.into_iter().map(|f| subtract(f, offset)).collect();
+    let refs: Vec<&Rgb32FImage> = cleaned.iter().collect();
+    let blur = if params.blur_correction {
+        stripe_blur(ctx, k)
+    } else {
+        0.0
+    };
+    let sep_params = SeparationParams {
+        black_level: black as f32,
+        blur_px: blur,
+        stripe_px: stripe,
+        ..SeparationParams::default()
+    };
+    let sep = separate(&refs, &sep_params).map_err(|source| SeparateStageError::Separation {
+        projector: k,
+        source,
+    })?;
+    imageio::write_exr_rgb(&direct_path(dir, k), &sep.direct)?;
+    imageio::write_exr_rgb(&global_path(dir, k), &sep.global)?;
+    imageio::write_exr_rgb(&white_path(dir, k), &subtract(white, offset))?;
+    let entry = SeparateProjectorReport {
+        black_level: black,
+        black_level_source: if black_level.is_some() {
+            "calibration"
+        } else {
+            "none (0)"
+        }
+        .into(),
+        blur_px: f64::from(blur),
+        saturated_pixels: sep.stats.saturated_pixels,
+        non_finite_pixels: sep.stats.non_finite_pixels,
+        clamped_negative: sep.stats.clamped_negative,
+    };
+    Ok((entry, sep))
+}
+
+/// The simulator's true direct and global images under each projector's white, from
+/// `truth_dir`.
+fn read_true_separation(
+    truth_dir: &Path,
+    captured: usize,
+) -> Result<Vec<(Rgb32FImage, Rgb32FImage)>, SeparateStageError> {
+    (0..captured)
+        .into_par_iter()
+        .map(|k| {
+            Ok((
+                imageio::read_exr_rgb(&truth::direct(truth_dir, k, &Pattern::White))?,
+                imageio::read_exr_rgb(&truth::global(truth_dir, k, &Pattern::White))?,
+            ))
+        })
+        .collect::<Result<Vec<_>, SeparateStageError>>()
 }
 
 /// `frame` less the stray light `offset`, clamped at 0 (in place: each frame is used once).
