@@ -1,8 +1,9 @@
 //! `mlsss normals`: directional-light photometric stereo on any image set (e.g. DiLiGenT).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
+use image::Rgb32FImage;
 use mlsss::photometry::image_set;
 use mlsss::photometry::photometric_stereo::{
     self as ps, DirectionalLights, LightSample, Method, PsParams,
@@ -62,70 +63,19 @@ fn parse_vector(text: &str) -> Result<Vector3<f64>, String> {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let files = image_set::image_files(&args.images)?;
-    let directions = image_set::read_directions(&args.lights)?;
-    if directions.len() != files.len() {
-        bail!(
-            "{} has {} light directions but {} lists {} images; give one direction per image",
-            args.lights.display(),
-            directions.len(),
-            args.images.display(),
-            files.len()
-        );
-    }
-    let intensities = match &args.intensities {
-        Some(path) => {
-            let rows = image_set::read_intensities(path)?;
-            if rows.len() != files.len() {
-                bail!(
-                    "{} has {} rows but there are {} images",
-                    path.display(),
-                    rows.len(),
-                    files.len()
-                );
-            }
-            rows
-        }
-        None => vec![[1.0; 3]; files.len()],
-    };
+    let light_table = read_light_table(&args, files.len())?;
     let selected = match &args.select {
         Some(text) => image_set::parse_selection(text, files.len())?,
         None => (0..files.len()).collect(),
     };
-    let progress =
-        indicatif::ProgressBar::new(selected.len() as u64).with_message("reading images");
-    let images = selected
-        .iter()
-        .map(|&i| {
-            progress.inc(1);
-            image_set::read_linear_png(&files[i])
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    progress.finish_and_clear();
+    let images = read_images(&files, &selected)?;
     let (width, height) = images
         .first()
         .map(|im| im.dimensions())
         .context("no images selected")?;
-    let mask = match &args.mask {
-        Some(path) => {
-            let (w, h, m) = image_set::read_mask(path)?;
-            if (w, h) != (width, height) {
-                bail!(
-                    "mask {} is {w}x{h} but the images are {width}x{height}",
-                    path.display()
-                );
-            }
-            Some(m)
-        }
-        None => None,
-    };
+    let mask = read_mask(args.mask.as_deref(), (width, height))?;
     let lights = DirectionalLights {
-        lights: selected
-            .iter()
-            .map(|&i| LightSample {
-                direction: directions[i],
-                irradiance: intensities[i],
-            })
-            .collect(),
+        lights: selected.iter().map(|&i| light_table[i]).collect(),
         view: args.view,
     };
     let params = PsParams {
@@ -145,27 +95,110 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     report["images"] = selected.len().into();
     report["out"] = serde_json::json!(args.out);
     if let Some(path) = &args.truth {
-        let truth = image_set::read_truth_normals(path)?;
-        if truth.dimensions() != (width, height) {
-            bail!(
-                "truth {} is {:?} but the images are {width}x{height}",
-                path.display(),
-                truth.dimensions()
-            );
-        }
-        // Errors over the pixels that have a truth normal and are in the mask; flagged pixels
-        // count separately (as `solved` < `pixels`), not as zero error.
-        let errors = ps::angular_errors(&normals, &truth, mask.as_deref())
-            .context("no pixel has both an estimated and a true normal")?;
-        report["mean_angular_error_deg"] = errors.mean_deg.into();
-        report["median_angular_error_deg"] = errors.median_deg.into();
-        report["p95_angular_error_deg"] = errors.p95_deg.into();
-        report["compared_pixels"] = errors.pixels.into();
+        add_truth_errors(&mut report, path, &normals, mask.as_deref())?;
     }
     if args.json {
         println!("{report}");
     } else {
         eprintln!("{}", serde_json::to_string_pretty(&report)?);
     }
+    Ok(())
+}
+
+/// Every image's light: its direction and RGB intensity (all 1 without `--intensities`), checked
+/// to be one per image.
+fn read_light_table(args: &Args, images: usize) -> anyhow::Result<Vec<LightSample>> {
+    let directions = image_set::read_directions(&args.lights)?;
+    if directions.len() != images {
+        bail!(
+            "{} has {} light directions but {} lists {} images; give one direction per image",
+            args.lights.display(),
+            directions.len(),
+            args.images.display(),
+            images
+        );
+    }
+    let intensities = match &args.intensities {
+        Some(path) => {
+            let rows = image_set::read_intensities(path)?;
+            if rows.len() != images {
+                bail!(
+                    "{} has {} rows but there are {} images",
+                    path.display(),
+                    rows.len(),
+                    images
+                );
+            }
+            rows
+        }
+        None => vec![[1.0; 3]; images],
+    };
+    Ok(directions
+        .into_iter()
+        .zip(intensities)
+        .map(|(direction, irradiance)| LightSample {
+            direction,
+            irradiance,
+        })
+        .collect())
+}
+
+/// The `selected` images of `files`, with a progress bar.
+fn read_images(files: &[PathBuf], selected: &[usize]) -> anyhow::Result<Vec<Rgb32FImage>> {
+    let progress =
+        indicatif::ProgressBar::new(selected.len() as u64).with_message("reading images");
+    let images = selected
+        .iter()
+        .map(|&i| {
+            progress.inc(1);
+            image_set::read_linear_png(&files[i])
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    progress.finish_and_clear();
+    Ok(images)
+}
+
+/// The `--mask`, if given, checked to be the images' `size`.
+fn read_mask(
+    path: Option<&Path>,
+    (width, height): (u32, u32),
+) -> anyhow::Result<Option<Vec<bool>>> {
+    let Some(path) = path else {
+        return Ok(None);
+    };
+    let (w, h, m) = image_set::read_mask(path)?;
+    if (w, h) != (width, height) {
+        bail!(
+            "mask {} is {w}x{h} but the images are {width}x{height}",
+            path.display()
+        );
+    }
+    Ok(Some(m))
+}
+
+/// Adds the angular errors of `normals` against the true normals at `path` to `report`.
+fn add_truth_errors(
+    report: &mut serde_json::Value,
+    path: &Path,
+    normals: &Rgb32FImage,
+    mask: Option<&[bool]>,
+) -> anyhow::Result<()> {
+    let (width, height) = normals.dimensions();
+    let truth = image_set::read_truth_normals(path)?;
+    if truth.dimensions() != (width, height) {
+        bail!(
+            "truth {} is {:?} but the images are {width}x{height}",
+            path.display(),
+            truth.dimensions()
+        );
+    }
+    // Errors over the pixels that have a truth normal and are in the mask; flagged pixels
+    // count separately (as `solved` < `pixels`), not as zero error.
+    let errors = ps::angular_errors(normals, &truth, mask)
+        .context("no pixel has both an estimated and a true normal")?;
+    report["mean_angular_error_deg"] = errors.mean_deg.into();
+    report["median_angular_error_deg"] = errors.median_deg.into();
+    report["p95_angular_error_deg"] = errors.p95_deg.into();
+    report["compared_pixels"] = errors.pixels.into();
     Ok(())
 }
