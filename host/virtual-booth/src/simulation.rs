@@ -27,7 +27,7 @@ use super::response_cache::{CacheStats, McSettings, ResponseCache};
 use super::scene::GeometryBuffer;
 use super::skin_optics::{CHANNEL_WAVELENGTHS_NM, SkinPreset};
 use super::subjects::{Chessboard, Subject, SubjectKind};
-use super::subsurface_transport::SubsurfaceKernel;
+use super::subsurface_transport::{ResponseSet, SubsurfaceKernel};
 use super::surface_reflection::SKIN_ROUGHNESS;
 use super::truth_writer;
 use mlsss_core::booth::Booth;
@@ -256,19 +256,7 @@ fn simulate_scan_holding(
             reason: "the chessboard is a calibration target: use --calibration".into(),
         });
     }
-    progress.stage("tracing camera rays", 1);
-    let mut scene = build_scene(booth, make_subject(opts.subject, booth), opts.supersampling);
-    let extent = scene
-        .geometry
-        .extent()
-        .ok_or(VirtualBoothError::EmptyView)?;
-    let maps = if opts.material_maps {
-        MaterialMaps::generate(opts.subject, extent, opts.seed)
-    } else {
-        MaterialMaps::uniform()
-    };
-    scene.geometry.assign_materials(&maps);
-    progress.advance(1);
+    let scene = trace_skin_scene(booth, opts, progress)?;
 
     let materials = opts.skin.materials();
     progress.stage(
@@ -278,46 +266,11 @@ fn simulate_scan_holding(
     let (responses, cache_stats) = opts
         .cache
         .response_set(&materials, &opts.mc, &|_| progress.advance(1))?;
-    let geo = &scene.geometry;
-    let min_pixel_mm = 0.8
-        * geo
-            .centre
-            .iter()
-            .flatten()
-            .map(|h| h.t)
-            .fold(f64::INFINITY, f64::min)
-        / scene
-            .camera
-            .calib
-            .intrinsics
-            .fx
-            .max(scene.camera.calib.intrinsics.fy);
-    let kernel = SubsurfaceKernel::new(
-        &responses,
-        geo.mean_pixel_size_mm(),
-        min_pixel_mm,
-        geo.width.max(geo.height) as usize,
-    );
+    let kernel = scan_kernel(&scene, &responses);
 
     let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
-    let mut manifest = CaptureManifest::new(CaptureKind::Scan, booth.clone(), plan.clone());
-    manifest.trigger_log = trigger_log(booth, &plan);
-    manifest.source = serde_json::json!({
-        "simulator": "mlsss virtual booth",
-        "subject": opts.subject,
-        "skin": opts.skin,
-        "seed": opts.seed,
-        "supersampling": opts.supersampling,
-        "material_maps": opts.material_maps,
-        "stray_black": opts.stray_black,
-        "monte_carlo": opts.mc,
-    });
-    let writer = CaptureWriter::create(out, manifest)?;
-    let truth_dir = writer.staging_dir().join("truth");
-    std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
-        path: truth_dir.clone(),
-        source,
-    })?;
+    let writer = CaptureWriter::create(out, scan_manifest(booth, opts, &plan))?;
+    let truth_dir = create_truth_dir(&writer)?;
     truth_writer::write_geometry(&truth_dir, booth, &scene)?;
     write_optics(&truth_dir, opts, &materials)?;
 
@@ -330,13 +283,7 @@ fn simulate_scan_holding(
         &truth_dir,
         progress,
         hold_budget,
-        // Slits: the first shift of each axis, the reference of the slit profiles' global part.
-        |p| {
-            matches!(
-                p,
-                Pattern::White | Pattern::HighFrequency { .. } | Pattern::Slit { offset: 0, .. }
-            )
-        },
+        scan_truth_pattern,
     )?;
     let contact: Vec<Rgb32FImage> = frames;
     truth_writer::write_contact_sheet(
@@ -354,6 +301,92 @@ fn simulate_scan_holding(
         camera: [booth.camera.width, booth.camera.height],
         coverage: coverage(&scene),
     })
+}
+
+/// Traces the camera rays against the scan subject and paints its skin materials (freckles,
+/// vessels, stubble, or uniform skin when material maps are off) over what the camera sees.
+fn trace_skin_scene(
+    booth: &Booth,
+    opts: &SimulationOptions,
+    progress: &dyn Progress,
+) -> Result<Scene, VirtualBoothError> {
+    progress.stage("tracing camera rays", 1);
+    let mut scene = build_scene(booth, make_subject(opts.subject, booth), opts.supersampling);
+    let extent = scene
+        .geometry
+        .extent()
+        .ok_or(VirtualBoothError::EmptyView)?;
+    let maps = if opts.material_maps {
+        MaterialMaps::generate(opts.subject, extent, opts.seed)
+    } else {
+        MaterialMaps::uniform()
+    };
+    scene.geometry.assign_materials(&maps);
+    progress.advance(1);
+    Ok(scene)
+}
+
+/// The subsurface transport kernel for the scene's pixel footprints. Its finest level must
+/// resolve the smallest footprint: that of the nearest surface point seen (with a 0.8 margin).
+fn scan_kernel(scene: &Scene, responses: &ResponseSet) -> SubsurfaceKernel {
+    let geo = &scene.geometry;
+    let min_pixel_mm = 0.8
+        * geo
+            .centre
+            .iter()
+            .flatten()
+            .map(|h| h.t)
+            .fold(f64::INFINITY, f64::min)
+        / scene
+            .camera
+            .calib
+            .intrinsics
+            .fx
+            .max(scene.camera.calib.intrinsics.fy);
+    SubsurfaceKernel::new(
+        responses,
+        geo.mean_pixel_size_mm(),
+        min_pixel_mm,
+        geo.width.max(geo.height) as usize,
+    )
+}
+
+/// The scan's manifest: the frame plan, its simulated trigger log and the simulation settings
+/// as the capture's source.
+fn scan_manifest(booth: &Booth, opts: &SimulationOptions, plan: &FramePlan) -> CaptureManifest {
+    let mut manifest = CaptureManifest::new(CaptureKind::Scan, booth.clone(), plan.clone());
+    manifest.trigger_log = trigger_log(booth, plan);
+    manifest.source = serde_json::json!({
+        "simulator": "mlsss virtual booth",
+        "subject": opts.subject,
+        "skin": opts.skin,
+        "seed": opts.seed,
+        "supersampling": opts.supersampling,
+        "material_maps": opts.material_maps,
+        "stray_black": opts.stray_black,
+        "monte_carlo": opts.mc,
+    });
+    manifest
+}
+
+/// Creates the `truth/` folder of a capture being written.
+fn create_truth_dir(writer: &CaptureWriter) -> Result<PathBuf, VirtualBoothError> {
+    let truth_dir = writer.staging_dir().join("truth");
+    std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
+        path: truth_dir.clone(),
+        source,
+    })?;
+    Ok(truth_dir)
+}
+
+/// Scan patterns whose noise-free components go into the truth: the white, the high-frequency
+/// patterns and, of the slits, the first shift of each axis (the reference of the slit profiles'
+/// global part).
+fn scan_truth_pattern(p: &Pattern) -> bool {
+    matches!(
+        p,
+        Pattern::White | Pattern::HighFrequency { .. } | Pattern::Slit { offset: 0, .. }
+    )
 }
 
 fn coverage(scene: &Scene) -> f64 {
@@ -402,11 +435,7 @@ pub fn simulate_calibration(
         });
         let target = out.join(format!("pose{pose:02}"));
         let writer = CaptureWriter::create(&target, manifest)?;
-        let truth_dir = writer.staging_dir().join("truth");
-        std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
-            path: truth_dir.clone(),
-            source,
-        })?;
+        let truth_dir = create_truth_dir(&writer)?;
         truth_writer::write_geometry(&truth_dir, booth, &scene)?;
         truth_writer::write_target(&truth_dir, &scene, &board)?;
         let pose_opts = SimulationOptions {
