@@ -614,7 +614,6 @@ fn render_frames(
     let specs: Vec<Vec<FrameSpec>> = (0..count)
         .map(|k| plan.for_projector(k as u8).copied().collect())
         .collect();
-    let shows_white = |k: usize| specs[k].iter().any(|f| f.pattern == Pattern::White);
     let held = if opts.stray_black {
         held_projectors(
             &specs.iter().map(Vec::len).collect::<Vec<_>>(),
@@ -624,23 +623,11 @@ fn render_frames(
     } else {
         0
     };
-    let mut whites: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
-    if opts.stray_black {
-        let alone: Vec<usize> = (0..count)
-            .filter(|&k| k > held || !shows_white(k))
-            .collect();
-        progress.stage("white frames", alone.len() as u64);
-        for &k in &alone {
-            let view = ProjectorTransport::new(scene, k, kernel);
-            let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
-            whites[k] = Some(
-                white
-                    .first()
-                    .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
-            );
-            progress.advance(1);
-        }
-    }
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = if opts.stray_black {
+        whites_rendered_alone(scene, kernel, &specs, held, progress)
+    } else {
+        vec![None; count]
+    };
 
     progress.stage("frames", plan.len() as u64);
     let finisher = FrameFinisher {
@@ -658,26 +645,12 @@ fn render_frames(
         let view = ProjectorTransport::new(scene, k, kernel);
         truth_writer::write_projector_coords(truth_dir, &view, dims)?;
         let hold = k < held;
+        // A projector not held has every other white by now: its stray light is known.
         if opts.stray_black && !hold {
             strays[k] = Some(stray_light(scene, &whites, k, n)?);
         }
         for batch in specs.chunks(batch_size(n, specs.len())) {
-            let emissions: Vec<_> = batch
-                .iter()
-                .map(|f| scene.projectors[k].emission(&f.pattern))
-                .collect();
-            let rendered = view.render(&emissions);
-            let totals: Vec<Vec<[f32; 3]>> = batch
-                .par_iter()
-                .zip(rendered.par_iter())
-                .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
-                    if truth_for(&spec.pattern) {
-                        truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
-                    }
-                    Ok(frame_totals(frame))
-                })
-                .collect::<Result<_, _>>()?;
-            drop(rendered);
+            let totals = render_batch(scene, &view, batch, truth_dir, &truth_for)?;
             if whites[k].is_none()
                 && let Some(i) = batch.iter().position(|f| f.pattern == Pattern::White)
             {
@@ -694,6 +667,7 @@ fn render_frames(
                 .try_for_each(|(spec, t)| finisher.finish(spec, t, stray))?;
         }
     }
+    // Every white is known now: the held projectors' stray light, then their frames.
     if opts.stray_black {
         for (k, stray) in strays.iter_mut().enumerate().take(held) {
             *stray = Some(stray_light(scene, &whites, k, n)?);
@@ -707,6 +681,69 @@ fn render_frames(
         truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
     }
     finisher.into_sheet()
+}
+
+/// Noise-free whites of the projectors whose white cannot come from their own frame batches
+/// (frames not held, or no white among them), rendered alone before the frames; `None` for the
+/// others. `specs[k]` are projector `k`'s frames; the first `held` projectors' frames are held.
+fn whites_rendered_alone(
+    scene: &Scene,
+    kernel: Option<&SubsurfaceKernel>,
+    specs: &[Vec<FrameSpec>],
+    held: usize,
+    progress: &dyn Progress,
+) -> Vec<Option<Vec<[f32; 3]>>> {
+    let n = scene.geometry.pixels();
+    let count = specs.len();
+    let shows_white = |k: usize| specs[k].iter().any(|f| f.pattern == Pattern::White);
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
+    // Held projectors take their white from their frames. So does projector `held` (the first
+    // not held): the projectors after it compute their stray light once its frames are done, the
+    // held ones at the very end.
+    let alone: Vec<usize> = (0..count)
+        .filter(|&k| k > held || !shows_white(k))
+        .collect();
+    progress.stage("white frames", alone.len() as u64);
+    for &k in &alone {
+        let view = ProjectorTransport::new(scene, k, kernel);
+        let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
+        whites[k] = Some(
+            white
+                .first()
+                .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
+        );
+        progress.advance(1);
+    }
+    whites
+}
+
+/// Renders one batch of frames of `view`'s projector, writes the truth components of those
+/// selected by `truth_for` and returns each frame's noise-free totals (the component buffers are
+/// freed here, before the frames are finished or held).
+fn render_batch(
+    scene: &Scene,
+    view: &ProjectorTransport,
+    batch: &[FrameSpec],
+    truth_dir: &Path,
+    truth_for: &(impl Fn(&Pattern) -> bool + Sync),
+) -> Result<Vec<Vec<[f32; 3]>>, VirtualBoothError> {
+    let k = view.k;
+    let dims = (scene.geometry.width, scene.geometry.height);
+    let emissions: Vec<_> = batch
+        .iter()
+        .map(|f| scene.projectors[k].emission(&f.pattern))
+        .collect();
+    let rendered = view.render(&emissions);
+    batch
+        .par_iter()
+        .zip(rendered.par_iter())
+        .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
+            if truth_for(&spec.pattern) {
+                truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
+            }
+            Ok(frame_totals(frame))
+        })
+        .collect::<Result<_, _>>()
 }
 
 /// Frames shown on the contact sheet: every projector's white, then projector 0 under a
