@@ -667,20 +667,38 @@ fn render_frames(
                 .try_for_each(|(spec, t)| finisher.finish(spec, t, stray))?;
         }
     }
-    // Every white is known now: the held projectors' stray light, then their frames.
-    if opts.stray_black {
-        for (k, stray) in strays.iter_mut().enumerate().take(held) {
-            *stray = Some(stray_light(scene, &whites, k, n)?);
-        }
-    }
-    held_frames.par_iter().try_for_each(|(k, spec, t)| {
-        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(&no_stray))
-    })?;
-    drop(held_frames);
+    finish_held_frames(
+        &finisher,
+        held_frames,
+        held,
+        &whites,
+        &mut strays,
+        &no_stray,
+    )?;
     for (k, stray) in strays.iter().enumerate() {
         truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
     }
     finisher.into_sheet()
+}
+
+/// Finishes the frames of the first `held` projectors, held noise-free until every white was
+/// known: their stray light first (kept in `strays` for the truth), then the frames.
+fn finish_held_frames(
+    finisher: &FrameFinisher,
+    held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)>,
+    held: usize,
+    whites: &[Option<Vec<[f32; 3]>>],
+    strays: &mut [Option<Vec<[f32; 3]>>],
+    no_stray: &[[f32; 3]],
+) -> Result<(), VirtualBoothError> {
+    let n = no_stray.len();
+    // `held` is 0 without stray light.
+    for (k, stray) in strays.iter_mut().enumerate().take(held) {
+        *stray = Some(stray_light(finisher.scene, whites, k, n)?);
+    }
+    held_frames.par_iter().try_for_each(|(k, spec, t)| {
+        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(no_stray))
+    })
 }
 
 /// Noise-free whites of the projectors whose white cannot come from their own frame batches
