@@ -13,8 +13,8 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::camera::{CameraModel, GAIN};
-use super::projector::{EmissionField, ProjectorModel};
-use super::scene::GeometryBuffer;
+use super::projector::{EmissionField, Illumination, ProjectorModel};
+use super::scene::{GeometryBuffer, SurfaceSample};
 use super::skin_optics::SKIN_INDEX;
 use super::subjects::Subject;
 use super::subsurface_transport::{EntrySample, SubsurfaceKernel, SubsurfaceOperator};
@@ -78,88 +78,10 @@ impl<'a> ProjectorTransport<'a> {
         let (w, h) = (geo.width as usize, geo.height as usize);
         let spp = geo.spp();
         // Shadows at pixel centres first; sub-samples are traced only where these disagree.
-        let centre_shadow: Vec<bool> = geo
-            .centre
-            .par_iter()
-            .map(|hit| {
-                hit.is_some_and(|hit| {
-                    scene
-                        .subject
-                        .shadowed(&hit.point, &hit.normal, &proj.centre)
-                })
-            })
-            .collect();
-        let uniform_shadow = |i: usize| -> Option<bool> {
-            let (x, y) = (i % w, i / w);
-            let s = centre_shadow[i];
-            for ny in y.saturating_sub(1)..(y + 2).min(h) {
-                for nx in x.saturating_sub(1)..(x + 2).min(w) {
-                    if centre_shadow[ny * w + nx] != s {
-                        return None;
-                    }
-                }
-            }
-            Some(s)
-        };
-        let skin = scene.subject.is_skin();
-        let per_pixel: Vec<_> = (0..w * h)
+        let centre_shadow = centre_shadows(scene, proj);
+        let per_pixel: Vec<PixelLight> = (0..w * h)
             .into_par_iter()
-            .map(|i| {
-                let known = uniform_shadow(i);
-                let mut uv = Vec::with_capacity(spp);
-                let mut irr = Vec::with_capacity(spp);
-                let mut refl = Vec::with_capacity(spp);
-                for (s, sample) in geo.subs_of(i).iter().enumerate() {
-                    let lit = sample.and_then(|sample| {
-                        let ill = proj.illuminate(&sample.point, &sample.normal)?;
-                        if ill.irradiance_per_level <= 0.0 || !proj.in_image(ill.u, ill.v) {
-                            return None;
-                        }
-                        let shadowed = known.unwrap_or_else(|| {
-                            scene
-                                .subject
-                                .shadowed(&sample.point, &sample.normal, &proj.centre)
-                        });
-                        let brdf = if skin {
-                            specular_brdf(
-                                &sample.normal,
-                                &ill.to_light,
-                                &sample.to_camera,
-                                SKIN_INDEX,
-                                SKIN_ROUGHNESS,
-                            )
-                        } else {
-                            lambert_brdf(geo.albedo[i * spp + s] as f64)
-                        };
-                        (!shadowed).then_some((ill, brdf))
-                    });
-                    match lit {
-                        Some((ill, brdf)) => {
-                            uv.push([ill.u, ill.v]);
-                            irr.push(ill.irradiance_per_level as f32);
-                            refl.push((GAIN * brdf) as f32);
-                        }
-                        None => {
-                            uv.push([0.0; 2]);
-                            irr.push(0.0);
-                            refl.push(0.0);
-                        }
-                    }
-                }
-                let coords = match &geo.centre[i] {
-                    Some(hit) => match proj.illuminate(&hit.point, &hit.normal) {
-                        Some(ill) => {
-                            let lit = ill.irradiance_per_level > 0.0
-                                && proj.in_image(ill.u, ill.v)
-                                && !centre_shadow[i];
-                            [ill.u as f32, ill.v as f32, if lit { 1.0 } else { 0.0 }]
-                        }
-                        None => [0.0; 3],
-                    },
-                    None => [0.0; 3],
-                };
-                (uv, irr, refl, coords)
-            })
+            .map(|i| pixel_light(scene, proj, &centre_shadow, i))
             .collect();
         let mut view = Self {
             k,
@@ -171,41 +93,15 @@ impl<'a> ProjectorTransport<'a> {
             exit_factor: vec![0.0; w * h],
             operator: None,
         };
-        for (uv, irr, refl, coords) in per_pixel {
-            view.sub_uv.extend(uv);
-            view.sub_irradiance.extend(irr);
-            view.sub_reflect.extend(refl);
-            view.coords.push(coords);
+        for pixel in per_pixel {
+            view.sub_uv.extend(pixel.uv);
+            view.sub_irradiance.extend(pixel.irradiance);
+            view.sub_reflect.extend(pixel.reflect);
+            view.coords.push(pixel.coords);
         }
-        if let (true, Some(kernel)) = (skin, kernel) {
-            let exit = DiffuseExit::new(SKIN_INDEX);
-            let eye = scene.camera.calib.extrinsics.centre();
-            let entries: Vec<Option<EntrySample>> = (0..w * h)
-                .into_par_iter()
-                .map(|i| {
-                    let (point, normal, area) = geo.pixel_surface(i)?;
-                    let to_light = (proj.centre - point).normalize();
-                    let m = geo.materials[i];
-                    Some(EntrySample {
-                        point,
-                        normal,
-                        to_light,
-                        area_mm2: area,
-                        materials: [1.0 - m[0] - m[1] - m[2], m[0], m[1], m[2]],
-                    })
-                })
-                .collect();
-            view.exit_factor = entries
-                .iter()
-                .enumerate()
-                .map(|(i, e)| {
-                    e.map_or(0.0, |e| {
-                        let to_camera: Vector3<f64> = (eye - e.point).normalize();
-                        (GAIN * geo.coverage[i] as f64 * exit.factor(e.normal.dot(&to_camera)))
-                            as f32
-                    })
-                })
-                .collect();
+        if let (true, Some(kernel)) = (scene.subject.is_skin(), kernel) {
+            let entries = subsurface_entries(geo, proj);
+            view.exit_factor = exit_factors(scene, &entries);
             view.operator = Some(SubsurfaceOperator::new(kernel, w, h, &entries));
         }
         view
@@ -263,4 +159,172 @@ impl<'a> ProjectorTransport<'a> {
     pub fn projector(&self) -> &ProjectorModel {
         &self.scene.projectors[self.k]
     }
+}
+
+/// Illumination of one pixel's sub-samples (in sub-sample order) and its centre's truth.
+struct PixelLight {
+    uv: Vec<[f64; 2]>,
+    irradiance: Vec<f32>,
+    reflect: Vec<f32>,
+    coords: [f32; 3],
+}
+
+/// Whether each pixel centre is shadowed from the projector (false where the camera misses).
+fn centre_shadows(scene: &Scene, proj: &ProjectorModel) -> Vec<bool> {
+    scene
+        .geometry
+        .centre
+        .par_iter()
+        .map(|hit| {
+            hit.is_some_and(|hit| {
+                scene
+                    .subject
+                    .shadowed(&hit.point, &hit.normal, &proj.centre)
+            })
+        })
+        .collect()
+}
+
+/// The shared shadow state of pixel `i` when it and its 8 neighbours' centres agree (its
+/// sub-samples then need no shadow rays); `None` near a shadow edge.
+fn uniform_shadow(centre_shadow: &[bool], w: usize, h: usize, i: usize) -> Option<bool> {
+    let (x, y) = (i % w, i / w);
+    let s = centre_shadow[i];
+    for ny in y.saturating_sub(1)..(y + 2).min(h) {
+        for nx in x.saturating_sub(1)..(x + 2).min(w) {
+            if centre_shadow[ny * w + nx] != s {
+                return None;
+            }
+        }
+    }
+    Some(s)
+}
+
+/// Sub-sample illumination and centre truth of pixel `i`.
+fn pixel_light(
+    scene: &Scene,
+    proj: &ProjectorModel,
+    centre_shadow: &[bool],
+    i: usize,
+) -> PixelLight {
+    let geo = &scene.geometry;
+    let (w, h) = (geo.width as usize, geo.height as usize);
+    let spp = geo.spp();
+    let known = uniform_shadow(centre_shadow, w, h, i);
+    let mut light = PixelLight {
+        uv: Vec::with_capacity(spp),
+        irradiance: Vec::with_capacity(spp),
+        reflect: Vec::with_capacity(spp),
+        coords: [0.0; 3],
+    };
+    for (s, sample) in geo.subs_of(i).iter().enumerate() {
+        match sample.and_then(|sample| sub_sample_light(scene, proj, &sample, i * spp + s, known)) {
+            Some((ill, brdf)) => {
+                light.uv.push([ill.u, ill.v]);
+                light.irradiance.push(ill.irradiance_per_level as f32);
+                light.reflect.push((GAIN * brdf) as f32);
+            }
+            None => {
+                light.uv.push([0.0; 2]);
+                light.irradiance.push(0.0);
+                light.reflect.push(0.0);
+            }
+        }
+    }
+    light.coords = centre_coords(geo, proj, centre_shadow, i);
+    light
+}
+
+/// Illumination and BRDF of a sub-sample, or `None` when it is unlit (faces away, projects
+/// outside the image, or is shadowed); `sub` is its index among all sub-samples. `known` is the pixel's uniform shadow state, if any; a
+/// shadow ray is traced only without it.
+fn sub_sample_light(
+    scene: &Scene,
+    proj: &ProjectorModel,
+    sample: &SurfaceSample,
+    sub: usize,
+    known: Option<bool>,
+) -> Option<(Illumination, f64)> {
+    let ill = proj.illuminate(&sample.point, &sample.normal)?;
+    if ill.irradiance_per_level <= 0.0 || !proj.in_image(ill.u, ill.v) {
+        return None;
+    }
+    let shadowed = known.unwrap_or_else(|| {
+        scene
+            .subject
+            .shadowed(&sample.point, &sample.normal, &proj.centre)
+    });
+    // Skin reflects specularly at its surface (the rest is subsurface); prints are Lambertian.
+    let brdf = if scene.subject.is_skin() {
+        specular_brdf(
+            &sample.normal,
+            &ill.to_light,
+            &sample.to_camera,
+            SKIN_INDEX,
+            SKIN_ROUGHNESS,
+        )
+    } else {
+        lambert_brdf(scene.geometry.albedo[sub] as f64)
+    };
+    (!shadowed).then_some((ill, brdf))
+}
+
+/// Truth `(u, v, lit)` of pixel `i`'s centre; zero where the camera misses or the projector
+/// cannot reach it.
+fn centre_coords(
+    geo: &GeometryBuffer,
+    proj: &ProjectorModel,
+    centre_shadow: &[bool],
+    i: usize,
+) -> [f32; 3] {
+    match &geo.centre[i] {
+        Some(hit) => match proj.illuminate(&hit.point, &hit.normal) {
+            Some(ill) => {
+                let lit = ill.irradiance_per_level > 0.0
+                    && proj.in_image(ill.u, ill.v)
+                    && !centre_shadow[i];
+                [ill.u as f32, ill.v as f32, if lit { 1.0 } else { 0.0 }]
+            }
+            None => [0.0; 3],
+        },
+        None => [0.0; 3],
+    }
+}
+
+/// Where light enters the skin at each pixel (one entry per pixel surface patch), with the
+/// direction to the projector and the pixel's material mix `[base, melanin, blood, stubble]`.
+fn subsurface_entries(geo: &GeometryBuffer, proj: &ProjectorModel) -> Vec<Option<EntrySample>> {
+    (0..geo.pixels())
+        .into_par_iter()
+        .map(|i| {
+            let (point, normal, area) = geo.pixel_surface(i)?;
+            let to_light = (proj.centre - point).normalize();
+            let m = geo.materials[i];
+            Some(EntrySample {
+                point,
+                normal,
+                to_light,
+                area_mm2: area,
+                materials: [1.0 - m[0] - m[1] - m[2], m[0], m[1], m[2]],
+            })
+        })
+        .collect()
+}
+
+/// Camera value per unit subsurface exitance at each pixel: the Fresnel-weighted fraction
+/// leaving towards the camera, scaled by how much of the pixel the subject covers.
+fn exit_factors(scene: &Scene, entries: &[Option<EntrySample>]) -> Vec<f32> {
+    let geo = &scene.geometry;
+    let exit = DiffuseExit::new(SKIN_INDEX);
+    let eye = scene.camera.calib.extrinsics.centre();
+    entries
+        .iter()
+        .enumerate()
+        .map(|(i, e)| {
+            e.map_or(0.0, |e| {
+                let to_camera: Vector3<f64> = (eye - e.point).normalize();
+                (GAIN * geo.coverage[i] as f64 * exit.factor(e.normal.dot(&to_camera))) as f32
+            })
+        })
+        .collect()
 }

@@ -124,90 +124,16 @@ impl MaterialMaps {
     /// Random maps for a subject seen over `extent`, reproducible from `seed`.
     pub fn generate(subject: SubjectKind, extent: Extent, seed: u64) -> Self {
         let mut rng = Pcg64::seed_from_u64(seed ^ 0x6d61_7073);
-        let [x0, x1, y0, y1] = extent;
-        let area_cm2 = (x1 - x0) * (y1 - y0) / 100.0;
-        let uniform_xy = |rng: &mut Pcg64| (rng.gen_range(x0..x1), rng.gen_range(y0..y1));
-        // Freckles cluster on the nose and cheeks of a face; elsewhere they are uniform.
-        let freckle_density = |x: f64, y: f64| match subject {
-            SubjectKind::Head => {
-                let cheeks_nose = smoothstep(-25.0, -5.0, y) * (1.0 - smoothstep(25.0, 35.0, y));
-                0.15 + 0.85 * cheeks_nose * (1.0 - smoothstep(55.0, 65.0, x.abs()))
-            }
-            _ => 1.0,
-        };
-        let mut spots = Vec::new();
-        let freckles = (area_cm2 * 0.8).round() as usize;
-        while spots.len() < freckles {
-            let (x, y) = uniform_xy(&mut rng);
-            if rng.r#gen::<f64>() < freckle_density(x, y) {
-                spots.push(Spot {
-                    x,
-                    y,
-                    radius_mm: rng.gen_range(0.5..1.6),
-                    weight: rng.gen_range(0.25..0.6),
-                });
-            }
-        }
-        let moles = 1 + (area_cm2 / 60.0).round() as usize;
-        for _ in 0..moles {
-            let (x, y) = uniform_xy(&mut rng);
-            spots.push(Spot {
-                x,
-                y,
-                radius_mm: rng.gen_range(1.2..2.5),
-                weight: 1.0,
-            });
-        }
-        let redness = match subject {
-            SubjectKind::Head => vec![
-                Spot {
-                    x: -38.0,
-                    y: 18.0,
-                    radius_mm: 22.0,
-                    weight: 0.35,
-                },
-                Spot {
-                    x: 38.0,
-                    y: 18.0,
-                    radius_mm: 22.0,
-                    weight: 0.35,
-                },
-                Spot {
-                    x: 0.0,
-                    y: 6.0,
-                    radius_mm: 12.0,
-                    weight: 0.3,
-                },
-            ],
-            _ => (0..3)
-                .map(|_| {
-                    let (x, y) = uniform_xy(&mut rng);
-                    Spot {
-                        x,
-                        y,
-                        radius_mm: rng.gen_range(8.0..18.0),
-                        weight: rng.gen_range(0.2..0.4),
-                    }
-                })
-                .collect(),
-        };
-        let trees = 2 + (area_cm2 / 25.0).round() as usize;
-        let mut vessels = Vec::new();
-        for _ in 0..trees {
-            let (x, y) = uniform_xy(&mut rng);
-            let heading = rng.gen_range(0.0..std::f64::consts::TAU);
-            grow_vessel(&mut rng, &mut vessels, [x, y], heading, 0.2, 3);
-        }
-        let stubble = match subject {
-            SubjectKind::Head => StubbleRegion::Beard,
-            SubjectKind::Plane => StubbleRegion::Below(y0 + 0.72 * (y1 - y0)),
-            SubjectKind::Sphere | SubjectKind::Chessboard => StubbleRegion::None,
-        };
+        // The draws below come in a fixed order (spots, redness, vessels, stubble seed): the maps
+        // of a seed must not change.
+        let spots = pigment_spots(&mut rng, subject, extent);
+        let redness = redness_blobs(&mut rng, subject, extent);
+        let vessels = vessel_network(&mut rng, extent);
         Self {
             spots,
             redness,
             vessels,
-            stubble,
+            stubble: stubble_region(subject, extent),
             stubble_seed: rng.r#gen(),
         }
     }
@@ -260,6 +186,123 @@ impl MaterialMaps {
             }
         }
         cover
+    }
+}
+
+/// Skin area seen over `extent`, cm^2: the number of freckles, moles and vessel trees scales
+/// with it.
+fn area_cm2(extent: Extent) -> f64 {
+    let [x0, x1, y0, y1] = extent;
+    (x1 - x0) * (y1 - y0) / 100.0
+}
+
+/// A point drawn uniformly over `extent` (x first, then y).
+fn uniform_xy(rng: &mut Pcg64, extent: Extent) -> (f64, f64) {
+    let [x0, x1, y0, y1] = extent;
+    (rng.gen_range(x0..x1), rng.gen_range(y0..y1))
+}
+
+/// Relative freckle density at (x, y): freckles cluster on the nose and cheeks of a face;
+/// elsewhere they are uniform.
+fn freckle_density(subject: SubjectKind, x: f64, y: f64) -> f64 {
+    match subject {
+        SubjectKind::Head => {
+            let cheeks_nose = smoothstep(-25.0, -5.0, y) * (1.0 - smoothstep(25.0, 35.0, y));
+            0.15 + 0.85 * cheeks_nose * (1.0 - smoothstep(55.0, 65.0, x.abs()))
+        }
+        _ => 1.0,
+    }
+}
+
+/// Epidermal melanin spots: ~0.8 faint freckles per cm^2 (placed by rejection against
+/// [`freckle_density`]), then a few dark moles.
+fn pigment_spots(rng: &mut Pcg64, subject: SubjectKind, extent: Extent) -> Vec<Spot> {
+    let area_cm2 = area_cm2(extent);
+    let mut spots = Vec::new();
+    let freckles = (area_cm2 * 0.8).round() as usize;
+    while spots.len() < freckles {
+        let (x, y) = uniform_xy(rng, extent);
+        if rng.r#gen::<f64>() < freckle_density(subject, x, y) {
+            spots.push(Spot {
+                x,
+                y,
+                radius_mm: rng.gen_range(0.5..1.6),
+                weight: rng.gen_range(0.25..0.6),
+            });
+        }
+    }
+    let moles = 1 + (area_cm2 / 60.0).round() as usize;
+    for _ in 0..moles {
+        let (x, y) = uniform_xy(rng, extent);
+        spots.push(Spot {
+            x,
+            y,
+            radius_mm: rng.gen_range(1.2..2.5),
+            weight: 1.0,
+        });
+    }
+    spots
+}
+
+/// Broad patches of dermal blood: a face's flushed cheeks and nose (fixed, no draws); three
+/// random blobs on the other subjects.
+fn redness_blobs(rng: &mut Pcg64, subject: SubjectKind, extent: Extent) -> Vec<Spot> {
+    match subject {
+        SubjectKind::Head => vec![
+            Spot {
+                x: -38.0,
+                y: 18.0,
+                radius_mm: 22.0,
+                weight: 0.35,
+            },
+            Spot {
+                x: 38.0,
+                y: 18.0,
+                radius_mm: 22.0,
+                weight: 0.35,
+            },
+            Spot {
+                x: 0.0,
+                y: 6.0,
+                radius_mm: 12.0,
+                weight: 0.3,
+            },
+        ],
+        _ => (0..3)
+            .map(|_| {
+                let (x, y) = uniform_xy(rng, extent);
+                Spot {
+                    x,
+                    y,
+                    radius_mm: rng.gen_range(8.0..18.0),
+                    weight: rng.gen_range(0.2..0.4),
+                }
+            })
+            .collect(),
+    }
+}
+
+/// Superficial vessels: branching trees (two, plus one per 25 cm^2) grown from random roots in
+/// random directions.
+fn vessel_network(rng: &mut Pcg64, extent: Extent) -> Vec<VesselSegment> {
+    let trees = 2 + (area_cm2(extent) / 25.0).round() as usize;
+    let mut vessels = Vec::new();
+    for _ in 0..trees {
+        let (x, y) = uniform_xy(rng, extent);
+        let heading = rng.gen_range(0.0..std::f64::consts::TAU);
+        grow_vessel(rng, &mut vessels, [x, y], heading, 0.2, 3);
+    }
+    vessels
+}
+
+/// Where the subject grows stubble: a head's beard area, the lower 28 % of a plane, nowhere
+/// else.
+fn stubble_region(subject: SubjectKind, extent: Extent) -> StubbleRegion {
+    let [_, _, y0, y1] = extent;
+    match subject {
+        SubjectKind::Head => StubbleRegion::Beard,
+        SubjectKind::Plane => StubbleRegion::Below(y0 + 0.72 * (y1 - y0)),
+        SubjectKind::Sphere | SubjectKind::Chessboard => StubbleRegion::None,
     }
 }
 

@@ -27,7 +27,7 @@ use super::response_cache::{CacheStats, McSettings, ResponseCache};
 use super::scene::GeometryBuffer;
 use super::skin_optics::{CHANNEL_WAVELENGTHS_NM, SkinPreset};
 use super::subjects::{Chessboard, Subject, SubjectKind};
-use super::subsurface_transport::SubsurfaceKernel;
+use super::subsurface_transport::{ResponseSet, SubsurfaceKernel};
 use super::surface_reflection::SKIN_ROUGHNESS;
 use super::truth_writer;
 use mlsss_core::booth::Booth;
@@ -256,19 +256,7 @@ fn simulate_scan_holding(
             reason: "the chessboard is a calibration target: use --calibration".into(),
         });
     }
-    progress.stage("tracing camera rays", 1);
-    let mut scene = build_scene(booth, make_subject(opts.subject, booth), opts.supersampling);
-    let extent = scene
-        .geometry
-        .extent()
-        .ok_or(VirtualBoothError::EmptyView)?;
-    let maps = if opts.material_maps {
-        MaterialMaps::generate(opts.subject, extent, opts.seed)
-    } else {
-        MaterialMaps::uniform()
-    };
-    scene.geometry.assign_materials(&maps);
-    progress.advance(1);
+    let scene = trace_skin_scene(booth, opts, progress)?;
 
     let materials = opts.skin.materials();
     progress.stage(
@@ -278,46 +266,11 @@ fn simulate_scan_holding(
     let (responses, cache_stats) = opts
         .cache
         .response_set(&materials, &opts.mc, &|_| progress.advance(1))?;
-    let geo = &scene.geometry;
-    let min_pixel_mm = 0.8
-        * geo
-            .centre
-            .iter()
-            .flatten()
-            .map(|h| h.t)
-            .fold(f64::INFINITY, f64::min)
-        / scene
-            .camera
-            .calib
-            .intrinsics
-            .fx
-            .max(scene.camera.calib.intrinsics.fy);
-    let kernel = SubsurfaceKernel::new(
-        &responses,
-        geo.mean_pixel_size_mm(),
-        min_pixel_mm,
-        geo.width.max(geo.height) as usize,
-    );
+    let kernel = scan_kernel(&scene, &responses);
 
     let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
-    let mut manifest = CaptureManifest::new(CaptureKind::Scan, booth.clone(), plan.clone());
-    manifest.trigger_log = trigger_log(booth, &plan);
-    manifest.source = serde_json::json!({
-        "simulator": "mlsss virtual booth",
-        "subject": opts.subject,
-        "skin": opts.skin,
-        "seed": opts.seed,
-        "supersampling": opts.supersampling,
-        "material_maps": opts.material_maps,
-        "stray_black": opts.stray_black,
-        "monte_carlo": opts.mc,
-    });
-    let writer = CaptureWriter::create(out, manifest)?;
-    let truth_dir = writer.staging_dir().join("truth");
-    std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
-        path: truth_dir.clone(),
-        source,
-    })?;
+    let writer = CaptureWriter::create(out, scan_manifest(booth, opts, &plan))?;
+    let truth_dir = create_truth_dir(&writer)?;
     truth_writer::write_geometry(&truth_dir, booth, &scene)?;
     write_optics(&truth_dir, opts, &materials)?;
 
@@ -330,13 +283,7 @@ fn simulate_scan_holding(
         &truth_dir,
         progress,
         hold_budget,
-        // Slits: the first shift of each axis, the reference of the slit profiles' global part.
-        |p| {
-            matches!(
-                p,
-                Pattern::White | Pattern::HighFrequency { .. } | Pattern::Slit { offset: 0, .. }
-            )
-        },
+        scan_truth_pattern,
     )?;
     let contact: Vec<Rgb32FImage> = frames;
     truth_writer::write_contact_sheet(
@@ -354,6 +301,92 @@ fn simulate_scan_holding(
         camera: [booth.camera.width, booth.camera.height],
         coverage: coverage(&scene),
     })
+}
+
+/// Traces the camera rays against the scan subject and paints its skin materials (freckles,
+/// vessels, stubble, or uniform skin when material maps are off) over what the camera sees.
+fn trace_skin_scene(
+    booth: &Booth,
+    opts: &SimulationOptions,
+    progress: &dyn Progress,
+) -> Result<Scene, VirtualBoothError> {
+    progress.stage("tracing camera rays", 1);
+    let mut scene = build_scene(booth, make_subject(opts.subject, booth), opts.supersampling);
+    let extent = scene
+        .geometry
+        .extent()
+        .ok_or(VirtualBoothError::EmptyView)?;
+    let maps = if opts.material_maps {
+        MaterialMaps::generate(opts.subject, extent, opts.seed)
+    } else {
+        MaterialMaps::uniform()
+    };
+    scene.geometry.assign_materials(&maps);
+    progress.advance(1);
+    Ok(scene)
+}
+
+/// The subsurface transport kernel for the scene's pixel footprints. Its finest level must
+/// resolve the smallest footprint: that of the nearest surface point seen (with a 0.8 margin).
+fn scan_kernel(scene: &Scene, responses: &ResponseSet) -> SubsurfaceKernel {
+    let geo = &scene.geometry;
+    let min_pixel_mm = 0.8
+        * geo
+            .centre
+            .iter()
+            .flatten()
+            .map(|h| h.t)
+            .fold(f64::INFINITY, f64::min)
+        / scene
+            .camera
+            .calib
+            .intrinsics
+            .fx
+            .max(scene.camera.calib.intrinsics.fy);
+    SubsurfaceKernel::new(
+        responses,
+        geo.mean_pixel_size_mm(),
+        min_pixel_mm,
+        geo.width.max(geo.height) as usize,
+    )
+}
+
+/// The scan's manifest: the frame plan, its simulated trigger log and the simulation settings
+/// as the capture's source.
+fn scan_manifest(booth: &Booth, opts: &SimulationOptions, plan: &FramePlan) -> CaptureManifest {
+    let mut manifest = CaptureManifest::new(CaptureKind::Scan, booth.clone(), plan.clone());
+    manifest.trigger_log = trigger_log(booth, plan);
+    manifest.source = serde_json::json!({
+        "simulator": "mlsss virtual booth",
+        "subject": opts.subject,
+        "skin": opts.skin,
+        "seed": opts.seed,
+        "supersampling": opts.supersampling,
+        "material_maps": opts.material_maps,
+        "stray_black": opts.stray_black,
+        "monte_carlo": opts.mc,
+    });
+    manifest
+}
+
+/// Creates the `truth/` folder of a capture being written.
+fn create_truth_dir(writer: &CaptureWriter) -> Result<PathBuf, VirtualBoothError> {
+    let truth_dir = writer.staging_dir().join("truth");
+    std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
+        path: truth_dir.clone(),
+        source,
+    })?;
+    Ok(truth_dir)
+}
+
+/// Scan patterns whose noise-free components go into the truth: the white, the high-frequency
+/// patterns and, of the slits, the first shift of each axis (the reference of the slit profiles'
+/// global part).
+fn scan_truth_pattern(p: &Pattern) -> bool {
+    matches!(
+        p,
+        Pattern::White | Pattern::HighFrequency { .. } | Pattern::Slit { offset: 0, .. }
+    )
 }
 
 fn coverage(scene: &Scene) -> f64 {
@@ -402,11 +435,7 @@ pub fn simulate_calibration(
         });
         let target = out.join(format!("pose{pose:02}"));
         let writer = CaptureWriter::create(&target, manifest)?;
-        let truth_dir = writer.staging_dir().join("truth");
-        std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
-            path: truth_dir.clone(),
-            source,
-        })?;
+        let truth_dir = create_truth_dir(&writer)?;
         truth_writer::write_geometry(&truth_dir, booth, &scene)?;
         truth_writer::write_target(&truth_dir, &scene, &board)?;
         let pose_opts = SimulationOptions {
@@ -585,7 +614,6 @@ fn render_frames(
     let specs: Vec<Vec<FrameSpec>> = (0..count)
         .map(|k| plan.for_projector(k as u8).copied().collect())
         .collect();
-    let shows_white = |k: usize| specs[k].iter().any(|f| f.pattern == Pattern::White);
     let held = if opts.stray_black {
         held_projectors(
             &specs.iter().map(Vec::len).collect::<Vec<_>>(),
@@ -595,23 +623,11 @@ fn render_frames(
     } else {
         0
     };
-    let mut whites: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
-    if opts.stray_black {
-        let alone: Vec<usize> = (0..count)
-            .filter(|&k| k > held || !shows_white(k))
-            .collect();
-        progress.stage("white frames", alone.len() as u64);
-        for &k in &alone {
-            let view = ProjectorTransport::new(scene, k, kernel);
-            let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
-            whites[k] = Some(
-                white
-                    .first()
-                    .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
-            );
-            progress.advance(1);
-        }
-    }
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = if opts.stray_black {
+        whites_rendered_alone(scene, kernel, &specs, held, progress)
+    } else {
+        vec![None; count]
+    };
 
     progress.stage("frames", plan.len() as u64);
     let finisher = FrameFinisher {
@@ -629,26 +645,12 @@ fn render_frames(
         let view = ProjectorTransport::new(scene, k, kernel);
         truth_writer::write_projector_coords(truth_dir, &view, dims)?;
         let hold = k < held;
+        // A projector not held has every other white by now: its stray light is known.
         if opts.stray_black && !hold {
             strays[k] = Some(stray_light(scene, &whites, k, n)?);
         }
         for batch in specs.chunks(batch_size(n, specs.len())) {
-            let emissions: Vec<_> = batch
-                .iter()
-                .map(|f| scene.projectors[k].emission(&f.pattern))
-                .collect();
-            let rendered = view.render(&emissions);
-            let totals: Vec<Vec<[f32; 3]>> = batch
-                .par_iter()
-                .zip(rendered.par_iter())
-                .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
-                    if truth_for(&spec.pattern) {
-                        truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
-                    }
-                    Ok(frame_totals(frame))
-                })
-                .collect::<Result<_, _>>()?;
-            drop(rendered);
+            let totals = render_batch(scene, &view, batch, truth_dir, &truth_for)?;
             if whites[k].is_none()
                 && let Some(i) = batch.iter().position(|f| f.pattern == Pattern::White)
             {
@@ -665,19 +667,101 @@ fn render_frames(
                 .try_for_each(|(spec, t)| finisher.finish(spec, t, stray))?;
         }
     }
-    if opts.stray_black {
-        for (k, stray) in strays.iter_mut().enumerate().take(held) {
-            *stray = Some(stray_light(scene, &whites, k, n)?);
-        }
-    }
-    held_frames.par_iter().try_for_each(|(k, spec, t)| {
-        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(&no_stray))
-    })?;
-    drop(held_frames);
+    finish_held_frames(
+        &finisher,
+        held_frames,
+        held,
+        &whites,
+        &mut strays,
+        &no_stray,
+    )?;
     for (k, stray) in strays.iter().enumerate() {
         truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
     }
     finisher.into_sheet()
+}
+
+/// Finishes the frames of the first `held` projectors, held noise-free until every white was
+/// known: their stray light first (kept in `strays` for the truth), then the frames.
+fn finish_held_frames(
+    finisher: &FrameFinisher,
+    held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)>,
+    held: usize,
+    whites: &[Option<Vec<[f32; 3]>>],
+    strays: &mut [Option<Vec<[f32; 3]>>],
+    no_stray: &[[f32; 3]],
+) -> Result<(), VirtualBoothError> {
+    let n = no_stray.len();
+    // `held` is 0 without stray light.
+    for (k, stray) in strays.iter_mut().enumerate().take(held) {
+        *stray = Some(stray_light(finisher.scene, whites, k, n)?);
+    }
+    held_frames.par_iter().try_for_each(|(k, spec, t)| {
+        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(no_stray))
+    })
+}
+
+/// Noise-free whites of the projectors whose white cannot come from their own frame batches
+/// (frames not held, or no white among them), rendered alone before the frames; `None` for the
+/// others. `specs[k]` are projector `k`'s frames; the first `held` projectors' frames are held.
+fn whites_rendered_alone(
+    scene: &Scene,
+    kernel: Option<&SubsurfaceKernel>,
+    specs: &[Vec<FrameSpec>],
+    held: usize,
+    progress: &dyn Progress,
+) -> Vec<Option<Vec<[f32; 3]>>> {
+    let n = scene.geometry.pixels();
+    let count = specs.len();
+    let shows_white = |k: usize| specs[k].iter().any(|f| f.pattern == Pattern::White);
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
+    // Held projectors take their white from their frames. So does projector `held` (the first
+    // not held): the projectors after it compute their stray light once its frames are done, the
+    // held ones at the very end.
+    let alone: Vec<usize> = (0..count)
+        .filter(|&k| k > held || !shows_white(k))
+        .collect();
+    progress.stage("white frames", alone.len() as u64);
+    for &k in &alone {
+        let view = ProjectorTransport::new(scene, k, kernel);
+        let white = view.render(&[scene.projectors[k].emission(&Pattern::White)]);
+        whites[k] = Some(
+            white
+                .first()
+                .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
+        );
+        progress.advance(1);
+    }
+    whites
+}
+
+/// Renders one batch of frames of `view`'s projector, writes the truth components of those
+/// selected by `truth_for` and returns each frame's noise-free totals (the component buffers are
+/// freed here, before the frames are finished or held).
+fn render_batch(
+    scene: &Scene,
+    view: &ProjectorTransport,
+    batch: &[FrameSpec],
+    truth_dir: &Path,
+    truth_for: &(impl Fn(&Pattern) -> bool + Sync),
+) -> Result<Vec<Vec<[f32; 3]>>, VirtualBoothError> {
+    let k = view.k;
+    let dims = (scene.geometry.width, scene.geometry.height);
+    let emissions: Vec<_> = batch
+        .iter()
+        .map(|f| scene.projectors[k].emission(&f.pattern))
+        .collect();
+    let rendered = view.render(&emissions);
+    batch
+        .par_iter()
+        .zip(rendered.par_iter())
+        .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
+            if truth_for(&spec.pattern) {
+                truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
+            }
+            Ok(frame_totals(frame))
+        })
+        .collect::<Result<_, _>>()
 }
 
 /// Frames shown on the contact sheet: every projector's white, then projector 0 under a
