@@ -48,8 +48,38 @@ enum Command {
     Bench(cli::bench::Args),
 }
 
+/// Lets every flag of every subcommand take a negative number (`--g -0.3`), which clap would
+/// otherwise read as an unknown flag.
+fn allow_negative_numbers(command: clap::Command) -> clap::Command {
+    command
+        .allow_negative_numbers(true)
+        .mut_subcommands(allow_negative_numbers)
+}
+
+/// The error and its causes, one line each. Errors that already print their source in their
+/// own message (`{path}: {source}`) would otherwise show each cause two or more times: a cause
+/// whose text the line above already ends with is left out.
+fn error_lines(err: &anyhow::Error) -> Vec<String> {
+    let mut lines: Vec<String> = Vec::new();
+    for cause in err.chain() {
+        let text = cause.to_string();
+        let already_said = lines
+            .last()
+            .is_some_and(|above| above.ends_with(&text) || above.contains(&format!("{text}: ")));
+        if !already_said && !text.is_empty() {
+            lines.push(text);
+        }
+    }
+    lines
+}
+
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    use clap::{CommandFactory, FromArgMatches};
+    let matches = allow_negative_numbers(Cli::command()).get_matches();
+    let cli = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => cli,
+        Err(err) => err.exit(),
+    };
     let result = match cli.command {
         Command::Booth(args) => cli::booth::run(args),
         Command::Rig(args) => cli::rig::run(args),
@@ -69,7 +99,11 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            eprintln!("error: {err:#}");
+            let mut lines = error_lines(&err).into_iter();
+            eprintln!("error: {}", lines.next().unwrap_or_default());
+            for cause in lines {
+                eprintln!("  caused by: {cause}");
+            }
             ExitCode::FAILURE
         }
     }

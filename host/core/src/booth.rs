@@ -103,13 +103,16 @@ pub struct PatternSpec {
 
 impl PatternSpec {
     /// Number of slit frames per axis (one period swept in steps of the slit width).
+    /// 0 for a slit width of 0 (which [`Booth::validate`] refuses).
     pub fn slit_shifts(&self) -> u32 {
-        self.slit_period_px / self.slit_width_px
+        self.slit_period_px
+            .checked_div(self.slit_width_px)
+            .unwrap_or(0)
     }
 
     /// Number of high-frequency frames (one full period shifted 1 px at a time).
     pub fn hf_shifts(&self) -> u32 {
-        2 * self.hf_stripe_px
+        self.hf_stripe_px.saturating_mul(2)
     }
 }
 
@@ -189,67 +192,98 @@ impl Booth {
         Ok(booth)
     }
 
-    fn validate(&self, path: &Path) -> Result<(), BoothError> {
-        let invalid = |field: String, reason: &str| BoothError::Invalid {
+    /// Checks every value of the description (also of one read from a `capture.json`): finite,
+    /// in range and consistent. `path` is only used in error messages.
+    pub fn validate(&self, path: &Path) -> Result<(), BoothError> {
+        let invalid = |field: String, reason: String| BoothError::Invalid {
             path: path.to_owned(),
             field,
-            reason: reason.to_owned(),
+            reason,
         };
-        let c = &self.camera;
-        if c.width == 0 || c.height == 0 {
-            return Err(invalid("camera.width/height".into(), "must be positive"));
-        }
-        if !(1..=16).contains(&c.bit_depth) {
-            return Err(invalid("camera.bit_depth".into(), "must be 1..=16"));
-        }
-        if !(c.fx > 0.0 && c.fy > 0.0) {
-            return Err(invalid("camera.fx/fy".into(), "must be positive"));
-        }
+        self.validate_camera().map_err(|(f, r)| invalid(f, r))?;
         if self.projectors.is_empty() {
             return Err(invalid(
                 "projector".into(),
-                "at least one [[projector]] is required",
+                "at least one [[projector]] is required".into(),
+            ));
+        }
+        if self.projectors.len() > MAX_PROJECTORS {
+            return Err(invalid(
+                "projector".into(),
+                format!("at most {MAX_PROJECTORS} projectors are supported"),
             ));
         }
         for (i, p) in self.projectors.iter().enumerate() {
-            let field = |name: &str| format!("projector[{i}].{name}");
-            if p.width == 0 || p.height == 0 {
-                return Err(invalid(field("width/height"), "must be positive"));
-            }
-            if !(p.fx > 0.0 && p.fy > 0.0) {
-                return Err(invalid(field("fx/fy"), "must be positive"));
-            }
-            if !(p.gamma > 0.0 && p.gamma.is_finite()) {
-                return Err(invalid(field("gamma"), "must be a positive number"));
-            }
-            if !(0.0..0.5).contains(&p.black_level) {
-                return Err(invalid(field("black_level"), "must be in [0, 0.5)"));
-            }
-            if p.defocus_px.is_nan() || p.defocus_px < 0.0 {
-                return Err(invalid(field("defocus_px"), "must be >= 0"));
-            }
-            if (1u64 << self.patterns.gray_bits_x) < p.width as u64
-                || (1u64 << self.patterns.gray_bits_y) < p.height as u64
-            {
-                return Err(invalid(
-                    "patterns.gray_bits_x/y".into(),
-                    &format!("too few bits for a {}x{} projector", p.width, p.height),
-                ));
-            }
+            self.validate_projector(p)
+                .map_err(|(f, r)| invalid(format!("projector[{i}].{f}"), r))?;
         }
-        let pat = &self.patterns;
-        if pat.slit_width_px == 0 || !pat.slit_period_px.is_multiple_of(pat.slit_width_px) {
+        validate_patterns(&self.patterns).map_err(|(f, r)| invalid(f, r))?;
+        let t = &self.timing;
+        if !(t.fps > 0.0 && t.fps.is_finite() && t.refresh_hz > 0.0 && t.refresh_hz.is_finite()) {
             return Err(invalid(
-                "patterns.slit_period_px".into(),
-                "must be a positive multiple of slit_width_px",
+                "timing.fps/refresh_hz".into(),
+                "must be finite and positive".into(),
             ));
         }
-        if pat.hf_stripe_px == 0 {
-            return Err(invalid("patterns.hf_stripe_px".into(), "must be positive"));
+        Ok(())
+    }
+
+    /// The camera's values; on error the field (below `camera.`) and the reason.
+    fn validate_camera(&self) -> Result<(), (String, String)> {
+        let c = &self.camera;
+        let field = |name: &str| format!("camera.{name}");
+        check_image_size(c.width, c.height).map_err(|r| (field("width/height"), r))?;
+        if !(1..=16).contains(&c.bit_depth) {
+            return Err((field("bit_depth"), "must be 1..=16".into()));
         }
-        let t = &self.timing;
-        if !(t.fps > 0.0 && t.refresh_hz > 0.0) {
-            return Err(invalid("timing.fps/refresh_hz".into(), "must be positive"));
+        check_intrinsics([c.fx, c.fy, c.cx, c.cy], &c.distortion)
+            .map_err(|(f, r)| (field(f), r))?;
+        check_pose(c.position_mm, c.look_at_mm, c.up).map_err(|(f, r)| (field(f), r))?;
+        if !(c.read_noise_dn >= 0.0 && c.read_noise_dn.is_finite()) {
+            return Err((field("read_noise_dn"), "must be finite and >= 0".into()));
+        }
+        if !(c.full_well_e > 0.0 && c.full_well_e.is_finite()) {
+            return Err((field("full_well_e"), "must be finite and positive".into()));
+        }
+        if !(c.exposure_ms > 0.0 && c.exposure_ms.is_finite()) {
+            return Err((field("exposure_ms"), "must be finite and positive".into()));
+        }
+        Ok(())
+    }
+
+    /// One projector's values; on error the field (below `projector[i].`) and the reason.
+    fn validate_projector(&self, p: &ProjectorSpec) -> Result<(), (String, String)> {
+        check_image_size(p.width, p.height).map_err(|r| ("width/height".into(), r))?;
+        check_intrinsics([p.fx, p.fy, p.cx, p.cy], &p.distortion)
+            .map_err(|(f, r)| (f.to_owned(), r))?;
+        check_pose(p.position_mm, p.look_at_mm, p.up).map_err(|(f, r)| (f.to_owned(), r))?;
+        if !(p.gamma > 0.0 && p.gamma.is_finite()) {
+            return Err(("gamma".into(), "must be a positive number".into()));
+        }
+        if !(0.0..0.5).contains(&p.black_level) {
+            return Err(("black_level".into(), "must be in [0, 0.5)".into()));
+        }
+        if !(p.defocus_px >= 0.0 && p.defocus_px <= MAX_DEFOCUS_PX) {
+            return Err((
+                "defocus_px".into(),
+                format!("must be in [0, {MAX_DEFOCUS_PX}]"),
+            ));
+        }
+        if !(p.refresh_hz > 0.0 && p.refresh_hz.is_finite()) {
+            return Err(("refresh_hz".into(), "must be finite and positive".into()));
+        }
+        let pat = &self.patterns;
+        // Bits are checked against 1..=MAX_GRAY_BITS in `validate_patterns`; clamp the shift here.
+        let covers = |bits: u32, size: u32| (1u64 << bits.min(MAX_GRAY_BITS)) >= size as u64;
+        if !covers(pat.gray_bits_x, p.width) || !covers(pat.gray_bits_y, p.height) {
+            return Err((
+                "width/height".into(),
+                format!(
+                    "a {}x{} projector needs more Gray-code bits than patterns.gray_bits_x/y = \
+                     {}/{}",
+                    p.width, p.height, pat.gray_bits_x, pat.gray_bits_y
+                ),
+            ));
         }
         Ok(())
     }
@@ -311,6 +345,120 @@ impl Booth {
             projectors,
         }
     }
+}
+
+/// Largest image side of a camera or projector, pixels (a booth camera is 1379 px wide).
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+/// Largest number of pixels of a camera or projector image (64 Mpx: a frame is then 768 MB
+/// of linear RGB already).
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+/// Largest number of Gray-code bits per axis (2^16 projector pixels; more cannot be shown).
+pub const MAX_GRAY_BITS: u32 = 16;
+/// Largest number of projectors (frame specs store the projector in a byte).
+pub const MAX_PROJECTORS: usize = 255;
+/// Largest number of slit shifts or high-frequency shifts per axis.
+pub const MAX_PATTERN_SHIFTS: u32 = 256;
+/// Largest projector defocus, projector pixels.
+pub const MAX_DEFOCUS_PX: f64 = 100.0;
+
+/// A camera or projector image size: positive and small enough to allocate.
+fn check_image_size(width: u32, height: u32) -> Result<(), String> {
+    if width == 0 || height == 0 {
+        return Err(format!("must be positive, got {width}x{height}"));
+    }
+    if width > MAX_IMAGE_SIDE
+        || height > MAX_IMAGE_SIDE
+        || width as u64 * height as u64 > MAX_IMAGE_PIXELS
+    {
+        return Err(format!(
+            "{width}x{height} is too large (at most {MAX_IMAGE_SIDE} px a side and \
+             {MAX_IMAGE_PIXELS} px in all)"
+        ));
+    }
+    Ok(())
+}
+
+/// Pinhole intrinsics `[fx, fy, cx, cy]` and distortion: finite, focal lengths positive.
+fn check_intrinsics(k: [f64; 4], distortion: &[f64; 5]) -> Result<(), (&'static str, String)> {
+    if !(k[0] > 0.0 && k[1] > 0.0 && k[0].is_finite() && k[1].is_finite()) {
+        return Err(("fx/fy", "must be finite and positive".into()));
+    }
+    if !(k[2].is_finite() && k[3].is_finite()) {
+        return Err(("cx/cy", "must be finite".into()));
+    }
+    if !distortion.iter().all(|d| d.is_finite()) {
+        return Err(("distortion", "must be finite".into()));
+    }
+    Ok(())
+}
+
+/// A device pose given as position, point looked at and up hint: finite, the point looked at
+/// away from the position, and `up` not along the viewing direction (else there is no pose).
+fn check_pose(
+    position: [f64; 3],
+    look_at: [f64; 3],
+    up: [f64; 3],
+) -> Result<(), (&'static str, String)> {
+    let finite = |v: [f64; 3]| v.iter().all(|x| x.is_finite());
+    if !finite(position) || !finite(look_at) || !finite(up) {
+        return Err(("position_mm/look_at_mm/up", "must be finite".into()));
+    }
+    let view = nalgebra::Vector3::from(look_at) - nalgebra::Vector3::from(position);
+    if view.norm() < 1e-6 {
+        return Err((
+            "look_at_mm",
+            "is the device's own position: look at a point in front of it".into(),
+        ));
+    }
+    let up = nalgebra::Vector3::from(up);
+    if up.norm() < 1e-12 || view.normalize().cross(&up.normalize()).norm() < 1e-6 {
+        return Err((
+            "up",
+            "must be a non-zero vector not along the viewing direction".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The pattern plan: Gray-code bits in 1..=[`MAX_GRAY_BITS`], slit width and period positive
+/// with the period a multiple of the width, a positive stripe width; a bounded number of shifts.
+pub fn validate_patterns(pat: &PatternSpec) -> Result<(), (String, String)> {
+    for (field, bits) in [
+        ("patterns.gray_bits_x", pat.gray_bits_x),
+        ("patterns.gray_bits_y", pat.gray_bits_y),
+    ] {
+        if !(1..=MAX_GRAY_BITS).contains(&bits) {
+            return Err((
+                field.into(),
+                format!("must be 1..={MAX_GRAY_BITS}, got {bits}"),
+            ));
+        }
+    }
+    if pat.slit_width_px == 0 {
+        return Err(("patterns.slit_width_px".into(), "must be positive".into()));
+    }
+    if pat.slit_period_px == 0 || !pat.slit_period_px.is_multiple_of(pat.slit_width_px) {
+        return Err((
+            "patterns.slit_period_px".into(),
+            format!(
+                "must be a positive multiple of slit_width_px ({}), got {}",
+                pat.slit_width_px, pat.slit_period_px
+            ),
+        ));
+    }
+    if pat.slit_shifts() > MAX_PATTERN_SHIFTS {
+        return Err((
+            "patterns.slit_period_px".into(),
+            format!("at most {MAX_PATTERN_SHIFTS} slit widths per period"),
+        ));
+    }
+    if pat.hf_stripe_px == 0 || pat.hf_shifts() > MAX_PATTERN_SHIFTS {
+        return Err((
+            "patterns.hf_stripe_px".into(),
+            format!("must be 1..={}", MAX_PATTERN_SHIFTS / 2),
+        ));
+    }
+    Ok(())
 }
 
 /// 1-based line and column where a TOML parse error points (0, 0 when it has no span).

@@ -2,6 +2,11 @@
 
 use super::McError;
 
+/// Largest absorption or scattering coefficient a layer may have, 1/mm (a mean free path of
+/// 1 nm; skin's are 0.01-100/mm). Beyond it a step is below the precision of a position in mm
+/// and photons never leave the medium.
+pub const MAX_COEFFICIENT_PER_MM: f64 = 1e6;
+
 /// One homogeneous layer.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Layer {
@@ -31,6 +36,8 @@ impl Layer {
     }
 
     /// Total attenuation coefficient mu_a + mu_s, 1/mm.
+    ///
+    /// See [`MAX_COEFFICIENT_PER_MM`] for the largest coefficient a layer may have.
     pub fn mu_t(&self) -> f64 {
         self.mu_a + self.mu_s
     }
@@ -57,11 +64,19 @@ impl Layer {
                 "only the last layer may be semi-infinite",
             ));
         }
-        if !(self.mu_a.is_finite() && self.mu_a >= 0.0) {
-            return Err(invalid("mu_a", self.mu_a, "must be finite and >= 0 (1/mm)"));
+        if !(self.mu_a.is_finite() && (0.0..=MAX_COEFFICIENT_PER_MM).contains(&self.mu_a)) {
+            return Err(invalid(
+                "mu_a",
+                self.mu_a,
+                "must be in [0, 1e6] (1/mm; skin is ~0.01-10)",
+            ));
         }
-        if !(self.mu_s.is_finite() && self.mu_s >= 0.0) {
-            return Err(invalid("mu_s", self.mu_s, "must be finite and >= 0 (1/mm)"));
+        if !(self.mu_s.is_finite() && (0.0..=MAX_COEFFICIENT_PER_MM).contains(&self.mu_s)) {
+            return Err(invalid(
+                "mu_s",
+                self.mu_s,
+                "must be in [0, 1e6] (1/mm; skin is ~1-100)",
+            ));
         }
         if !(self.g > -1.0 && self.g < 1.0) {
             return Err(invalid("g", self.g, "must be in (-1, 1)"));

@@ -32,7 +32,7 @@ pub struct Args {
     #[arg(long, value_parser = parse_size, requires = "square")]
     board: Option<(u32, u32)>,
     /// Side of a chessboard square in millimetres (default: as --board).
-    #[arg(long, requires = "board")]
+    #[arg(long, requires = "board", value_parser = super::number_arg::positive_finite)]
     square: Option<f64>,
     /// Layout of the pose folders.
     #[arg(long, value_enum, default_value_t = Layout::Capture)]

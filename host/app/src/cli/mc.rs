@@ -123,12 +123,33 @@ fn simulate_and_print(medium: &Medium, run: &RunArgs) -> anyhow::Result<()> {
         run.angle
     );
     let result = mc::run(medium, &cfg).context("Monte Carlo run")?;
+    let missing = unaccounted_energy(&result);
+    anyhow::ensure!(
+        missing.abs() <= MAX_UNACCOUNTED_ENERGY,
+        "the tallies miss {:.3} % of the light: photons that stay in the medium for more than a \
+         million scattering events are dropped. Lower mu_s or raise mu_a (this medium scatters \
+         {:.3e} times per photon)",
+        100.0 * missing,
+        result.interactions_per_photon
+    );
     if run.json {
         println!("{}", result_json(&result));
     } else {
         print_human(&result);
     }
     Ok(())
+}
+
+/// Largest share of the light the tallies may miss: roulette keeps the balance exact on average,
+/// so more than this means photons were dropped (trapped past the event cap).
+const MAX_UNACCOUNTED_ENERGY: f64 = 1e-3;
+
+/// 1 minus everything tallied (specular, diffuse reflectance, transmittance, absorption).
+fn unaccounted_energy(r: &McResult) -> f64 {
+    1.0 - r.specular
+        - r.diffuse_reflectance
+        - r.total_transmittance
+        - r.absorbed.iter().sum::<f64>()
 }
 
 fn result_json(r: &McResult) -> serde_json::Value {
@@ -145,6 +166,7 @@ fn result_json(r: &McResult) -> serde_json::Value {
         "photons_per_second": r.photons_per_second,
         "threads": r.threads,
         "interactions_per_photon": r.interactions_per_photon,
+        "unaccounted_energy": unaccounted_energy(r),
     })
 }
 

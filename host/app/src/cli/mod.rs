@@ -11,6 +11,7 @@ pub mod eval;
 pub mod mc;
 pub mod monte_carlo_args;
 pub mod normals;
+pub mod number_arg;
 pub mod process;
 pub mod ps_scene;
 pub mod render;

@@ -44,7 +44,8 @@ pub struct Args {
     block: usize,
     /// Fit stage: stop a fit's EM when one iteration gains less than this in log-likelihood per
     /// unit weight.
-    #[arg(long, default_value_t = FitParams::default().tolerance)]
+    #[arg(long, default_value_t = FitParams::default().tolerance,
+          value_parser = super::number_arg::positive_finite)]
     tolerance: f64,
     /// Fit stage: EM iteration cap per fit.
     #[arg(long, default_value_t = FitParams::default().max_iterations)]
@@ -82,8 +83,8 @@ pub struct Args {
     /// (`slit_global_rel_rmse_*`; decodes the slit frames again).
     #[arg(long)]
     compare_slit_variants: bool,
-    /// Fit stage: fixed layer spacing D (mm) instead of the subject-wide estimate.
-    #[arg(long)]
+    /// Fit stage: fixed layer spacing D (mm, > 0) instead of the subject-wide estimate.
+    #[arg(long, value_parser = super::number_arg::positive_finite)]
     depth_spacing: Option<f64>,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]

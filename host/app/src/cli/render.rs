@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use image::Rgb32FImage;
-use mlsss::booth::PatternSpec;
+use mlsss::booth::{PatternSpec, validate_patterns};
 use mlsss::capture::{Axis, Pattern};
 use mlsss::imageio;
 use mlsss::layer_model::model_file::{Baseline, SubsurfaceModel, render_projector};
@@ -45,7 +45,7 @@ pub struct Args {
     #[arg(long)]
     stripe: Option<u32>,
     /// Exposure of the PNG: linear value shown as white (default: the 99th percentile).
-    #[arg(long)]
+    #[arg(long, value_parser = super::number_arg::positive_finite_f32)]
     white: Option<f32>,
     /// Print a JSON object (paths, model, timing) on stdout.
     #[arg(long)]
@@ -61,8 +61,33 @@ fn parse_light(light: &str) -> anyhow::Result<usize> {
         .with_context(|| format!("--light {light}: `{k}` is not a projector number"))
 }
 
-/// Parses a pattern label (see `Pattern::label`).
+/// Parses a pattern label (see `Pattern::label`) and checks it is one the booth can show (with
+/// `--slit-width`, `--slit-period` and `--stripe` in place of the booth's values).
 fn parse_pattern(label: &str, args: &Args, booth: &PatternSpec) -> anyhow::Result<Pattern> {
+    let spec = PatternSpec {
+        slit_width_px: args.slit_width.unwrap_or(booth.slit_width_px),
+        slit_period_px: args.slit_period.unwrap_or(booth.slit_period_px),
+        hf_stripe_px: args.stripe.unwrap_or(booth.hf_stripe_px),
+        ..booth.clone()
+    };
+    if let Err((field, reason)) = validate_patterns(&spec) {
+        let flag = match field.as_str() {
+            "patterns.slit_width_px" => "--slit-width",
+            "patterns.slit_period_px" => "--slit-period",
+            "patterns.hf_stripe_px" => "--stripe",
+            other => other,
+        };
+        bail!("{flag}: {reason}");
+    }
+    let pattern = parse_pattern_label(label, &spec)?;
+    pattern
+        .check_against(&spec)
+        .map_err(|reason| anyhow::anyhow!("--pattern {label}: {reason}"))?;
+    Ok(pattern)
+}
+
+/// The pattern a label names, with the slit and stripe geometry of `spec`.
+fn parse_pattern_label(label: &str, spec: &PatternSpec) -> anyhow::Result<Pattern> {
     let axis = |a: &str| match a {
         "x" => Ok(Axis::X),
         "y" => Ok(Axis::Y),
@@ -81,8 +106,8 @@ fn parse_pattern(label: &str, args: &Args, booth: &PatternSpec) -> anyhow::Resul
         },
         ["slit", a, offset] if offset.starts_with('o') => Pattern::Slit {
             axis: axis(a)?,
-            width: args.slit_width.unwrap_or(booth.slit_width_px),
-            period: args.slit_period.unwrap_or(booth.slit_period_px),
+            width: spec.slit_width_px,
+            period: spec.slit_period_px,
             offset: number(&offset[1..], "slit offset")?,
         },
         ["gray", a, bit, rest @ ..] if bit.starts_with('b') && rest.len() <= 1 => {
@@ -98,7 +123,7 @@ fn parse_pattern(label: &str, args: &Args, booth: &PatternSpec) -> anyhow::Resul
             }
         }
         ["hf", shift] if shift.starts_with('s') => Pattern::HighFrequency {
-            stripe: args.stripe.unwrap_or(booth.hf_stripe_px),
+            stripe: spec.hf_stripe_px,
             shift: number(&shift[1..], "shift")?,
         },
         _ => bail!(

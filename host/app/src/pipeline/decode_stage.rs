@@ -122,7 +122,7 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
         })?;
         let decoded = match decode(&frames, (proj.width, proj.height), params) {
             Ok(d) => d,
-            Err(err @ GrayCodeError::NothingLit { .. }) => {
+            Err(err @ (GrayCodeError::NothingLit { .. } | GrayCodeError::Saturated { .. })) => {
                 projectors.push(ProjectorDecodeReport {
                     projector: k,
                     skipped: Some(err.to_string()),

@@ -19,7 +19,7 @@ use image::{ImageEncoder, Rgb32FImage};
 use serde::{Deserialize, Serialize};
 
 use super::frame_plan::{FramePlan, FrameSpec};
-use crate::booth::Booth;
+use crate::booth::{Booth, BoothError};
 
 /// Version of the capture folder format.
 pub const CAPTURE_FORMAT_VERSION: u32 = 1;
@@ -57,6 +57,13 @@ pub enum CaptureError {
     /// The output folder exists already.
     #[error("{0} exists already; remove it or choose another --out")]
     Exists(PathBuf),
+    /// `capture.json` parsed but a value in it is invalid or disagrees with the rest.
+    #[error("{path}: `{field}`: {reason}")]
+    InvalidManifest {
+        path: PathBuf,
+        field: String,
+        reason: String,
+    },
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> CaptureError + '_ {
@@ -145,6 +152,82 @@ impl CaptureManifest {
     }
 }
 
+impl CaptureManifest {
+    /// Checks what a reader relies on: the format version, the booth snapshot (as a booth file
+    /// is checked), the bit depth, and a frame plan that is the start of the plan of this kind
+    /// for this booth (the rig truncates a capture it stopped early), so every frame index and
+    /// pattern is what the readers expect. `path` names the manifest in errors.
+    pub fn validate(&self, path: &Path) -> Result<(), CaptureError> {
+        let invalid = |field: &str, reason: String| CaptureError::InvalidManifest {
+            path: path.to_owned(),
+            field: field.to_owned(),
+            reason,
+        };
+        if self.format_version != CAPTURE_FORMAT_VERSION {
+            return Err(invalid(
+                "format_version",
+                format!(
+                    "version {} is not supported: this mlsss reads version {CAPTURE_FORMAT_VERSION}",
+                    self.format_version
+                ),
+            ));
+        }
+        self.booth.validate(path).map_err(|e| match e {
+            BoothError::Invalid { field, reason, .. } => invalid(&format!("booth.{field}"), reason),
+            other => invalid("booth", other.to_string()),
+        })?;
+        if !(1..=16).contains(&self.bit_depth) {
+            return Err(invalid(
+                "bit_depth",
+                format!(
+                    "must be 1..=16 (frames are 16-bit PNG), got {}",
+                    self.bit_depth
+                ),
+            ));
+        }
+        self.validate_plan()
+            .map_err(|reason| invalid("plan", reason))
+    }
+
+    /// The frame plan against the plan of this kind for the booth: same entries, in order,
+    /// possibly cut short.
+    fn validate_plan(&self) -> Result<(), String> {
+        if self.plan.is_empty() {
+            return Err("the capture has no frames".into());
+        }
+        let expected = match self.kind {
+            CaptureKind::Scan => FramePlan::scan(&self.booth.patterns, self.booth.projectors.len()),
+            CaptureKind::Calibration => {
+                FramePlan::calibration(&self.booth.patterns, self.booth.projectors.len())
+            }
+        };
+        if self.plan.len() > expected.len() {
+            return Err(format!(
+                "{} frames, but a {:?} capture of this booth has {}",
+                self.plan.len(),
+                self.kind,
+                expected.len()
+            ));
+        }
+        for (position, (got, want)) in self.plan.frames.iter().zip(&expected.frames).enumerate() {
+            if got != want {
+                return Err(format!(
+                    "entry {position} is frame {} of projector {:?} showing `{}`, but the booth's \
+                     plan has frame {} of projector {:?} showing `{}` there (entries swapped, \
+                     duplicated or edited?)",
+                    got.index,
+                    got.projector,
+                    got.pattern.label(),
+                    want.index,
+                    want.projector,
+                    want.pattern.label()
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Relative path of frame `index` inside a capture folder.
 pub fn frame_file(index: u32) -> String {
     format!("frames/{index:04}.png")
@@ -162,8 +245,12 @@ impl Capture {
     pub fn open(root: &Path) -> Result<Self, CaptureError> {
         let path = root.join(MANIFEST_FILE);
         let text = fs::read_to_string(&path).map_err(io_err(&path))?;
-        let manifest = serde_json::from_str(&text)
-            .map_err(|source| CaptureError::Manifest { path, source })?;
+        let manifest: CaptureManifest =
+            serde_json::from_str(&text).map_err(|source| CaptureError::Manifest {
+                path: path.clone(),
+                source,
+            })?;
+        manifest.validate(&path)?;
         Ok(Self {
             root: root.to_owned(),
             manifest,
@@ -266,6 +353,19 @@ fn read_frame_codes(
         path: path.to_owned(),
         source,
     })?;
+    if !matches!(
+        img.color(),
+        image::ColorType::Rgb16 | image::ColorType::Rgba16 | image::ColorType::L16
+    ) {
+        return Err(CaptureError::BadFrame {
+            path: path.to_owned(),
+            reason: format!(
+                "is {:?}: capture frames are 16-bit PNGs (camera codes MSB-aligned); an 8-bit \
+                 frame has lost the sensor's low bits, convert it with its bit depth instead",
+                img.color()
+            ),
+        });
+    }
     if (img.width(), img.height()) != expected_size {
         return Err(CaptureError::BadFrame {
             path: path.to_owned(),

@@ -5,6 +5,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::booth::PatternSpec;
+
 /// The image axis a pattern codes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -70,8 +72,10 @@ impl Pattern {
                 bit,
                 inverted,
             } => {
+                // A bit beyond the code is 0 (a plain `>>` would wrap it to `bit % 32`).
                 let coord = pick(axis, u, v);
-                on(((gray_code(coord) >> bit) & 1 == 1) != inverted)
+                let set = gray_code(coord).checked_shr(bit).unwrap_or(0) & 1 == 1;
+                on(set != inverted)
             }
             Pattern::Slit {
                 axis,
@@ -79,12 +83,12 @@ impl Pattern {
                 period,
                 offset,
             } => {
+                // A period of 0 (refused by the readers) lights nothing instead of dividing by 0.
                 let coord = pick(axis, u, v) as i64;
-                on((coord - offset as i64).rem_euclid(period as i64) < width as i64)
+                on(period > 0 && (coord - offset as i64).rem_euclid(period as i64) < width as i64)
             }
-            Pattern::HighFrequency { stripe, shift } => {
-                on((u as i64 - shift as i64).rem_euclid(2 * stripe as i64) < stripe as i64)
-            }
+            Pattern::HighFrequency { stripe, shift } => on(stripe > 0
+                && (u as i64 - shift as i64).rem_euclid(2 * stripe as i64) < stripe as i64),
             Pattern::Grey { level_milli } => level_milli as f32 / 1000.0,
         }
     }
@@ -112,6 +116,69 @@ impl Pattern {
             } => format!("slit-{}-o{offset}", axis(a)),
             Pattern::HighFrequency { shift, .. } => format!("hf-s{shift}"),
             Pattern::Grey { level_milli } => format!("grey-{level_milli}"),
+        }
+    }
+
+    /// Whether this pattern is one of `spec`'s: a Gray-code bit below the axis's bit count, the
+    /// spec's slit width and period with an offset inside the period, the spec's stripe width with
+    /// a shift inside its period, a grey level in [0, 1000]. The reason when it is not.
+    pub fn check_against(&self, spec: &PatternSpec) -> Result<(), String> {
+        match *self {
+            Pattern::White | Pattern::Black => Ok(()),
+            Pattern::Gray { axis, bit, .. } => {
+                let bits = match axis {
+                    Axis::X => spec.gray_bits_x,
+                    Axis::Y => spec.gray_bits_y,
+                };
+                if bit < bits {
+                    Ok(())
+                } else {
+                    Err(format!(
+                        "Gray-code bit {bit} does not exist: the booth has {bits} bits along \
+                         this axis (bits 0..={})",
+                        bits.saturating_sub(1)
+                    ))
+                }
+            }
+            Pattern::Slit {
+                width,
+                period,
+                offset,
+                ..
+            } => {
+                if (width, period) != (spec.slit_width_px, spec.slit_period_px) {
+                    Err(format!(
+                        "slit {width} px every {period} px, the booth's slits are {} px every {} px",
+                        spec.slit_width_px, spec.slit_period_px
+                    ))
+                } else if offset >= period || offset % width.max(1) != 0 {
+                    Err(format!(
+                        "slit offset {offset} is not one of the sweep's (0, {width}, ... below \
+                         {period})"
+                    ))
+                } else {
+                    Ok(())
+                }
+            }
+            Pattern::HighFrequency { stripe, shift } => {
+                if stripe != spec.hf_stripe_px {
+                    Err(format!(
+                        "stripes {stripe} px wide, the booth's are {} px",
+                        spec.hf_stripe_px
+                    ))
+                } else if shift >= spec.hf_shifts() {
+                    Err(format!(
+                        "stripe shift {shift} is not one of the booth's (0..{})",
+                        spec.hf_shifts()
+                    ))
+                } else {
+                    Ok(())
+                }
+            }
+            Pattern::Grey { level_milli } if level_milli <= 1000 => Ok(()),
+            Pattern::Grey { level_milli } => Err(format!(
+                "grey level {level_milli} is above 1000 (full white)"
+            )),
         }
     }
 

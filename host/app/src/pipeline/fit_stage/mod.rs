@@ -199,8 +199,25 @@ fn check_params(params: &FitParams, captured: usize) -> Result<(), FitStageError
     if params.max_iterations == 0 {
         return Err(FitStageError::BadParameter("max_iterations must be >= 1"));
     }
+    // NaN never compares below the gain, so the EM would run to the cap in every fit.
+    if !(params.tolerance.is_finite() && params.tolerance > 0.0) {
+        return Err(FitStageError::BadParameter(
+            "tolerance must be a finite number > 0 (e.g. 1e-5)",
+        ));
+    }
+    if let Some(d) = params.depth_spacing_mm
+        && !(d.is_finite() && d > 0.0 && d <= MAX_DEPTH_SPACING_MM)
+    {
+        return Err(FitStageError::BadParameter(
+            "depth spacing must be a finite number of mm in (0, 10] (layers are below the surface)",
+        ));
+    }
     Ok(())
 }
+
+/// Largest layer spacing `--depth-spacing` takes, mm: 20 layers 10 mm apart reach 200 mm,
+/// far beyond where light comes back out of skin.
+const MAX_DEPTH_SPACING_MM: f64 = 10.0;
 
 /// The fit stage's report fragment (see the module documentation).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -113,6 +113,24 @@ fn out_of_range_parameters_are_refused() {
             max_iterations: 0,
             ..FitParams::default()
         },
+        // `process --tolerance NaN` ran without end (issue 21).
+        FitParams {
+            tolerance: f64::NAN,
+            ..FitParams::default()
+        },
+        FitParams {
+            tolerance: 0.0,
+            ..FitParams::default()
+        },
+        // `--depth-spacing=-0.1` fitted a negative layer spacing (issue 21).
+        FitParams {
+            depth_spacing_mm: Some(-0.1),
+            ..FitParams::default()
+        },
+        FitParams {
+            depth_spacing_mm: Some(f64::INFINITY),
+            ..FitParams::default()
+        },
     ] {
         assert!(matches!(
             check_params(&bad, 4),

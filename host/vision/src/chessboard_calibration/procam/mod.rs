@@ -234,6 +234,61 @@ fn fit_device(
     })
 }
 
+/// Two views whose shared corners are on average closer than this, pixels, show the board in
+/// the same place: noise alone separates them (a board held still, or one pose copied).
+const SAME_VIEW_PX: f64 = 0.5;
+
+/// Refuses a set of views that shows the board in fewer than two distinct places: the same view
+/// again adds no constraint, and a closed form on one view fits any focal length with a tiny RMS
+/// (three copies of one pose gave fx 210 795 for a true 2 000).
+fn refuse_repeated_views(device: &str, views: &[ViewPoints]) -> Result<(), ProcamError> {
+    let mut distinct: Vec<usize> = Vec::new();
+    let mut repeated: Vec<(usize, usize)> = Vec::new();
+    for (i, view) in views.iter().enumerate() {
+        match distinct
+            .iter()
+            .find(|&&j| mean_shared_corner_distance(view, &views[j]) < SAME_VIEW_PX)
+        {
+            Some(&j) => repeated.push((j, i)),
+            None => distinct.push(i),
+        }
+    }
+    if distinct.len() >= 2 || views.len() < 2 {
+        return Ok(());
+    }
+    let pairs: Vec<String> = repeated
+        .iter()
+        .map(|(a, b)| format!("views {a} and {b}"))
+        .collect();
+    Err(ProcamError::TooFewPoses {
+        device: device.into(),
+        usable: distinct.len(),
+        needed: 2,
+        detail: format!(
+            "{} show the board in the same place (shared corners within {SAME_VIEW_PX} px): \
+             move and tilt the board between poses",
+            pairs.join(", ")
+        ),
+    })
+}
+
+/// Mean pixel distance between the corners two views share (infinite when they share none).
+fn mean_shared_corner_distance(a: &ViewPoints, b: &ViewPoints) -> f64 {
+    let (sum, count) = a
+        .iter()
+        .filter_map(|(board, pixel)| {
+            b.iter()
+                .find(|(other, _)| other == board)
+                .map(|(_, other_pixel)| (pixel - other_pixel).norm())
+        })
+        .fold((0.0, 0usize), |(s, n), d| (s + d, n + 1));
+    if count == 0 {
+        f64::INFINITY
+    } else {
+        sum / count as f64
+    }
+}
+
 /// The closed-form start of a one-device fit: a homography per view, Zhang's pinhole (no
 /// distortion) and the board pose of every view.
 fn closed_form_model(
@@ -241,6 +296,7 @@ fn closed_form_model(
     views: &[ViewPoints],
     size: ImageSize,
 ) -> Result<RigModel, ProcamError> {
+    refuse_repeated_views(device, views)?;
     let homographies: Vec<Matrix3<f64>> = views
         .iter()
         .map(|v| {

@@ -76,6 +76,16 @@ pub enum GrayCodeError {
         max_amplitude: f32,
         min_amplitude: f32,
     },
+    /// No pattern can be told from its inverse because the frames are saturated (white and
+    /// black both at the top of the sensor's range).
+    #[error(
+        "no camera pixel is lit above the black frame, and {saturated_percent:.0} % of the white \
+         frame is saturated: the frames are overexposed (lower the exposure), not dark"
+    )]
+    Saturated { saturated_percent: f32 },
+    /// A decoder parameter is out of its range.
+    #[error("decoder parameter `{key}`: {reason}")]
+    BadParams { key: &'static str, reason: String },
 }
 
 /// One bit of the code: the camera frame under the pattern and under its inverse.
@@ -143,7 +153,60 @@ impl Default for DecodeParams {
     }
 }
 
+/// Largest `window_radius`: the repair window is `4 * radius + 1` pixels a side.
+pub const MAX_WINDOW_RADIUS: u32 = 64;
+/// Largest `max_repaired_bits`: a repair tries `2^bits` codes per pixel.
+pub const MAX_REPAIRED_BITS: u32 = 8;
+
 impl DecodeParams {
+    /// Checks every threshold is finite and in its range (a NaN threshold accepts or refuses
+    /// every bit, a huge window never ends).
+    pub fn check(&self) -> Result<(), GrayCodeError> {
+        let bad = |key, reason: String| Err(GrayCodeError::BadParams { key, reason });
+        for (key, value) in [
+            ("min_amplitude", self.min_amplitude),
+            ("min_bit_contrast", self.min_bit_contrast),
+            ("min_bit_snr", self.min_bit_snr),
+            ("shot_noise_gain", self.shot_noise_gain),
+            ("read_noise", self.read_noise),
+            ("repair_tolerance_px", self.repair_tolerance_px),
+            ("outlier_px", self.outlier_px),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(key, format!("must be a finite number >= 0, got {value}"));
+            }
+        }
+        if self.window_radius == 0 || self.window_radius > MAX_WINDOW_RADIUS {
+            return bad(
+                "window_radius",
+                format!(
+                    "must be 1..={MAX_WINDOW_RADIUS}, got {}",
+                    self.window_radius
+                ),
+            );
+        }
+        if self.max_repaired_bits > MAX_REPAIRED_BITS {
+            return bad(
+                "max_repaired_bits",
+                format!(
+                    "must be 0..={MAX_REPAIRED_BITS}, got {}",
+                    self.max_repaired_bits
+                ),
+            );
+        }
+        let window = (2 * self.window_radius + 1).pow(2);
+        if self.min_neighbours >= window {
+            return bad(
+                "min_neighbours",
+                format!(
+                    "must be below the {window} pixels of the window (window_radius {})",
+                    self.window_radius
+                ),
+            );
+        }
+        Ok(())
+    }
+
     /// Parameters for 8-bit frames (quantisation dominates the read noise).
     pub fn for_8_bit() -> Self {
         Self {
@@ -276,10 +339,16 @@ pub fn decode(
     projector_size: (u32, u32),
     params: &DecodeParams,
 ) -> Result<ProjectorDecode, GrayCodeError> {
+    params.check()?;
     frames.validate(projector_size)?;
     let amplitude = frames.amplitude();
     let max_amplitude = amplitude.iter().copied().fold(0.0f32, f32::max);
     if max_amplitude < params.min_amplitude {
+        if let Some(saturated_percent) = frames.saturated_white_percent()
+            && saturated_percent > 50.0
+        {
+            return Err(GrayCodeError::Saturated { saturated_percent });
+        }
         return Err(GrayCodeError::NothingLit {
             max_amplitude,
             min_amplitude: params.min_amplitude,
@@ -417,6 +486,28 @@ impl GrayCodeFrames {
             }
         }
         Ok(())
+    }
+
+    /// Share of the white frame (or, without one, of the brighter of the first bit pair) at
+    /// the top of the range, percent; `None` when there are no frames.
+    fn saturated_white_percent(&self) -> Option<f32> {
+        /// A linear value this close to full scale counts as saturated.
+        const SATURATED: f32 = 0.99;
+        let brightest: Vec<f32> = match (&self.white, self.x.first()) {
+            (Some(white), _) => white.clone(),
+            (None, Some(pair)) => pair
+                .pattern
+                .iter()
+                .zip(&pair.inverse)
+                .map(|(a, b)| a.max(*b))
+                .collect(),
+            (None, None) => return None,
+        };
+        if brightest.is_empty() {
+            return None;
+        }
+        let saturated = brightest.iter().filter(|&&v| v >= SATURATED).count();
+        Some(100.0 * saturated as f32 / brightest.len() as f32)
     }
 
     /// Per-pixel modulation: white - black, or without black the largest coarse-bit difference.
