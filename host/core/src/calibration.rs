@@ -221,9 +221,11 @@ impl Calibration {
             path: path.display().to_string(),
             source,
         })?;
-        std::fs::write(path, text).map_err(|source| CalibrationError::Io {
-            path: path.display().to_string(),
-            source,
+        crate::atomic_file::write_bytes_atomically(path, text.as_bytes()).map_err(|source| {
+            CalibrationError::Io {
+                path: path.display().to_string(),
+                source,
+            }
         })
     }
 }

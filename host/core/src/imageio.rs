@@ -5,6 +5,8 @@ use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
 
+use crate::atomic_file::write_via_temporary;
+
 /// Errors reading or writing images.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
@@ -58,14 +60,33 @@ impl GrayF32 {
 
 /// Writes linear RGB as a 32-bit float EXR.
 pub fn write_exr_rgb(path: &Path, img: &Rgb32FImage) -> Result<(), ImageIoError> {
-    exr::prelude::write_rgb_file(path, img.width() as usize, img.height() as usize, |x, y| {
-        let p = img.get_pixel(x as u32, y as u32).0;
-        (p[0], p[1], p[2])
-    })
-    .map_err(|source| ImageIoError::Exr {
+    write_via_temporary(
+        path,
+        |temporary| {
+            exr::prelude::write_rgb_file(
+                temporary,
+                img.width() as usize,
+                img.height() as usize,
+                |x, y| {
+                    let p = img.get_pixel(x as u32, y as u32).0;
+                    (p[0], p[1], p[2])
+                },
+            )
+            .map_err(|source| ImageIoError::Exr {
+                path: path.to_owned(),
+                source,
+            })
+        },
+        exr_io_error(path),
+    )
+}
+
+/// An I/O error (flush, rename) of writing EXR `path`.
+fn exr_io_error(path: &Path) -> impl FnOnce(std::io::Error) -> ImageIoError + '_ {
+    move |e| ImageIoError::Exr {
         path: path.to_owned(),
-        source,
-    })
+        source: exr::error::Error::Io(e),
+    }
 }
 
 /// Reads the RGB channels of an EXR (alpha ignored, missing channels read as 0).
@@ -103,13 +124,19 @@ pub fn write_exr_gray(path: &Path, img: &GrayF32) -> Result<(), ImageIoError> {
         Encoding::FAST_LOSSLESS,
         AnyChannels::sort(smallvec::smallvec![channel]),
     );
-    Image::from_layer(layer)
-        .write()
-        .to_file(path)
-        .map_err(|source| ImageIoError::Exr {
-            path: path.to_owned(),
-            source,
-        })
+    write_via_temporary(
+        path,
+        |temporary| {
+            Image::from_layer(layer)
+                .write()
+                .to_file(temporary)
+                .map_err(|source| ImageIoError::Exr {
+                    path: path.to_owned(),
+                    source,
+                })
+        },
+        exr_io_error(path),
+    )
 }
 
 /// Reads the first channel of the first layer of an EXR as a single-channel float image.
@@ -138,10 +165,20 @@ pub fn write_png_preview(path: &Path, img: &Rgb32FImage, white: f32) -> Result<(
         let p = img.get_pixel(x, y).0;
         image::Rgb(p.map(|v| (linear_to_srgb(v * scale) * 255.0).round() as u8))
     });
-    out.save(path).map_err(|source| ImageIoError::Png {
-        path: path.to_owned(),
-        source,
-    })
+    write_via_temporary(
+        path,
+        |temporary| {
+            out.save_with_format(temporary, image::ImageFormat::Png)
+                .map_err(|source| ImageIoError::Png {
+                    path: path.to_owned(),
+                    source,
+                })
+        },
+        |e| ImageIoError::Png {
+            path: path.to_owned(),
+            source: image::ImageError::IoError(e),
+        },
+    )
 }
 
 /// The sRGB transfer function, input clamped to [0, 1] (NaN maps to 0).

@@ -5,6 +5,7 @@
 //!
 //! Nothing here knows about an algorithm; everything above may depend on it.
 
+pub mod atomic_file;
 pub mod booth;
 pub mod calibration;
 pub mod capture;

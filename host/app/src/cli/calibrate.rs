@@ -70,10 +70,13 @@ fn board_of(args: &Args) -> anyhow::Result<(u32, u32, f64)> {
         return Ok((cols, rows, square));
     }
     let recorded = match (args.layout, args.captures.first()) {
-        (Layout::Capture, Some(first)) => Capture::open(first)
-            .ok()
-            .and_then(|capture| BoardSpec::from_manifest(&capture.manifest))
-            .map(|b| (b.cols as u32, b.rows as u32, b.square_mm)),
+        (Layout::Capture, Some(first)) => {
+            // A pose that cannot be read is that error, not a missing --board.
+            let capture = Capture::open(first)
+                .with_context(|| format!("reading the pose {}", first.display()))?;
+            BoardSpec::from_manifest(&capture.manifest)
+                .map(|b| (b.cols as u32, b.rows as u32, b.square_mm))
+        }
         _ => None,
     };
     recorded.context(
@@ -83,6 +86,14 @@ fn board_of(args: &Args) -> anyhow::Result<(u32, u32, f64)> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    refuse_overwriting_inputs(&args)?;
+    if let Some(missing) = args.captures.iter().find(|c| !c.is_dir()) {
+        bail!(
+            "pose folder {} does not exist (or is not a folder): give the calibration captures' \
+             folders, e.g. out/calibration-poses/pose00",
+            missing.display()
+        );
+    }
     if let Some(path) = &args.from_opencv {
         return convert(path, &args);
     }
@@ -138,6 +149,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     save(&result.calibration, &args)?;
     print_result(&result, &args);
     Ok(())
+}
+
+/// Refuses outputs that are an input (a pose folder or a file in it, the OpenCV file converted)
+/// or each other (`--out c.xml` would be overwritten by the OpenCV export beside it).
+fn refuse_overwriting_inputs(args: &Args) -> anyhow::Result<()> {
+    let mut inputs: Vec<(&str, &Path)> = args
+        .captures
+        .iter()
+        .map(|c| ("pose", c.as_path()))
+        .collect();
+    if let Some(path) = &args.from_opencv {
+        inputs.push(("--from-opencv", path));
+    }
+    let xml = opencv_path(args);
+    let mut outputs: Vec<(&str, &Path)> = vec![("--out", &args.out)];
+    if args.from_opencv.is_none() {
+        outputs.push(("the OpenCV export (--opencv-out)", &xml));
+    }
+    super::output_paths::refuse_overlaps(&inputs, &outputs)
 }
 
 fn opencv_path(args: &Args) -> PathBuf {

@@ -12,6 +12,7 @@ pub mod mc;
 pub mod monte_carlo_args;
 pub mod normals;
 pub mod number_arg;
+pub mod output_paths;
 pub mod process;
 pub mod ps_scene;
 pub mod render;

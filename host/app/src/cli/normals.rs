@@ -63,6 +63,7 @@ fn parse_vector(text: &str) -> Result<Vector3<f64>, String> {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let files = image_set::image_files(&args.images)?;
+    refuse_overwriting_inputs(&args, &files)?;
     let light_table = read_light_table(&args, files.len())?;
     let selected = match &args.select {
         Some(text) => image_set::parse_selection(text, files.len())?,
@@ -103,6 +104,29 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         eprintln!("{}", serde_json::to_string_pretty(&report)?);
     }
     Ok(())
+}
+
+/// Refuses `--out` and `--albedo` paths that are an input image, table or mask, or each other.
+fn refuse_overwriting_inputs(args: &Args, files: &[PathBuf]) -> anyhow::Result<()> {
+    let mut inputs: Vec<(&str, &Path)> = files
+        .iter()
+        .map(|f| ("an input image", f.as_path()))
+        .collect();
+    inputs.push(("--lights", &args.lights));
+    for (flag, path) in [
+        ("--intensities", &args.intensities),
+        ("--mask", &args.mask),
+        ("--truth", &args.truth),
+    ] {
+        if let Some(p) = path {
+            inputs.push((flag, p));
+        }
+    }
+    let mut outputs: Vec<(&str, &Path)> = vec![("--out", &args.out)];
+    if let Some(albedo) = &args.albedo {
+        outputs.push(("--albedo", albedo));
+    }
+    super::output_paths::refuse_overlaps(&inputs, &outputs)
 }
 
 /// Every image's light: its direction and RGB intensity (all 1 without `--intensities`), checked

@@ -135,6 +135,11 @@ fn parse_pattern_label(label: &str, spec: &PatternSpec) -> anyhow::Result<Patter
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let k = parse_light(&args.light)?;
+    let png = args.out.with_extension("png");
+    super::output_paths::refuse_overlaps(
+        &[("MODEL", &args.model)],
+        &[("--out", &args.out), ("the PNG beside --out", &png)],
+    )?;
     let start = Instant::now();
     let model = SubsurfaceModel::load(&args.model)?;
     let loaded = start.elapsed().as_secs_f64();
@@ -160,7 +165,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     imageio::write_exr_rgb(&args.out, &img)?;
     let white = args.white.unwrap_or_else(|| percentile_99(&values));
-    let png = args.out.with_extension("png");
     imageio::write_png_preview(&png, &img, white)?;
     let report = serde_json::json!({
         "model": args.model.display().to_string(),

@@ -55,6 +55,75 @@ pub enum HoldoutError {
     /// The capture lacks a frame the evaluation needs.
     #[error("projector {projector} has no `{pattern}` frame in the capture")]
     MissingFrame { projector: usize, pattern: String },
+    /// The held-out projector's recorded frames cannot serve as a reference: black (nothing to
+    /// compare with, every model would score the same) or saturated (the truth is clipped).
+    #[error(
+        "projector {projector}'s recorded white frame is {what} where the model sees it: \
+         {detail}; the comparison would be meaningless. Check the capture (projector off, \
+         exposure)"
+    )]
+    UnusableReference {
+        projector: usize,
+        what: &'static str,
+        detail: String,
+    },
+}
+
+/// A white reference whose mean under the mask is below this (linear, 1 = saturation) is black:
+/// lit skin is at 0.05-0.8.
+const BLACK_REFERENCE_MEAN: f64 = 2e-3;
+/// A linear value at or above this is saturated.
+const SATURATED_VALUE: f32 = 0.995;
+/// A white reference with more than this share of saturated pixels under the mask is
+/// overexposed (a specular highlight covers a few percent).
+const MAX_SATURATED_SHARE: f64 = 0.2;
+
+/// Refuses a black or overexposed white frame of projector `k` as the evaluation's reference.
+fn check_reference(capture: &Capture, k: usize, mask: &[bool]) -> Result<(), HoldoutError> {
+    let Some(spec) = capture.manifest.plan.find(k as u8, &Pattern::White) else {
+        return Ok(());
+    };
+    let frame = capture.read_frame_pixels(spec.index)?;
+    let compared: Vec<&[f32; 3]> = frame
+        .iter()
+        .zip(mask)
+        .filter_map(|(p, &m)| m.then_some(p))
+        .collect();
+    let unusable = |what, detail| HoldoutError::UnusableReference {
+        projector: k,
+        what,
+        detail,
+    };
+    if compared.is_empty() {
+        return Err(unusable(
+            "not seen",
+            "the model has no pixel lit by this projector".into(),
+        ));
+    }
+    let n = compared.len() as f64;
+    let mean = compared
+        .iter()
+        .map(|p| f64::from(p[0] + p[1] + p[2]) / 3.0)
+        .sum::<f64>()
+        / n;
+    if mean < BLACK_REFERENCE_MEAN {
+        return Err(unusable(
+            "black",
+            format!("mean level {mean:.5} over {} pixels", compared.len()),
+        ));
+    }
+    let saturated = compared
+        .iter()
+        .filter(|p| p.iter().any(|&v| v >= SATURATED_VALUE))
+        .count() as f64
+        / n;
+    if saturated > MAX_SATURATED_SHARE {
+        return Err(unusable(
+            "saturated",
+            format!("{:.0} % of its pixels are at full scale", 100.0 * saturated),
+        ));
+    }
+    Ok(())
 }
 
 /// The renderers compared, in report order.
@@ -262,6 +331,7 @@ pub fn evaluate_holdout(
         .filter(|(b, _)| renderers.contains(b))
         .collect();
     let mask = compared_mask(capture, model, k)?;
+    check_reference(capture, k, &mask)?;
     let stray = stray_under(capture, model, k)?;
     let truth_dir = capture.truth_dir();
     let patterns = evaluation_patterns(capture, k);

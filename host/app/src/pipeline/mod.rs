@@ -56,6 +56,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use mlsss_core::atomic_file::{FolderLock, LockError, write_bytes_atomically};
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, truth};
 use mlsss_core::resources::cpu_seconds;
@@ -109,6 +110,15 @@ pub enum PipelineError {
         stage: &'static str,
         source: serde_json::Error,
     },
+    /// Another run holds the output folder.
+    #[error(transparent)]
+    Lock(#[from] LockError),
+    /// The output folder is the capture or inside it.
+    #[error(
+        "--out {out} and the capture {capture} overlap: the pipeline's artefacts would go into \
+         the capture (and change its cache key); choose an --out outside it"
+    )]
+    OutputOverlapsCapture { out: PathBuf, capture: PathBuf },
     /// A stage failed.
     #[error("stage `{stage}` failed: {source}")]
     Stage {
@@ -493,7 +503,11 @@ impl Pipeline {
     /// Runs `until` and every stage it needs (reusing cached results); returns the report.
     pub fn run_until(&self, until: &str) -> Result<PipelineReport, PipelineError> {
         let order = needed_stages(until)?;
+        refuse_output_in_capture(&self.capture.root, &self.out)?;
         create_dir(&self.out)?;
+        // One run at a time per output folder: two runs with different settings would
+        // interleave their artefacts under one stage record.
+        let _lock = FolderLock::acquire(&self.out)?;
         let mut report = PipelineReport::default();
         let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
         let handed_over = HandedOver::default();
@@ -596,6 +610,43 @@ impl Pipeline {
     }
 }
 
+/// Refuses an output folder that is the capture or inside it.
+fn refuse_output_in_capture(capture: &Path, out: &Path) -> Result<(), PipelineError> {
+    let capture_full = absolute_clean(capture);
+    let out_full = absolute_clean(out);
+    if out_full.starts_with(&capture_full) {
+        return Err(PipelineError::OutputOverlapsCapture {
+            out: out.to_owned(),
+            capture: capture.to_owned(),
+        });
+    }
+    Ok(())
+}
+
+/// `path` made absolute with symbolic links resolved as far as it exists (an output may not exist
+/// yet), so two spellings of one folder compare equal.
+pub fn absolute_clean(path: &Path) -> PathBuf {
+    let absolute = std::path::absolute(path).unwrap_or_else(|_| path.to_owned());
+    let mut existing = absolute.as_path();
+    let mut rest = Vec::new();
+    while !existing.exists() {
+        match (existing.parent(), existing.file_name()) {
+            (Some(parent), Some(name)) => {
+                rest.push(name.to_owned());
+                existing = parent;
+            }
+            _ => return absolute,
+        }
+    }
+    let mut resolved = existing
+        .canonicalize()
+        .unwrap_or_else(|_| existing.to_owned());
+    for name in rest.into_iter().rev() {
+        resolved.push(name);
+    }
+    resolved
+}
+
 /// The stages `until` needs, inputs first, in registry order.
 fn needed_stages(until: &str) -> Result<Vec<&'static Stage>, PipelineError> {
     let find = |name: &str| STAGES.iter().find(|s| s.name == name);
@@ -656,7 +707,7 @@ fn create_dir(path: &Path) -> Result<(), PipelineError> {
 
 fn write_json(path: &Path, value: &Value) -> Result<(), PipelineError> {
     let text = serde_json::to_string_pretty(value).unwrap_or_default();
-    std::fs::write(path, text).map_err(|source| PipelineError::Io {
+    write_bytes_atomically(path, text.as_bytes()).map_err(|source| PipelineError::Io {
         path: path.to_owned(),
         source,
     })

@@ -19,6 +19,7 @@ use image::{ImageEncoder, Rgb32FImage};
 use serde::{Deserialize, Serialize};
 
 use super::frame_plan::{FramePlan, FrameSpec};
+use crate::atomic_file::{FolderLock, LOCK_FILE};
 use crate::booth::{Booth, BoothError};
 
 /// Version of the capture folder format.
@@ -421,6 +422,27 @@ pub struct CaptureWriter {
     staging: PathBuf,
     manifest: CaptureManifest,
     finished: bool,
+    lock: Option<FolderLock>,
+}
+
+/// Removes staging folders `parent/{prefix}PID` left by writers that were killed (their lock is
+/// free); folders of writers still running are left alone. Best effort: a folder that cannot be
+/// removed stays.
+fn remove_abandoned_staging(parent: &Path, prefix: &str) {
+    let Ok(entries) = fs::read_dir(parent) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let abandoned_name = entry.file_name().to_string_lossy().starts_with(prefix);
+        let path = entry.path();
+        if !abandoned_name || !path.is_dir() {
+            continue;
+        }
+        if let Ok(lock) = FolderLock::acquire(&path) {
+            drop(lock);
+            let _ = fs::remove_dir_all(&path);
+        }
+    }
 }
 
 impl CaptureWriter {
@@ -438,17 +460,26 @@ impl CaptureWriter {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| "capture".into());
-        let staging = parent.join(format!(".{name}.partial-{}", std::process::id()));
+        let prefix = format!(".{name}.partial-");
+        remove_abandoned_staging(parent, &prefix);
+        let staging = parent.join(format!("{prefix}{}", std::process::id()));
         if staging.exists() {
             fs::remove_dir_all(&staging).map_err(io_err(&staging))?;
         }
         let frames = staging.join("frames");
         fs::create_dir_all(&frames).map_err(io_err(&frames))?;
+        // Held while the capture is written: a later writer can tell a killed run's staging
+        // folder (lock free) from one still being written (lock held).
+        let lock = FolderLock::acquire(&staging).map_err(|e| CaptureError::Io {
+            path: staging.clone(),
+            source: std::io::Error::other(e.to_string()),
+        })?;
         Ok(Self {
             target: target.to_owned(),
             staging,
             manifest,
             finished: false,
+            lock: Some(lock),
         })
     }
 
@@ -493,7 +524,11 @@ impl CaptureWriter {
             }
         })?;
         fs::write(&manifest_path, text).map_err(io_err(&manifest_path))?;
+        // The lock file is the writer's, not the capture's.
+        let lock_path = self.staging.join(LOCK_FILE);
+        fs::remove_file(&lock_path).map_err(io_err(&lock_path))?;
         fs::rename(&self.staging, &self.target).map_err(io_err(&self.target))?;
+        self.lock = None;
         self.finished = true;
         Ok(self.target.clone())
     }
@@ -580,6 +615,33 @@ mod tests {
             .unwrap();
         }
         assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn a_killed_writers_staging_folder_is_removed_by_the_next_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        // What a `simulate` killed mid-run leaves: a staging folder whose lock nobody holds.
+        let abandoned = dir.path().join(".cap.partial-999999999");
+        fs::create_dir_all(abandoned.join("frames")).unwrap();
+        fs::write(abandoned.join("frames/0000.png"), b"frame").unwrap();
+        // A writer still at work holds its staging folder's lock: that folder stays.
+        let busy = dir.path().join(".cap.partial-1");
+        let busy_lock = FolderLock::acquire(&busy).unwrap();
+        let booth = tiny_booth();
+        let plan = FramePlan::scan(&booth.patterns, 1);
+        let writer = CaptureWriter::create(
+            &dir.path().join("cap"),
+            CaptureManifest::new(CaptureKind::Scan, booth, plan),
+        )
+        .unwrap();
+        assert!(!abandoned.exists(), "abandoned staging removed");
+        assert!(busy.is_dir(), "a running writer's staging is kept");
+        drop(busy_lock);
+        let target = writer.finish().unwrap();
+        assert!(
+            !target.join(LOCK_FILE).exists(),
+            "the lock is not part of the capture"
+        );
     }
 
     #[test]

@@ -30,13 +30,14 @@ impl SubsurfaceModel {
             path: path.to_owned(),
             source,
         };
-        let file = std::fs::File::create(path).map_err(io)?;
-        let mut out = std::io::BufWriter::new(file);
-        out.write_all(MAGIC).map_err(io)?;
-        out.write_all(&version.to_le_bytes()).map_err(io)?;
         let buf = self.encode(version)?;
-        write_gzip_members(&mut out, &buf).map_err(io)?;
-        out.flush().map_err(io)
+        // Written aside and renamed: a run killed while saving keeps the previous model whole.
+        mlsss_core::atomic_file::write_atomically(path, |out| {
+            out.write_all(MAGIC)?;
+            out.write_all(&version.to_le_bytes())?;
+            write_gzip_members(out, &buf)
+        })
+        .map_err(io)
     }
 
     /// The uncompressed sections of layout `version`: header length and JSON, then the binary
@@ -171,6 +172,15 @@ fn read_payload(path: &Path) -> Result<(u32, Vec<u8>), ModelFileError> {
         path: path.to_owned(),
         reason: reason.to_owned(),
     };
+    if path.is_dir() {
+        let inside = path.join("fit").join("model.mlsss");
+        let hint = if inside.is_file() {
+            format!("a folder; did you mean {}?", inside.display())
+        } else {
+            "a folder, not a model file (the fit stage writes OUT/fit/model.mlsss)".to_owned()
+        };
+        return Err(not_a_model(&hint));
+    }
     let mut file = std::io::BufReader::new(std::fs::File::open(path).map_err(io)?);
     let mut magic = [0u8; 12];
     file.read_exact(&mut magic)

@@ -165,6 +165,14 @@ pub enum FitStageError {
     /// Every projector is held out or undecoded.
     #[error("no training projector: every projector is held out or has no decoded pixel")]
     NoTrainingProjector,
+    /// The held-out check has no light to compare with (the held-out projector's frames are
+    /// black, or none of its pixels was decoded).
+    #[error(
+        "held-out check: projector {projector} shows no subsurface light under `{pattern}` where \
+         it was decoded (black or missing frames?); its error would read 0 for every model. \
+         Check the capture, or pass --no-heldout-check"
+    )]
+    NothingToCompare { projector: usize, pattern: String },
     /// A parameter is out of range.
     #[error("invalid fit parameter: {0}")]
     BadParameter(&'static str),
@@ -746,8 +754,9 @@ fn assemble(
     Ok(model)
 }
 
-/// Relative RMS error of `a` against `t` over `mask`, all channels.
-pub fn rel_rmse(a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool]) -> f64 {
+/// Relative RMS error of `a` against `t` over `mask`, all channels; `None` when the truth holds
+/// no light there (a black held-out projector: every model would score 0).
+pub fn rel_rmse(a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool]) -> Option<f64> {
     let (mut num, mut den) = (0.0f64, 0.0f64);
     for ((a, t), m) in a.iter().zip(t).zip(mask) {
         if *m {
@@ -757,7 +766,7 @@ pub fn rel_rmse(a: &[[f32; 3]], t: &[[f32; 3]], mask: &[bool]) -> f64 {
             }
         }
     }
-    if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+    (den > 0.0).then(|| (num / den).sqrt())
 }
 
 /// Held-out projector `h`: rendered global light against the simulator's, for white and the
@@ -800,9 +809,17 @@ fn heldout_errors(
             ("dipole", Baseline::Dipole),
         ] {
             match render_projector(model, h, pattern, baseline, &opts) {
-                Ok(r) => {
-                    entry.insert(name.into(), rel_rmse(&r.global, &truth, &mask));
-                }
+                Ok(r) => match rel_rmse(&r.global, &truth, &mask) {
+                    Some(error) => {
+                        entry.insert(name.into(), error);
+                    }
+                    None => {
+                        return Err(FitStageError::NothingToCompare {
+                            projector: h,
+                            pattern: pattern.label(),
+                        });
+                    }
+                },
                 Err(ModelFileError::NoDipole) => {}
                 Err(e) => return Err(e.into()),
             }
