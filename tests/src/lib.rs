@@ -203,3 +203,24 @@ pub fn estimated_calibration() -> &'static (PathBuf, serde_json::Value) {
         (out, report)
     })
 }
+
+/// The shared quick head capture processed up to the fit with projector 3 held out (once per
+/// test binary run; few components, 8x8 tiles); returns the output folder and the report.
+pub fn fitted_head() -> &'static (PathBuf, serde_json::Value) {
+    static FITTED: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
+    FITTED.get_or_init(|| {
+        let capture = quick_capture("head", 1);
+        let out = scratch_dir().join("fit-head");
+        let report = run_json(
+            mlsss()
+                .arg("process")
+                .arg(&capture)
+                .args(["--calib", "truth", "--until", "fit", "--json"])
+                .args(["--components", "4", "--block", "8"])
+                .args(["--holdout", "3", "--compare-slit-variants"])
+                .arg("--out")
+                .arg(&out),
+        );
+        (out, report)
+    })
+}

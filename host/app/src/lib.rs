@@ -8,7 +8,7 @@
 //! photometry), `mlsss-layer-model` (profiles, EM, relighting) and `mlsss-virtual-booth` (the
 //! simulator). They are re-exported here so one dependency gives the whole library.
 
-pub use mlsss_core::{booth, calibration, capture, imageio, resources, special};
+pub use mlsss_core::{atomic_file, booth, calibration, capture, imageio, resources, special};
 pub use mlsss_layer_model as layer_model;
 pub use mlsss_mc as mc;
 pub use mlsss_rig as rig;

@@ -42,7 +42,7 @@ pub enum McError {
     #[error("the medium has no layer: give at least one")]
     NoLayers,
     /// A layer parameter is out of its physical range.
-    #[error("layer {index}: invalid `{field}` = {value}: {reason}")]
+    #[error("layer {index}: invalid `{field}` = {value:?}: {reason}")]
     InvalidLayer {
         index: usize,
         field: &'static str,

@@ -2,46 +2,9 @@
 //! the slit frames' global part against the simulator's, the fitted model's held-out renders
 //! against the truth and the baselines, and the model file through `mlsss render`.
 
-use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::path::Path;
 
-use mlsss_tests::{mlsss, quick_capture, scratch_dir};
-
-/// Processes the shared quick head capture up to the fit with projector 3 held out (once per
-/// test run); returns the output folder and the report.
-fn fitted() -> &'static (PathBuf, serde_json::Value) {
-    static FITTED: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
-    FITTED.get_or_init(|| {
-        let capture = quick_capture("head", 1);
-        let out = scratch_dir().join("fit-head");
-        let report = process(
-            &capture,
-            &out,
-            &["--holdout", "3", "--compare-slit-variants"],
-        );
-        (out, report)
-    })
-}
-
-fn process(capture: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
-    let output = mlsss()
-        .arg("process")
-        .arg(capture)
-        .args(["--calib", "truth", "--until", "fit", "--json"])
-        // Small and fast: few components, one fit per 8x8 tile.
-        .args(["--components", "4", "--block", "8"])
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .expect("run mlsss process");
-    assert!(
-        output.status.success(),
-        "mlsss process failed:\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    serde_json::from_slice(&output.stdout).expect("process --json prints one JSON object")
-}
+use mlsss_tests::{fitted_head as fitted, mlsss};
 
 fn number(v: &serde_json::Value, path: &str) -> f64 {
     path.split('.')

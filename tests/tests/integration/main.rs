@@ -1,3 +1,4 @@
+mod bad_input;
 mod booth_cli;
 mod calibrate_cli;
 mod decode_cli;
