@@ -226,14 +226,18 @@ impl StageFailure {
 
 impl std::fmt::Display for StageFailure {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        // Include the causes: stage errors wrap IO and image errors.
-        write!(f, "{}", self.0)?;
+        // Include the causes: stage errors wrap IO and image errors. Most already print their
+        // source in their own message; a cause the text so far ends with is not repeated.
+        let mut text = self.0.to_string();
         let mut source = self.0.source();
         while let Some(s) = source {
-            write!(f, ": {s}")?;
+            let cause = s.to_string();
+            if !text.ends_with(&cause) {
+                text = format!("{text}: {cause}");
+            }
             source = s.source();
         }
-        Ok(())
+        f.write_str(&text)
     }
 }
 

@@ -212,16 +212,17 @@ impl CaptureManifest {
         }
         for (position, (got, want)) in self.plan.frames.iter().zip(&expected.frames).enumerate() {
             if got != want {
+                let describe = |f: &FrameSpec| {
+                    let lit = f
+                        .projector
+                        .map_or_else(|| "no projector".to_owned(), |k| format!("projector {k}"));
+                    format!("frame {} ({lit}, `{}`)", f.index, f.pattern.label())
+                };
                 return Err(format!(
-                    "entry {position} is frame {} of projector {:?} showing `{}`, but the booth's \
-                     plan has frame {} of projector {:?} showing `{}` there (entries swapped, \
-                     duplicated or edited?)",
-                    got.index,
-                    got.projector,
-                    got.pattern.label(),
-                    want.index,
-                    want.projector,
-                    want.pattern.label()
+                    "entry {position} is {}, but the booth's plan has {} there (entries \
+                     swapped, duplicated or edited?)",
+                    describe(got),
+                    describe(want)
                 ));
             }
         }
