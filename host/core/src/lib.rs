@@ -13,3 +13,6 @@ pub mod gaussian_blur;
 pub mod imageio;
 pub mod resources;
 pub mod special;
+
+#[cfg(test)]
+mod reader_proptests;
