@@ -202,6 +202,39 @@ pub enum CalibrationError {
         path: String,
         source: serde_json::Error,
     },
+    /// A value of the calibration is out of range (a zero or non-finite focal length, ...).
+    #[error("calibration file {path}: `{field}`: {reason}")]
+    Invalid {
+        path: String,
+        field: String,
+        reason: String,
+    },
+}
+
+impl DeviceCalibration {
+    /// The field (below the device) and reason of the first value out of range: image size
+    /// positive, focal lengths finite and positive, every other number finite.
+    fn invalid_value(&self) -> Option<(&'static str, String)> {
+        if self.width == 0 || self.height == 0 {
+            return Some(("width/height", "must be positive".into()));
+        }
+        let k = &self.intrinsics;
+        if !(k.fx > 0.0 && k.fy > 0.0 && k.fx.is_finite() && k.fy.is_finite()) {
+            return Some((
+                "intrinsics.fx/fy",
+                format!("must be finite and positive, got {} and {}", k.fx, k.fy),
+            ));
+        }
+        let finite = |values: &[f64]| values.iter().all(|v| v.is_finite());
+        if !finite(&[k.cx, k.cy]) || !finite(&k.distortion) {
+            return Some(("intrinsics", "every value must be finite".into()));
+        }
+        let e = &self.extrinsics;
+        if !finite(e.rotation.as_flattened()) || !finite(&e.translation) {
+            return Some(("extrinsics", "every value must be finite".into()));
+        }
+        None
+    }
 }
 
 impl Calibration {
@@ -210,10 +243,33 @@ impl Calibration {
             path: path.display().to_string(),
             source,
         })?;
-        serde_json::from_str(&text).map_err(|source| CalibrationError::Json {
-            path: path.display().to_string(),
-            source,
-        })
+        let calibration: Self =
+            serde_json::from_str(&text).map_err(|source| CalibrationError::Json {
+                path: path.display().to_string(),
+                source,
+            })?;
+        calibration.validate(path)?;
+        Ok(calibration)
+    }
+
+    /// Checks every device's values ([`CalibrationError::Invalid`] names the device and field).
+    pub fn validate(&self, path: &Path) -> Result<(), CalibrationError> {
+        let devices = std::iter::once(("camera".to_owned(), &self.camera)).chain(
+            self.projectors
+                .iter()
+                .enumerate()
+                .map(|(k, p)| (format!("projectors[{k}]"), &p.device)),
+        );
+        for (name, device) in devices {
+            if let Some((field, reason)) = device.invalid_value() {
+                return Err(CalibrationError::Invalid {
+                    path: path.display().to_string(),
+                    field: format!("{name}.{field}"),
+                    reason,
+                });
+            }
+        }
+        Ok(())
     }
 
     pub fn save(&self, path: &Path) -> Result<(), CalibrationError> {
@@ -249,6 +305,22 @@ mod tests {
             e.centre(),
             Point3::new(100.0, -50.0, -400.0),
             epsilon = 1e-9
+        );
+    }
+
+    #[test]
+    fn a_calibration_with_a_zero_focal_length_is_refused_on_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("calib.json");
+        let mut calibration = crate::booth::Booth::builtin(true).calibration();
+        calibration.save(&path).unwrap();
+        Calibration::load(&path).expect("the booth's own calibration is valid");
+        calibration.projectors[2].device.intrinsics.fx = 0.0;
+        calibration.save(&path).unwrap();
+        let err = Calibration::load(&path).unwrap_err();
+        assert!(
+            err.to_string().contains("projectors[2].intrinsics.fx/fy"),
+            "{err}"
         );
     }
 
