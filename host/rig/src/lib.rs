@@ -16,8 +16,8 @@ pub mod acquire;
 pub mod backend;
 pub mod display;
 pub mod link;
-pub mod ports;
 pub mod pattern_label;
+pub mod ports;
 pub mod qemu;
 pub mod schedule;
 pub mod session;
@@ -140,7 +140,9 @@ pub enum RigError {
         message: String,
     },
     /// The booth maps a projector to a monitor the display server does not have.
-    #[error("projector {projector} maps to monitor {monitor}, which does not exist; monitors: {available}")]
+    #[error(
+        "projector {projector} maps to monitor {monitor}, which does not exist; monitors: {available}"
+    )]
     MissingMonitor {
         /// The projector.
         projector: u8,

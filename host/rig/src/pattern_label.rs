@@ -37,7 +37,11 @@ fn examples(spec: &PatternSpec) -> String {
         .map(|f| f.pattern.label())
         .collect();
     let first_of = |prefix: &str| labels.iter().find(|l| l.starts_with(prefix)).cloned();
-    let mut out = vec!["white".to_owned(), "black".to_owned(), "grey-500".to_owned()];
+    let mut out = vec![
+        "white".to_owned(),
+        "black".to_owned(),
+        "grey-500".to_owned(),
+    ];
     out.extend(
         ["gray-x-", "gray-y-", "slit-x-", "slit-y-", "hf-"]
             .iter()
@@ -58,7 +62,11 @@ mod tests {
         let plans = [FramePlan::scan(&spec, 1), FramePlan::calibration(&spec, 1)];
         for frame in plans.iter().flat_map(|p| &p.frames) {
             let label = frame.pattern.label();
-            assert_eq!(pattern_by_label(&spec, &label).unwrap(), frame.pattern, "{label}");
+            assert_eq!(
+                pattern_by_label(&spec, &label).unwrap(),
+                frame.pattern,
+                "{label}"
+            );
         }
     }
 

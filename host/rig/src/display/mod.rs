@@ -62,13 +62,12 @@ pub fn projector_monitor(booth: &Booth, k: u8) -> usize {
 
 /// The window of projector `k` (on `monitor`, else where the booth maps it).
 pub fn window_spec(booth: &Booth, k: u8, monitor: Option<usize>) -> Result<WindowSpec, RigError> {
-    let projector = booth
-        .projectors
-        .get(usize::from(k))
-        .ok_or_else(|| RigError::Display(format!(
+    let projector = booth.projectors.get(usize::from(k)).ok_or_else(|| {
+        RigError::Display(format!(
             "the booth has no projector {k} (it has {})",
             booth.projectors.len()
-        )))?;
+        ))
+    })?;
     Ok(WindowSpec {
         projector: k,
         monitor: monitor.unwrap_or_else(|| projector_monitor(booth, k)),
@@ -113,13 +112,11 @@ pub fn find_monitor(
     index: usize,
     projector: u8,
 ) -> Result<&MonitorInfo, RigError> {
-    monitors
-        .get(index)
-        .ok_or_else(|| RigError::MissingMonitor {
-            projector,
-            monitor: index,
-            available: describe_all(monitors),
-        })
+    monitors.get(index).ok_or_else(|| RigError::MissingMonitor {
+        projector,
+        monitor: index,
+        available: describe_all(monitors),
+    })
 }
 
 /// Every monitor on one line, for messages.

@@ -161,10 +161,10 @@ impl ProjectorBackend for ProjectorWindows {
 
 impl Drop for ProjectorWindows {
     fn drop(&mut self) {
-        if self.proxy.send_event(Command::Quit).is_ok() {
-            if let Some(thread) = self.thread.take() {
-                let _ = thread.join();
-            }
+        if self.proxy.send_event(Command::Quit).is_ok()
+            && let Some(thread) = self.thread.take()
+        {
+            let _ = thread.join();
         }
     }
 }
@@ -199,7 +199,9 @@ fn run_window_thread(
         windows: BTreeMap::new(),
     };
     if let Err(e) = event_loop.run_app(&mut app) {
-        app.fail(RigError::Display(format!("the window event loop failed: {e}")));
+        app.fail(RigError::Display(format!(
+            "the window event loop failed: {e}"
+        )));
     }
 }
 
@@ -306,10 +308,10 @@ impl WindowApp {
 
     /// Reports the open as done once every window has been exposed and drawn.
     fn report_ready_when_all_exposed(&mut self) {
-        if self.windows.values().all(|w| w.exposed) {
-            if let (Some(ready), Some(proxy)) = (self.ready.take(), self.proxy.take()) {
-                let _ = ready.send(Ok((proxy, self.monitors.clone())));
-            }
+        if self.windows.values().all(|w| w.exposed)
+            && let (Some(ready), Some(proxy)) = (self.ready.take(), self.proxy.take())
+        {
+            let _ = ready.send(Ok((proxy, self.monitors.clone())));
         }
     }
 
