@@ -5,6 +5,7 @@
 //! - [`session`]: handshake, schedule upload, the run loop.
 //! - [`schedule`]: frame plan + booth timing -> the schedule on the wire.
 //! - [`backend`]: projector output and camera input behind small traits (virtual, replay).
+//! - [`camera`]: real cameras: USB3 Vision through cameleon, payload decoding and matching.
 //! - [`display`]: projector output windows on real monitors (winit + softbuffer).
 //! - [`acquire`]: a run that writes a capture folder.
 //! - [`timing`]: timing statistics of a run (the `rig timing-test` report).
@@ -14,6 +15,7 @@
 
 pub mod acquire;
 pub mod backend;
+pub mod camera;
 pub mod display;
 pub mod link;
 pub mod pattern_label;

@@ -338,3 +338,60 @@ fn without_an_x_server_the_display_commands_fail_clearly() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot open the X display"), "{err}");
 }
+
+/// Named `rig_hil_*` so it runs in the quiet hardware-in-the-loop phase (it boots the firmware
+/// under QEMU; see rig_hil.rs).
+#[test]
+fn rig_hil_run_with_projector_windows_captures_every_frame() {
+    let booth = Booth::builtin(true);
+    let p = &booth.projectors[0];
+    let x = Xvfb::start(p.width, p.height);
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("capture");
+    // The first frames of the scan plan are all projector 0's, so one monitor is enough.
+    let run = mlsss()
+        .args(["rig", "run", "--emulated", "--quick", "--frames", "6"])
+        .args(["--projectors", "windows", "--json", "--out"])
+        .arg(&out)
+        .env("DISPLAY", &x.display)
+        .output()
+        .expect("mlsss runs");
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&run.stdout).expect("one JSON object");
+    assert_eq!(json["complete"], true);
+    assert_eq!(json["frames_written"], 6);
+    let capture = mlsss::capture::Capture::open(&out).expect("capture folder");
+    assert_eq!(capture.manifest.trigger_log.len(), 6);
+}
+
+#[test]
+fn rig_run_refuses_a_monitor_not_at_the_projectors_native_mode() {
+    let x = Xvfb::start(320, 240);
+    let dir = tempfile::tempdir().expect("temp dir");
+    // The windows open before the controller is contacted, so no controller is needed here.
+    let run = mlsss()
+        .args([
+            "rig",
+            "run",
+            "--port",
+            "/nonexistent/tty",
+            "--quick",
+            "--frames",
+            "2",
+        ])
+        .args(["--projectors", "windows", "--out"])
+        .arg(dir.path().join("capture"))
+        .env("DISPLAY", &x.display)
+        .output()
+        .expect("mlsss runs");
+    assert!(!run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("runs at 320x240") && err.contains("--mode 256x192"),
+        "{err}"
+    );
+}

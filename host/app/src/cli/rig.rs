@@ -321,9 +321,10 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             args.camera
         ),
     };
+    // Windows first: a missing monitor or a wrong mode fails before the controller is touched.
+    let mut projectors = projector_backend(&args.projectors, &booth, &schedule)?;
     let connection = connect(&args.controller)?;
     let mut session = open_session(ControllerLink::new(connection.port))?;
-    let mut projectors = projector_backend(&args.projectors, &booth, &schedule)?;
     let bar = progress_bar(schedule.entries.len());
     let acquired = acquire(
         &mut session,
