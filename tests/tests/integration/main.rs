@@ -7,6 +7,7 @@ mod mc_cli;
 mod mc_validation;
 mod normals_cli;
 mod photometry_pipeline;
+mod rig_camera_cli;
 mod rig_display;
 mod rig_hil;
 mod scratch;

@@ -12,6 +12,7 @@ use mlsss::rig::acquire::{CaptureTarget, acquire};
 use mlsss::rig::backend::{
     CameraBackend, PatternCamera, ProjectorBackend, ReplayCamera, VirtualProjectors,
 };
+use mlsss::rig::camera::u3v::{U3vCamera, U3vSettings, list_cameras};
 use mlsss::rig::display::{self, ProjectorWindows};
 use mlsss::rig::link::{ByteLink, ControllerLink};
 use mlsss::rig::pattern_label::pattern_by_label;
@@ -37,6 +38,8 @@ enum RigCommand {
     Run(RunArgs),
     /// Run the full schedule against the firmware and report its timing.
     TimingTest(TimingArgs),
+    /// List the USB3 Vision cameras (an empty list when there is none).
+    Cameras(CamerasArgs),
     /// List the monitors of the X display and which projector maps to each.
     Displays(DisplaysArgs),
     /// Show one pattern fullscreen on a projector's monitor until --hold ends or a key is
@@ -63,6 +66,28 @@ impl BoothChoice {
             None => Booth::builtin(self.quick),
         })
     }
+}
+
+#[derive(Debug, clap::Args)]
+struct CamerasArgs {
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// How a real camera is configured (`--camera u3v[:SERIAL]`).
+#[derive(Debug, clap::Args)]
+struct CameraSettingsArgs {
+    /// Pixel format of a u3v camera (GenICam PFNC): Mono12, Mono12p, Mono12Packed, BayerRG12,
+    /// BayerRG12p, BayerRG12Packed (and GR/GB/BG), or 8-bit Mono8/BayerRG8.
+    #[arg(long, default_value = "Mono12")]
+    pixel_format: String,
+    /// The camera input wired to the controller's trigger output (hardware/wiring.md).
+    #[arg(long, default_value = "Line0")]
+    trigger_line: String,
+    /// Analogue gain of a u3v camera, dB.
+    #[arg(long, default_value_t = 0.0)]
+    gain_db: f64,
 }
 
 #[derive(Debug, clap::Args)]
@@ -155,9 +180,12 @@ struct RunArgs {
     #[arg(long, default_value = "virtual")]
     projectors: String,
     /// Camera backend: `virtual` renders the pattern on screen; `replay:DIR` replays the frames
-    /// of a recorded capture folder.
+    /// of a recorded capture folder; `u3v` or `u3v:SERIAL` streams a USB3 Vision camera in
+    /// hardware-trigger mode (exposure from the booth's camera.exposure_ms).
     #[arg(long, default_value = "virtual")]
     camera: String,
+    #[command(flatten)]
+    camera_settings: CameraSettingsArgs,
     /// Print one JSON object on stdout.
     #[arg(long)]
     json: bool,
@@ -179,6 +207,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         RigCommand::Ports(a) => run_ports(a),
         RigCommand::Run(a) => run_capture(a),
         RigCommand::TimingTest(a) => run_timing(a),
+        RigCommand::Cameras(a) => run_cameras(a),
         RigCommand::Displays(a) => run_displays(a),
         RigCommand::Show(a) => run_show(a),
     }
@@ -186,11 +215,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 fn run_ports(args: PortsArgs) -> anyhow::Result<()> {
     let serial = ports::serial_ports().context("enumerating serial ports")?;
-    let usb = ports::usb_devices(std::path::Path::new("/sys/bus/usb/devices"));
+    let (usb, usb_source) = ports::usb_devices_any(std::path::Path::new("/sys/bus/usb/devices"));
     if args.json {
         println!(
             "{}",
-            serde_json::json!({ "serial_ports": serial, "usb_devices": usb })
+            serde_json::json!({ "serial_ports": serial, "usb_devices": usb, "usb_source": usb_source })
         );
         return Ok(());
     }
@@ -209,7 +238,13 @@ fn run_ports(args: PortsArgs) -> anyhow::Result<()> {
             .map(|r| format!("  <- controller? {r}"));
         println!("  {}{ids}{}", p.path, mark.unwrap_or_default());
     }
-    println!("usb devices:");
+    println!(
+        "usb devices ({}):",
+        match usb_source {
+            ports::UsbSource::Libusb => "libusb",
+            ports::UsbSource::Sysfs => "sysfs; libusb could not start",
+        }
+    );
     if usb.is_empty() {
         println!("  (none)");
     }
@@ -316,8 +351,23 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             Box::new(ReplayCamera::new(capture))
         }
         None if args.camera == "virtual" => Box::new(PatternCamera::new(&booth)),
+        None if args.camera == "u3v" || args.camera.starts_with("u3v:") => {
+            let settings = U3vSettings {
+                serial: args.camera.strip_prefix("u3v:").map(str::to_owned),
+                pixel_format: args.camera_settings.pixel_format.clone(),
+                exposure_us: booth.camera.exposure_ms * 1000.0,
+                gain_db: args.camera_settings.gain_db,
+                trigger_line: args.camera_settings.trigger_line.clone(),
+                width: booth.camera.width,
+                height: booth.camera.height,
+            };
+            let camera = U3vCamera::open(&settings)?;
+            let c = camera.summary();
+            eprintln!("camera: {} {} serial {}", c.vendor, c.model, c.serial);
+            Box::new(camera)
+        }
         None => bail!(
-            "unknown --camera '{}': use `virtual` or `replay:DIR`",
+            "unknown --camera '{}': use `virtual`, `replay:DIR`, `u3v` or `u3v:SERIAL`",
             args.camera
         ),
     };
@@ -397,6 +447,31 @@ fn projector_backend(
         }
         other => bail!("unknown --projectors '{other}': use `virtual` or `windows`"),
     }
+}
+
+fn run_cameras(args: CamerasArgs) -> anyhow::Result<()> {
+    let list = list_cameras()?;
+    if args.json {
+        println!("{}", serde_json::to_string(&list)?);
+        return Ok(());
+    }
+    println!("USB3 Vision cameras:");
+    if list.cameras.is_empty() {
+        println!(
+            "  (none{})",
+            list.usb_unavailable
+                .as_deref()
+                .map(|why| format!("; {why}"))
+                .unwrap_or_default()
+        );
+    }
+    for c in &list.cameras {
+        println!(
+            "  {} {}  serial {}  (--camera u3v:{})",
+            c.vendor, c.model, c.serial, c.serial
+        );
+    }
+    Ok(())
 }
 
 fn run_displays(args: DisplaysArgs) -> anyhow::Result<()> {

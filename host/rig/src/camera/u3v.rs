@@ -68,10 +68,29 @@ fn camera_error(context: &str, e: impl std::fmt::Display) -> RigError {
     }
 }
 
-/// Every USB3 Vision camera connected (an empty list when there is none).
-pub fn list_cameras() -> Result<Vec<CameraSummary>, RigError> {
+/// The cameras found, and why USB could not be searched if it could not.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct CameraList {
+    /// Every USB3 Vision camera connected.
+    pub cameras: Vec<CameraSummary>,
+    /// `None` when libusb searched the bus; else why it could not start (then no camera can be
+    /// reached and `cameras` is empty).
+    pub usb_unavailable: Option<String>,
+}
+
+/// Every USB3 Vision camera connected (an empty list when there is none, or no USB at all).
+pub fn list_cameras() -> Result<CameraList, RigError> {
+    if let Err(e) = crate::ports::libusb_available() {
+        return Ok(CameraList {
+            cameras: vec![],
+            usb_unavailable: Some(format!("libusb cannot start: {e}")),
+        });
+    }
     let cameras = u3v::enumerate_cameras().map_err(|e| camera_error("enumerating", e))?;
-    Ok(cameras.iter().map(|c| summary(c.info())).collect())
+    Ok(CameraList {
+        cameras: cameras.iter().map(|c| summary(c.info())).collect(),
+        usb_unavailable: None,
+    })
 }
 
 fn summary(info: &cameleon::CameraInfo) -> CameraSummary {
@@ -147,6 +166,7 @@ impl Drop for U3vCamera {
 }
 
 fn pick_camera(serial: Option<&str>) -> Result<Camera<ControlHandle, StreamHandle>, RigError> {
+    crate::ports::libusb_available().map_err(|e| camera_error("libusb cannot start", e))?;
     let mut cameras = u3v::enumerate_cameras().map_err(|e| camera_error("enumerating", e))?;
     let serials: Vec<String> = cameras
         .iter()
