@@ -12,7 +12,7 @@ use mlsss::rig::acquire::{CaptureTarget, acquire};
 use mlsss::rig::backend::{
     CameraBackend, PatternCamera, ProjectorBackend, ReplayCamera, VirtualProjectors,
 };
-use mlsss::rig::camera::u3v::{U3vCamera, U3vSettings, list_cameras};
+use mlsss::rig::camera::u3v::{PAYLOAD_TIMEOUT, U3vCamera, U3vSettings, list_cameras};
 use mlsss::rig::display::{self, ProjectorWindows};
 use mlsss::rig::link::{ByteLink, ControllerLink};
 use mlsss::rig::pattern_label::pattern_by_label;
@@ -360,6 +360,7 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
                 trigger_line: args.camera_settings.trigger_line.clone(),
                 width: booth.camera.width,
                 height: booth.camera.height,
+                payload_timeout: PAYLOAD_TIMEOUT,
             };
             let camera = U3vCamera::open(&settings)?;
             let c = camera.summary();

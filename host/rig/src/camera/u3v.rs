@@ -12,7 +12,7 @@ use std::time::Duration;
 use cameleon::genapi::{DefaultGenApiCtxt, ParamsCtxt};
 use cameleon::payload::{Payload, PayloadReceiver};
 use cameleon::u3v::{self, ControlHandle, StreamHandle};
-use cameleon::{Camera, StreamError};
+use cameleon::{Camera, DeviceControl, PayloadStream, StreamError};
 use image::Rgb32FImage;
 use serde::Serialize;
 
@@ -59,6 +59,8 @@ pub struct U3vSettings {
     pub width: u32,
     /// See `width`.
     pub height: u32,
+    /// How long a triggered frame's payload may take ([`PAYLOAD_TIMEOUT`]).
+    pub payload_timeout: Duration,
 }
 
 fn camera_error(context: &str, e: impl std::fmt::Display) -> RigError {
@@ -102,26 +104,43 @@ fn summary(info: &cameleon::CameraInfo) -> CameraSummary {
     }
 }
 
-/// A USB3 Vision camera streaming in hardware-trigger mode.
-pub struct U3vCamera {
-    camera: Camera<ControlHandle, StreamHandle>,
+/// A USB3 Vision camera streaming in hardware-trigger mode. Generic over cameleon's control and
+/// stream handles so tests can put a recorded device behind the same code.
+pub struct U3vCamera<Ctrl = ControlHandle, Strm = StreamHandle>
+where
+    Ctrl: DeviceControl,
+    Strm: PayloadStream,
+{
+    camera: Camera<Ctrl, Strm>,
     matcher: TriggerMatcher<ForwardedPayloads>,
     summary: CameraSummary,
 }
 
 impl U3vCamera {
-    /// Opens the camera `settings` names, configures it and starts streaming.
+    /// Opens the camera `settings` names on USB, configures it and starts streaming.
     pub fn open(settings: &U3vSettings) -> Result<Self, RigError> {
-        if PixelLayout::from_pfnc(&settings.pixel_format).is_none() {
-            return Err(camera_error(
-                "pixel format",
-                format!(
-                    "{} is not supported (Mono8/12/12p/12Packed, Bayer??8/12/12p/12Packed)",
-                    settings.pixel_format
-                ),
-            ));
-        }
-        let mut camera = pick_camera(settings.serial.as_deref())?;
+        check_pixel_format(settings)?;
+        Self::start(pick_camera(settings.serial.as_deref())?, settings)
+    }
+}
+
+fn check_pixel_format(settings: &U3vSettings) -> Result<(), RigError> {
+    if PixelLayout::from_pfnc(&settings.pixel_format).is_none() {
+        return Err(camera_error(
+            "pixel format",
+            format!(
+                "{} is not supported (Mono8/12/12p/12Packed, Bayer??8/12/12p/12Packed)",
+                settings.pixel_format
+            ),
+        ));
+    }
+    Ok(())
+}
+
+impl<Ctrl: DeviceControl, Strm: PayloadStream> U3vCamera<Ctrl, Strm> {
+    /// Opens `camera`, loads its GenApi description, configures it and starts streaming.
+    pub fn start(mut camera: Camera<Ctrl, Strm>, settings: &U3vSettings) -> Result<Self, RigError> {
+        check_pixel_format(settings)?;
         let summary = summary(camera.info());
         camera.open().map_err(|e| camera_error("opening", e))?;
         camera
@@ -135,7 +154,7 @@ impl U3vCamera {
             ForwardedPayloads::start(receiver),
             (settings.width, settings.height),
             FIRST_BLOCK_ID,
-            PAYLOAD_TIMEOUT,
+            settings.payload_timeout,
         );
         Ok(Self {
             camera,
@@ -150,7 +169,11 @@ impl U3vCamera {
     }
 }
 
-impl CameraBackend for U3vCamera {
+impl<Ctrl, Strm> CameraBackend for U3vCamera<Ctrl, Strm>
+where
+    Ctrl: DeviceControl + Send,
+    Strm: PayloadStream + Send,
+{
     fn capture(&mut self, exposure: &Exposure) -> Result<Rgb32FImage, RigError> {
         self.matcher
             .next_image(exposure.frame)
@@ -158,7 +181,7 @@ impl CameraBackend for U3vCamera {
     }
 }
 
-impl Drop for U3vCamera {
+impl<Ctrl: DeviceControl, Strm: PayloadStream> Drop for U3vCamera<Ctrl, Strm> {
     fn drop(&mut self) {
         let _ = self.camera.stop_streaming();
         let _ = self.camera.close();
@@ -193,12 +216,12 @@ fn pick_camera(serial: Option<&str>) -> Result<Camera<ControlHandle, StreamHandl
     }
 }
 
-type Params<'a> = ParamsCtxt<&'a mut ControlHandle, &'a mut DefaultGenApiCtxt>;
+type Params<'a, Ctrl> = ParamsCtxt<&'a mut Ctrl, &'a mut DefaultGenApiCtxt>;
 
 /// Sets the SFNC features a triggered capture needs; features a camera lacks are an error only
 /// when the capture depends on them.
-fn configure(
-    camera: &mut Camera<ControlHandle, StreamHandle>,
+fn configure<Ctrl: DeviceControl, Strm: PayloadStream>(
+    camera: &mut Camera<Ctrl, Strm>,
     settings: &U3vSettings,
 ) -> Result<(), RigError> {
     let mut ctxt = camera
@@ -234,7 +257,11 @@ fn missing(name: &str, kind: &str) -> RigError {
     camera_error(name, format!("the camera has no {kind} feature {name}"))
 }
 
-fn set_enum(ctxt: &mut Params<'_>, name: &str, entry: &str) -> Result<(), RigError> {
+fn set_enum<Ctrl: DeviceControl>(
+    ctxt: &mut Params<'_, Ctrl>,
+    name: &str,
+    entry: &str,
+) -> Result<(), RigError> {
     let node = ctxt
         .node(name)
         .and_then(|n| n.as_enumeration(ctxt))
@@ -243,7 +270,11 @@ fn set_enum(ctxt: &mut Params<'_>, name: &str, entry: &str) -> Result<(), RigErr
         .map_err(|e| camera_error(&format!("setting {name} = {entry}"), e))
 }
 
-fn set_float(ctxt: &mut Params<'_>, name: &str, value: f64) -> Result<(), RigError> {
+fn set_float<Ctrl: DeviceControl>(
+    ctxt: &mut Params<'_, Ctrl>,
+    name: &str,
+    value: f64,
+) -> Result<(), RigError> {
     let node = ctxt
         .node(name)
         .and_then(|n| n.as_float(ctxt))
@@ -252,7 +283,7 @@ fn set_float(ctxt: &mut Params<'_>, name: &str, value: f64) -> Result<(), RigErr
         .map_err(|e| camera_error(&format!("setting {name} = {value}"), e))
 }
 
-fn get_int(ctxt: &mut Params<'_>, name: &str) -> Result<i64, RigError> {
+fn get_int<Ctrl: DeviceControl>(ctxt: &mut Params<'_, Ctrl>, name: &str) -> Result<i64, RigError> {
     let node = ctxt
         .node(name)
         .and_then(|n| n.as_integer(ctxt))
@@ -323,5 +354,221 @@ fn raw_payload(payload: &Payload) -> RawPayload {
         pixel_format: format!("{:?}", info.pixel_format),
         complete: whole.len() >= info.image_size,
         data: image.to_vec(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The backend against a recorded device: cameleon's own `Camera` drives a fake control
+    //! handle (a register memory described by `fake_device.xml`, every GenCP-level write logged)
+    //! and a fake stream whose payload channel the test feeds.
+
+    use std::sync::{Arc, Mutex, PoisonError};
+
+    use cameleon::payload::PayloadSender;
+    use cameleon::{CameraInfo, ControlResult, StreamResult};
+
+    use super::*;
+
+    const XML: &str = include_str!("fake_device.xml");
+    const PIXEL_FORMAT: u64 = 0x100;
+    const TRIGGER_MODE: u64 = 0x108;
+    const TRIGGER_SOURCE: u64 = 0x10C;
+    const EXPOSURE_TIME: u64 = 0x110;
+    const GAIN: u64 = 0x118;
+    const WIDTH: u64 = 0x120;
+    const HEIGHT: u64 = 0x124;
+    const ACQUISITION_START: u64 = 0x130;
+
+    #[derive(Clone)]
+    struct Memory(Arc<Mutex<Vec<u8>>>);
+
+    impl Memory {
+        fn new(width: u32, height: u32) -> Self {
+            let memory = Memory(Arc::new(Mutex::new(vec![0; 0x200])));
+            memory.put(WIDTH, &width.to_le_bytes());
+            memory.put(HEIGHT, &height.to_le_bytes());
+            memory
+        }
+        fn put(&self, address: u64, data: &[u8]) {
+            let mut m = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+            m[address as usize..address as usize + data.len()].copy_from_slice(data);
+        }
+        fn get<const N: usize>(&self, address: u64) -> [u8; N] {
+            let m = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+            m[address as usize..address as usize + N]
+                .try_into()
+                .unwrap()
+        }
+        fn u32_at(&self, address: u64) -> u32 {
+            u32::from_le_bytes(self.get(address))
+        }
+        fn f64_at(&self, address: u64) -> f64 {
+            f64::from_le_bytes(self.get(address))
+        }
+    }
+
+    struct FakeControl {
+        memory: Memory,
+        opened: bool,
+    }
+
+    impl DeviceControl for FakeControl {
+        fn open(&mut self) -> ControlResult<()> {
+            self.opened = true;
+            Ok(())
+        }
+        fn close(&mut self) -> ControlResult<()> {
+            self.opened = false;
+            Ok(())
+        }
+        fn is_opened(&self) -> bool {
+            self.opened
+        }
+        fn read(&mut self, address: u64, buf: &mut [u8]) -> ControlResult<()> {
+            let m = self.memory.0.lock().unwrap_or_else(PoisonError::into_inner);
+            buf.copy_from_slice(&m[address as usize..address as usize + buf.len()]);
+            Ok(())
+        }
+        fn write(&mut self, address: u64, data: &[u8]) -> ControlResult<()> {
+            self.memory.put(address, data);
+            Ok(())
+        }
+        fn genapi(&mut self) -> ControlResult<String> {
+            Ok(XML.to_owned())
+        }
+        fn enable_streaming(&mut self) -> ControlResult<()> {
+            Ok(())
+        }
+        fn disable_streaming(&mut self) -> ControlResult<()> {
+            Ok(())
+        }
+    }
+
+    /// The stream side: hands cameleon's payload sender to the test.
+    #[derive(Default)]
+    struct FakeStream {
+        sender: Arc<Mutex<Option<PayloadSender>>>,
+    }
+
+    impl PayloadStream for FakeStream {
+        fn open(&mut self) -> StreamResult<()> {
+            Ok(())
+        }
+        fn close(&mut self) -> StreamResult<()> {
+            Ok(())
+        }
+        fn start_streaming_loop(
+            &mut self,
+            sender: PayloadSender,
+            _ctrl: &mut dyn DeviceControl,
+        ) -> StreamResult<()> {
+            *self.sender.lock().unwrap_or_else(PoisonError::into_inner) = Some(sender);
+            Ok(())
+        }
+        fn stop_streaming_loop(&mut self) -> StreamResult<()> {
+            self.sender
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .take();
+            Ok(())
+        }
+        fn is_loop_running(&self) -> bool {
+            self.sender
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .is_some()
+        }
+    }
+
+    fn settings() -> U3vSettings {
+        U3vSettings {
+            serial: None,
+            pixel_format: "BayerRG12".into(),
+            exposure_us: 33_300.0,
+            gain_db: 1.5,
+            trigger_line: "Line1".into(),
+            width: 64,
+            height: 48,
+            payload_timeout: Duration::from_millis(200),
+        }
+    }
+
+    type FakeCamera = (
+        Result<U3vCamera<FakeControl, FakeStream>, RigError>,
+        Memory,
+        Arc<Mutex<Option<PayloadSender>>>,
+    );
+
+    fn start(width: u32, height: u32, settings: &U3vSettings) -> FakeCamera {
+        let memory = Memory::new(width, height);
+        let stream = FakeStream::default();
+        let sender = stream.sender.clone();
+        let control = FakeControl {
+            memory: memory.clone(),
+            opened: false,
+        };
+        let info = CameraInfo {
+            vendor_name: "mlsss".into(),
+            model_name: "FakeCam".into(),
+            serial_number: "0001".into(),
+        };
+        let camera = Camera::new(control, stream, None, info);
+        (U3vCamera::start(camera, settings), memory, sender)
+    }
+
+    fn exposure(frame: u32) -> Exposure {
+        Exposure { frame, lit: None }
+    }
+
+    #[test]
+    fn the_camera_is_configured_for_hardware_trigger_through_genapi() {
+        let (camera, memory, _sender) = start(64, 48, &settings());
+        let camera = camera.expect("the fake camera starts");
+        assert_eq!(camera.summary().serial, "0001");
+        assert_eq!(memory.u32_at(PIXEL_FORMAT), 0x0110_0011); // BayerRG12 (PFNC)
+        assert_eq!(memory.u32_at(TRIGGER_MODE), 1); // On
+        assert_eq!(memory.u32_at(TRIGGER_SOURCE), 1); // Line1
+        assert_eq!(memory.f64_at(EXPOSURE_TIME), 33_300.0);
+        assert_eq!(memory.f64_at(GAIN), 1.5);
+        assert_eq!(memory.u32_at(ACQUISITION_START), 1); // executed by start_streaming
+    }
+
+    #[test]
+    fn a_camera_whose_image_size_differs_from_the_booth_is_refused() {
+        let (camera, _, _) = start(640, 480, &settings());
+        let err = camera.err().expect("refused").to_string();
+        assert!(err.contains("640x480") && err.contains("64x48"), "{err}");
+    }
+
+    #[test]
+    fn a_pixel_format_the_camera_lacks_is_an_error() {
+        let mut s = settings();
+        s.pixel_format = "Mono12p".into(); // decodable, but not in the camera's enumeration
+        let (camera, _, _) = start(64, 48, &s);
+        let err = camera.err().expect("refused").to_string();
+        assert!(err.contains("PixelFormat = Mono12p"), "{err}");
+    }
+
+    #[test]
+    fn a_trigger_without_a_payload_then_an_unplugged_camera_are_reported_per_frame() {
+        let (camera, _memory, sender) = start(64, 48, &settings());
+        let mut camera = camera.expect("the fake camera starts");
+        let err = camera.capture(&exposure(0)).unwrap_err().to_string();
+        assert!(err.contains("frame 0: triggered, but no payload"), "{err}");
+        // The device disappears: cameleon's stream loop reports it on the payload channel.
+        let sender = sender
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take()
+            .expect("streaming");
+        sender
+            .try_send(Err(StreamError::Disconnected))
+            .expect("channel open");
+        let err = camera.capture(&exposure(1)).unwrap_err().to_string();
+        assert!(
+            err.contains("frame 1: the camera was disconnected"),
+            "{err}"
+        );
     }
 }
