@@ -13,19 +13,29 @@ fi
 rustup component list --installed | grep -q '^rustfmt' || rustup component add rustfmt
 rustup component list --installed | grep -q '^clippy' || rustup component add clippy
 
-step "qemu-system-arm (hardware-in-the-loop tests)"
-if ! command -v qemu-system-arm >/dev/null 2>&1; then
+# apt_install COMMAND PACKAGE...: installs the packages unless COMMAND is already there.
+apt_install() {
+    local command=$1
+    shift
+    command -v "$command" >/dev/null 2>&1 && return 0
     if [ "$(id -u)" = 0 ]; then
         export DEBIAN_FRONTEND=noninteractive
-        apt-get update -qq && apt-get install -y -qq qemu-system-arm >/dev/null
+        apt-get update -qq && apt-get install -y -qq "$@" >/dev/null
     elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
-        sudo apt-get update -qq && sudo apt-get install -y -qq qemu-system-arm >/dev/null
+        sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
     else
-        echo "error: qemu-system-arm is missing and this user cannot install it." >&2
-        echo "       install it as root: apt-get install qemu-system-arm" >&2
+        echo "error: $command is missing and this user cannot install it." >&2
+        echo "       install it as root: apt-get install $*" >&2
         exit 1
     fi
-fi
+}
+
+step "qemu-system-arm (hardware-in-the-loop tests)"
+apt_install qemu-system-arm qemu-system-arm
+
+step "Xvfb and the X client libraries (projector window tests)"
+# winit loads libX11/libXcursor/libXi/libxkbcommon at run time; Xvfb alone does not bring them.
+apt_install Xvfb xvfb libx11-xcb1 libxcursor1 libxi6 libxkbcommon-x11-0
 
 if [ "${CI:-}" = true ]; then
     # A clean build gains nothing from incremental state, which would take about half of target/

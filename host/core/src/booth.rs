@@ -88,6 +88,10 @@ pub struct ProjectorSpec {
     pub defocus_px: f64,
     /// This projector's own refresh rate (projectors are not genlocked).
     pub refresh_hz: f64,
+    /// The monitor (video output of the booth PC) the projector is plugged into, as numbered by
+    /// `mlsss rig displays`; absent: projector K is on monitor K.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub monitor: Option<u32>,
 }
 
 /// Geometry of the projected patterns (DESIGN section 3).

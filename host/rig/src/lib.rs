@@ -5,14 +5,20 @@
 //! - [`session`]: handshake, schedule upload, the run loop.
 //! - [`schedule`]: frame plan + booth timing -> the schedule on the wire.
 //! - [`backend`]: projector output and camera input behind small traits (virtual, replay).
+//! - [`camera`]: real cameras: USB3 Vision through cameleon, payload decoding and matching.
+//! - [`display`]: projector output windows on real monitors (winit + softbuffer).
 //! - [`acquire`]: a run that writes a capture folder.
 //! - [`timing`]: timing statistics of a run (the `rig timing-test` report).
+//! - [`pattern_label`]: patterns by capture label (`rig show`).
 //! - [`qemu`]: the real firmware image under QEMU, as an emulated controller.
 //! - [`ports`]: finding controllers on serial ports and USB.
 
 pub mod acquire;
 pub mod backend;
+pub mod camera;
+pub mod display;
 pub mod link;
+pub mod pattern_label;
 pub mod ports;
 pub mod qemu;
 pub mod schedule;
@@ -134,6 +140,29 @@ pub enum RigError {
         backend: &'static str,
         /// What went wrong.
         message: String,
+    },
+    /// The booth maps a projector to a monitor the display server does not have.
+    #[error(
+        "projector {projector} maps to monitor {monitor}, which does not exist; monitors: {available}"
+    )]
+    MissingMonitor {
+        /// The projector.
+        projector: u8,
+        /// The monitor it maps to.
+        monitor: usize,
+        /// The monitors that exist, described.
+        available: String,
+    },
+    /// The display server could not be used (no `DISPLAY`, no X server, a window failed).
+    #[error("display: {0}")]
+    Display(String),
+    /// A pattern label that names no pattern of the booth.
+    #[error("unknown pattern label '{label}' (labels as in capture frame names, e.g. {examples})")]
+    UnknownPattern {
+        /// The label.
+        label: String,
+        /// Labels that exist.
+        examples: String,
     },
     /// Writing the capture folder failed.
     #[error(transparent)]

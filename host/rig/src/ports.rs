@@ -1,5 +1,6 @@
 //! Finding controllers: serial ports (serialport's enumeration, which on Linux reads
-//! `/sys/class/tty`) and USB devices (read from `/sys/bus/usb/devices`, so no libusb is needed).
+//! `/sys/class/tty`) and USB devices through libusb (`rusb`), falling back to
+//! `/sys/bus/usb/devices` where libusb cannot run (no usbfs in a container).
 //! A device "looks like a controller" when its USB ids are those of a supported board's
 //! debugger/USB-serial bridge or its product string names the project.
 
@@ -83,6 +84,70 @@ pub fn serial_ports() -> Result<Vec<SerialCandidate>, serialport::Error> {
         .collect())
 }
 
+/// Whether libusb can start here (it cannot without usbfs, e.g. in a container with no USB);
+/// the error says why not. Probe this before any library that uses rusb's global context,
+/// which panics instead of returning the error.
+pub fn libusb_available() -> Result<(), rusb::Error> {
+    rusb::Context::new().map(|_| ())
+}
+
+/// Where a USB device list came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum UsbSource {
+    /// libusb's device list.
+    Libusb,
+    /// `/sys/bus/usb/devices` (libusb could not be initialised).
+    Sysfs,
+}
+
+/// Every USB device libusb lists, or, when libusb cannot start, those under `sysfs_root`.
+pub fn usb_devices_any(sysfs_root: &Path) -> (Vec<UsbCandidate>, UsbSource) {
+    match usb_devices_libusb() {
+        Ok(devices) => (devices, UsbSource::Libusb),
+        Err(_) => (usb_devices(sysfs_root), UsbSource::Sysfs),
+    }
+}
+
+/// Every USB device libusb lists, named by bus path (`1-1.2`, as in sysfs). The product string
+/// needs the device opened, which may be refused (permissions): then it is `None`.
+pub fn usb_devices_libusb() -> Result<Vec<UsbCandidate>, rusb::Error> {
+    // An own context, not rusb's global one, which panics where libusb cannot start.
+    let context = rusb::Context::new()?;
+    let mut out: Vec<UsbCandidate> = rusb::UsbContext::devices(&context)?
+        .iter()
+        .filter_map(|device| {
+            let descriptor = device.device_descriptor().ok()?;
+            let product = device
+                .open()
+                .ok()
+                .and_then(|handle| handle.read_product_string_ascii(&descriptor).ok());
+            let (vid, pid) = (descriptor.vendor_id(), descriptor.product_id());
+            Some(UsbCandidate {
+                bus_path: bus_path(
+                    device.bus_number(),
+                    &device.port_numbers().unwrap_or_default(),
+                ),
+                vid,
+                pid,
+                controller: controller_reason(vid, pid, product.as_deref()),
+                product,
+            })
+        })
+        .collect();
+    out.sort_by(|a, b| a.bus_path.cmp(&b.bus_path));
+    Ok(out)
+}
+
+/// The kernel's name for a device: `usb<bus>` for a root hub, else `<bus>-<port>.<port>...`.
+fn bus_path(bus: u8, ports: &[u8]) -> String {
+    if ports.is_empty() {
+        return format!("usb{bus}");
+    }
+    let ports: Vec<String> = ports.iter().map(u8::to_string).collect();
+    format!("{bus}-{}", ports.join("."))
+}
+
 /// Every USB device under `root` (normally `/sys/bus/usb/devices`); interfaces and unreadable
 /// entries are skipped. A missing root (no USB, a container) is an empty list.
 pub fn usb_devices(root: &Path) -> Vec<UsbCandidate> {
@@ -140,6 +205,35 @@ mod tests {
         assert_eq!((found[0].vid, found[0].pid), (0x0483, 0x374b));
         assert!(found[0].controller.is_some());
         assert_eq!(found[1].controller, None);
+    }
+
+    #[test]
+    fn bus_paths_follow_the_kernels_naming() {
+        assert_eq!(bus_path(1, &[]), "usb1");
+        assert_eq!(bus_path(1, &[1]), "1-1");
+        assert_eq!(bus_path(3, &[1, 4, 2]), "3-1.4.2");
+    }
+
+    #[test]
+    fn libusb_and_sysfs_list_the_same_devices() {
+        // Where libusb runs, it must see every device the kernel lists (same ids, same bus
+        // paths); where it cannot (no usbfs), the sysfs fallback is what `rig ports` shows.
+        let sysfs = usb_devices(Path::new("/sys/bus/usb/devices"));
+        let (listed, source) = usb_devices_any(Path::new("/sys/bus/usb/devices"));
+        match source {
+            UsbSource::Sysfs => assert_eq!(listed, sysfs),
+            UsbSource::Libusb => {
+                let ids = |v: &[UsbCandidate]| {
+                    let mut ids: Vec<_> = v
+                        .iter()
+                        .map(|d| (d.bus_path.clone(), d.vid, d.pid))
+                        .collect();
+                    ids.sort();
+                    ids
+                };
+                assert_eq!(ids(&listed), ids(&sysfs));
+            }
+        }
     }
 
     #[test]

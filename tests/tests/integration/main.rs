@@ -8,6 +8,8 @@ mod mc_cli;
 mod mc_validation;
 mod normals_cli;
 mod photometry_pipeline;
+mod rig_camera_cli;
+mod rig_display;
 mod rig_hil;
 mod scratch;
 mod simulate;

@@ -1,5 +1,6 @@
 //! `mlsss rig`: find controllers, run a capture, measure the controller's timing.
 
+use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -8,8 +9,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::booth::Booth;
 use mlsss::capture::{Capture, FramePlan};
 use mlsss::rig::acquire::{CaptureTarget, acquire};
-use mlsss::rig::backend::{CameraBackend, PatternCamera, ReplayCamera, VirtualProjectors};
+use mlsss::rig::backend::{
+    CameraBackend, PatternCamera, ProjectorBackend, ReplayCamera, VirtualProjectors,
+};
+use mlsss::rig::camera::u3v::{PAYLOAD_TIMEOUT, U3vCamera, U3vSettings, list_cameras};
+use mlsss::rig::display::{self, ProjectorWindows};
 use mlsss::rig::link::{ByteLink, ControllerLink};
+use mlsss::rig::pattern_label::pattern_by_label;
 use mlsss::rig::qemu::{self, QemuGuard};
 use mlsss::rig::schedule::RigSchedule;
 use mlsss::rig::session::{HostFaults, RunHooks, Session};
@@ -32,6 +38,87 @@ enum RigCommand {
     Run(RunArgs),
     /// Run the full schedule against the firmware and report its timing.
     TimingTest(TimingArgs),
+    /// List the USB3 Vision cameras (an empty list when there is none).
+    Cameras(CamerasArgs),
+    /// List the monitors of the X display and which projector maps to each.
+    Displays(DisplaysArgs),
+    /// Show one pattern fullscreen on a projector's monitor until --hold ends or a key is
+    /// pressed (focusing and alignment).
+    Show(ShowArgs),
+}
+
+/// Which booth file.
+#[derive(Debug, clap::Args)]
+struct BoothChoice {
+    /// Booth file (default: the built-in hardware/booth.toml).
+    #[arg(long)]
+    booth: Option<PathBuf>,
+    /// Use the built-in --quick booth (small images).
+    #[arg(long, conflicts_with = "booth")]
+    quick: bool,
+}
+
+impl BoothChoice {
+    fn load(&self) -> anyhow::Result<Booth> {
+        Ok(match &self.booth {
+            Some(path) => Booth::from_file(path)
+                .with_context(|| format!("loading booth {}", path.display()))?,
+            None => Booth::builtin(self.quick),
+        })
+    }
+}
+
+#[derive(Debug, clap::Args)]
+struct CamerasArgs {
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// How a real camera is configured (`--camera u3v[:SERIAL]`).
+#[derive(Debug, clap::Args)]
+struct CameraSettingsArgs {
+    /// Pixel format of a u3v camera (GenICam PFNC): Mono12, Mono12p, Mono12Packed, BayerRG12,
+    /// BayerRG12p, BayerRG12Packed (and GR/GB/BG), or 8-bit Mono8/BayerRG8.
+    #[arg(long, default_value = "Mono12")]
+    pixel_format: String,
+    /// The camera input wired to the controller's trigger output (hardware/wiring.md).
+    #[arg(long, default_value = "Line0")]
+    trigger_line: String,
+    /// Analogue gain of a u3v camera, dB.
+    #[arg(long, default_value_t = 0.0)]
+    gain_db: f64,
+}
+
+#[derive(Debug, clap::Args)]
+struct DisplaysArgs {
+    #[command(flatten)]
+    booth: BoothChoice,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, clap::Args)]
+struct ShowArgs {
+    #[command(flatten)]
+    booth: BoothChoice,
+    /// The projector (0-based, as in the booth file).
+    #[arg(long)]
+    projector: u8,
+    /// The monitor to show on (default: the one the booth maps the projector to).
+    #[arg(long)]
+    monitor: Option<usize>,
+    /// The pattern by its capture label: white, black, grey-N (thousandths), gray-x-bN[-inv],
+    /// gray-y-bN[-inv], slit-x-oN, slit-y-oN, hf-sN.
+    #[arg(long)]
+    pattern: String,
+    /// Seconds to show it (default: until a key is pressed in the window).
+    #[arg(long)]
+    hold: Option<f64>,
+    /// Print one JSON object on stdout once the pattern is on screen.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, clap::Args)]
@@ -87,10 +174,18 @@ struct RunArgs {
     /// Output capture folder (must not exist).
     #[arg(long, default_value = "out/rig-capture")]
     out: PathBuf,
+    /// Projector backend: `virtual` keeps the patterns in memory; `windows` shows them fullscreen
+    /// on the monitors the booth maps the projectors to (X11), acknowledging each frame to the
+    /// controller once it has been presented.
+    #[arg(long, default_value = "virtual")]
+    projectors: String,
     /// Camera backend: `virtual` renders the pattern on screen; `replay:DIR` replays the frames
-    /// of a recorded capture folder.
+    /// of a recorded capture folder; `u3v` or `u3v:SERIAL` streams a USB3 Vision camera in
+    /// hardware-trigger mode (exposure from the booth's camera.exposure_ms).
     #[arg(long, default_value = "virtual")]
     camera: String,
+    #[command(flatten)]
+    camera_settings: CameraSettingsArgs,
     /// Print one JSON object on stdout.
     #[arg(long)]
     json: bool,
@@ -112,16 +207,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         RigCommand::Ports(a) => run_ports(a),
         RigCommand::Run(a) => run_capture(a),
         RigCommand::TimingTest(a) => run_timing(a),
+        RigCommand::Cameras(a) => run_cameras(a),
+        RigCommand::Displays(a) => run_displays(a),
+        RigCommand::Show(a) => run_show(a),
     }
 }
 
 fn run_ports(args: PortsArgs) -> anyhow::Result<()> {
     let serial = ports::serial_ports().context("enumerating serial ports")?;
-    let usb = ports::usb_devices(std::path::Path::new("/sys/bus/usb/devices"));
+    let (usb, usb_source) = ports::usb_devices_any(std::path::Path::new("/sys/bus/usb/devices"));
     if args.json {
         println!(
             "{}",
-            serde_json::json!({ "serial_ports": serial, "usb_devices": usb })
+            serde_json::json!({ "serial_ports": serial, "usb_devices": usb, "usb_source": usb_source })
         );
         return Ok(());
     }
@@ -140,7 +238,13 @@ fn run_ports(args: PortsArgs) -> anyhow::Result<()> {
             .map(|r| format!("  <- controller? {r}"));
         println!("  {}{ids}{}", p.path, mark.unwrap_or_default());
     }
-    println!("usb devices:");
+    println!(
+        "usb devices ({}):",
+        match usb_source {
+            ports::UsbSource::Libusb => "libusb",
+            ports::UsbSource::Sysfs => "sysfs; libusb could not start",
+        }
+    );
     if usb.is_empty() {
         println!("  (none)");
     }
@@ -247,15 +351,32 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             Box::new(ReplayCamera::new(capture))
         }
         None if args.camera == "virtual" => Box::new(PatternCamera::new(&booth)),
+        None if args.camera == "u3v" || args.camera.starts_with("u3v:") => {
+            let settings = U3vSettings {
+                serial: args.camera.strip_prefix("u3v:").map(str::to_owned),
+                pixel_format: args.camera_settings.pixel_format.clone(),
+                exposure_us: booth.camera.exposure_ms * 1000.0,
+                gain_db: args.camera_settings.gain_db,
+                trigger_line: args.camera_settings.trigger_line.clone(),
+                width: booth.camera.width,
+                height: booth.camera.height,
+                payload_timeout: PAYLOAD_TIMEOUT,
+            };
+            let camera = U3vCamera::open(&settings)?;
+            let c = camera.summary();
+            eprintln!("camera: {} {} serial {}", c.vendor, c.model, c.serial);
+            Box::new(camera)
+        }
         None => bail!(
-            "unknown --camera '{}': use `virtual` or `replay:DIR`",
+            "unknown --camera '{}': use `virtual`, `replay:DIR`, `u3v` or `u3v:SERIAL`",
             args.camera
         ),
     };
+    // Windows first: a missing monitor or a wrong mode fails before the controller is touched.
+    let mut projectors = projector_backend(&args.projectors, &booth, &schedule)?;
     let connection = connect(&args.controller)?;
     let mut session = open_session(ControllerLink::new(connection.port))?;
     let bar = progress_bar(schedule.entries.len());
-    let mut projectors = VirtualProjectors::new();
     let acquired = acquire(
         &mut session,
         &schedule,
@@ -265,7 +386,7 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             out: &args.out,
             source: connection.description,
         },
-        &mut projectors,
+        projectors.as_mut(),
         camera,
         &HostFaults::default(),
         &mut |_| bar.inc(1),
@@ -301,6 +422,184 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             acquired.log.done.outcome
         );
     }
+    Ok(())
+}
+
+/// The projector backend `--projectors` names; windows are opened for the projectors the
+/// schedule lights, each at its native resolution.
+fn projector_backend(
+    name: &str,
+    booth: &Booth,
+    schedule: &RigSchedule,
+) -> anyhow::Result<Box<dyn ProjectorBackend>> {
+    match name {
+        "virtual" => Ok(Box::new(VirtualProjectors::new())),
+        "windows" => {
+            let lit: BTreeSet<u8> = schedule.entries.iter().map(|e| e.projector).collect();
+            let specs = lit
+                .into_iter()
+                .map(|k| display::window_spec(booth, k, None))
+                .collect::<Result<Vec<_>, _>>()?;
+            let windows = ProjectorWindows::open(&specs)?;
+            for spec in &specs {
+                display::check_native_mode(&windows.monitors()[spec.monitor], spec)?;
+            }
+            Ok(Box::new(windows))
+        }
+        other => bail!("unknown --projectors '{other}': use `virtual` or `windows`"),
+    }
+}
+
+fn run_cameras(args: CamerasArgs) -> anyhow::Result<()> {
+    let list = list_cameras()?;
+    if args.json {
+        println!("{}", serde_json::to_string(&list)?);
+        return Ok(());
+    }
+    println!("USB3 Vision cameras:");
+    if list.cameras.is_empty() {
+        println!(
+            "  (none{})",
+            list.usb_unavailable
+                .as_deref()
+                .map(|why| format!("; {why}"))
+                .unwrap_or_default()
+        );
+    }
+    for c in &list.cameras {
+        println!(
+            "  {} {}  serial {}  (--camera u3v:{})",
+            c.vendor, c.model, c.serial, c.serial
+        );
+    }
+    Ok(())
+}
+
+fn run_displays(args: DisplaysArgs) -> anyhow::Result<()> {
+    let booth = args.booth.load()?;
+    let monitors = display::list_monitors()?;
+    let projectors: Vec<serde_json::Value> = booth
+        .projectors
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let monitor = display::projector_monitor(&booth, k as u8);
+            let found = monitors.get(monitor);
+            serde_json::json!({
+                "projector": k,
+                "name": p.name,
+                "width": p.width,
+                "height": p.height,
+                "monitor": monitor,
+                "monitor_found": found.is_some(),
+                "native_mode": found.is_some_and(|m| (m.width, m.height) == (p.width, p.height)),
+            })
+        })
+        .collect();
+    if args.json {
+        let monitors: Vec<serde_json::Value> = monitors
+            .iter()
+            .map(|m| {
+                let mut v = serde_json::to_value(m).unwrap_or_default();
+                v["projectors"] = projectors_on(&booth, m.index).into();
+                v
+            })
+            .collect();
+        println!(
+            "{}",
+            serde_json::json!({
+                "display": std::env::var("DISPLAY").unwrap_or_default(),
+                "monitors": monitors,
+                "projectors": projectors,
+            })
+        );
+        return Ok(());
+    }
+    println!("monitors:");
+    if monitors.is_empty() {
+        println!("  (none)");
+    }
+    for m in &monitors {
+        let on = projectors_on(&booth, m.index);
+        let mapped = if on.is_empty() {
+            String::new()
+        } else {
+            format!("  <- projector {on:?}")
+        };
+        println!("  {}{mapped}", m.describe());
+    }
+    println!("projectors ({}):", booth.name);
+    for p in &projectors {
+        println!(
+            "  {} {} {}x{} -> monitor {}{}",
+            p["projector"],
+            p["name"].as_str().unwrap_or_default(),
+            p["width"],
+            p["height"],
+            p["monitor"],
+            match (p["monitor_found"].as_bool(), p["native_mode"].as_bool()) {
+                (Some(false), _) => "  MISSING",
+                (_, Some(false)) => "  (mode is not the projector's native resolution)",
+                _ => "",
+            }
+        );
+    }
+    Ok(())
+}
+
+/// The projectors the booth maps to monitor `index`.
+fn projectors_on(booth: &Booth, index: usize) -> Vec<usize> {
+    (0..booth.projectors.len())
+        .filter(|&k| display::projector_monitor(booth, k as u8) == index)
+        .collect()
+}
+
+fn run_show(args: ShowArgs) -> anyhow::Result<()> {
+    let booth = args.booth.load()?;
+    let pattern = pattern_by_label(&booth.patterns, &args.pattern)?;
+    let spec = display::window_spec(&booth, args.projector, args.monitor)?;
+    let hold = match args.hold {
+        Some(s) if !(s.is_finite() && s >= 0.0) => bail!("--hold must be a number of seconds"),
+        Some(s) => Some(Duration::from_secs_f64(s)),
+        None => None,
+    };
+    let mut windows = ProjectorWindows::open(&[spec])?;
+    let monitor = windows.monitors()[spec.monitor].clone();
+    if let Err(e) = display::check_native_mode(&monitor, &spec) {
+        eprintln!("warning: {e}; drawing unscaled from the top-left corner");
+    }
+    let presented = windows.present(args.projector, &pattern)?;
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "projector": args.projector,
+                "pattern": pattern.label(),
+                "width": spec.width,
+                "height": spec.height,
+                "monitor": presented.monitor,
+                "window_width": presented.window_width,
+                "window_height": presented.window_height,
+                "native_mode": (monitor.width, monitor.height) == (spec.width, spec.height),
+                "presented": true,
+            })
+        );
+    } else {
+        println!(
+            "projector {} shows {} ({}x{}) on monitor {}; {}",
+            args.projector,
+            pattern.label(),
+            spec.width,
+            spec.height,
+            monitor.describe(),
+            match hold {
+                Some(h) => format!("holding {:.1} s or until a key is pressed", h.as_secs_f64()),
+                None => "press a key in the window to end".into(),
+            }
+        );
+    }
+    let key = windows.wait_for_key(hold);
+    eprintln!("{}", if key { "key pressed" } else { "hold ended" });
     Ok(())
 }
 
