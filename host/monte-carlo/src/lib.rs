@@ -19,11 +19,18 @@
 //!   leaves the top after entering the medium is diffuse reflectance (as in MCML).
 //! - Results depend only on the medium, the configuration and the seed, never on the number of
 //!   threads: photons are simulated in fixed batches, each with its own random stream, and the
-//!   batch tallies are summed in batch order.
+//!   batch tallies are summed in batch order. Within a batch, `LANES` photons are in flight at once
+//!   (SIMD over photons, see `photon_lanes`), each lane with its own random stream.
 
+mod fast_math;
 mod fresnel;
+mod lane_rng;
 mod layers_file;
 mod medium;
+mod photon_lanes;
+mod simd;
+#[cfg(target_arch = "x86_64")]
+mod simd_avx2;
 mod tally;
 mod transport;
 
@@ -132,8 +139,14 @@ pub struct McResult {
     pub photons: u64,
     /// Wall-clock throughput of this run (all threads together).
     pub photons_per_second: f64,
+    /// Wall-clock interaction (absorption + scattering) events per second, all threads together:
+    /// the throughput figure that does not depend on how long photons live in the medium.
+    pub interactions_per_second: f64,
     /// Worker threads used (does not change the result).
     pub threads: usize,
+    /// Instruction set the photon lanes ran on ("avx512", "avx2" or "baseline"); every choice
+    /// gives bit-identical results.
+    pub simd: &'static str,
     /// Mean number of interaction (absorption + scattering) events per photon: the cost driver.
     pub interactions_per_photon: f64,
     /// The 2-D exit response, when `McConfig::grid` was given.
