@@ -1,5 +1,4 @@
-//! The lane vectors of `simd` written with AVX2 intrinsics: `LANES` = 8 f64 as two 256-bit
-//! registers.
+//! The lane vectors of `simd` written with AVX2 intrinsics: `LANES` f64 in 256-bit registers.
 //!
 //! The compiler does not reliably turn the array version into full-width vector code (it stops at
 //! pairs), so the photon step is compiled a second time against these types (see
@@ -14,21 +13,32 @@ use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Shl, Shr, Sub};
 
 use super::simd::LANES;
 
-const _: () = assert!(LANES == 8, "two 4-lane AVX registers hold exactly 8 lanes");
+/// AVX registers per lane vector (4 f64 each).
+const REGS: usize = LANES / 4;
+const _: () = assert!(
+    LANES.is_multiple_of(4),
+    "the lanes must fill whole 4-lane AVX registers"
+);
 
-/// 8 f64 in two AVX registers.
+/// `LANES` f64 in AVX registers.
 #[derive(Clone, Copy)]
-pub(crate) struct F64s([__m256d; 2]);
+pub(crate) struct F64s([__m256d; REGS]);
 
-/// 8 u64 (or lane masks: all ones / zero) in two AVX registers.
+/// `LANES` u64 (or lane masks: all ones / zero) in AVX registers.
 #[derive(Clone, Copy)]
-pub(crate) struct U64s([__m256i; 2]);
+pub(crate) struct U64s([__m256i; REGS]);
 
-macro_rules! both {
-    ($ty:ident, $f:ident, $a:expr, $b:expr) => {
-        // SAFETY: see the module documentation (only reached with AVX2 enabled and detected).
-        unsafe { $ty([$f($a.0[0], $b.0[0]), $f($a.0[1], $b.0[1])]) }
-    };
+/// Applies an intrinsic register by register. A plain loop, not `array::map` with a closure: a
+/// closure defined here would not have AVX2 and the intrinsics would not inline.
+macro_rules! per_register {
+    ($ty:ident, $f:ident, $($arg:expr),+) => {{
+        let mut out = $ty::zeroed();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation (only reached with AVX2 enabled and detected).
+            out.0[r] = unsafe { $f($($arg.0[r]),+) };
+        }
+        out
+    }};
 }
 
 macro_rules! binary_op {
@@ -37,7 +47,7 @@ macro_rules! binary_op {
             type Output = $ty;
             #[inline(always)]
             fn $method(self, rhs: $ty) -> $ty {
-                both!($ty, $intrinsic, self, rhs)
+                per_register!($ty, $intrinsic, self, rhs)
             }
         }
     };
@@ -74,13 +84,13 @@ impl Shl<u32> for U64s {
     #[inline(always)]
     fn shl(self, n: u32) -> U64s {
         // SAFETY: see the module documentation.
-        unsafe {
-            let count = _mm_cvtsi32_si128(n as i32);
-            U64s([
-                _mm256_sll_epi64(self.0[0], count),
-                _mm256_sll_epi64(self.0[1], count),
-            ])
+        let count = unsafe { _mm_cvtsi32_si128(n as i32) };
+        let mut out = U64s::zeroed();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation.
+            out.0[r] = unsafe { _mm256_sll_epi64(self.0[r], count) };
         }
+        out
     }
 }
 
@@ -89,49 +99,52 @@ impl Shr<u32> for U64s {
     #[inline(always)]
     fn shr(self, n: u32) -> U64s {
         // SAFETY: see the module documentation.
-        unsafe {
-            let count = _mm_cvtsi32_si128(n as i32);
-            U64s([
-                _mm256_srl_epi64(self.0[0], count),
-                _mm256_srl_epi64(self.0[1], count),
-            ])
+        let count = unsafe { _mm_cvtsi32_si128(n as i32) };
+        let mut out = U64s::zeroed();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation.
+            out.0[r] = unsafe { _mm256_srl_epi64(self.0[r], count) };
         }
+        out
     }
 }
 
 impl F64s {
     #[inline(always)]
+    fn zeroed() -> Self {
+        // SAFETY: see the module documentation.
+        Self([unsafe { _mm256_setzero_pd() }; REGS])
+    }
+
+    #[inline(always)]
     pub(crate) fn splat(x: f64) -> Self {
         // SAFETY: see the module documentation.
-        unsafe { Self([_mm256_set1_pd(x); 2]) }
+        Self([unsafe { _mm256_set1_pd(x) }; REGS])
     }
 
     #[inline(always)]
     pub(crate) fn load(values: [f64; LANES]) -> Self {
-        // SAFETY: see the module documentation; the pointers cover 4 + 4 f64 of `values`.
-        unsafe {
-            Self([
-                _mm256_loadu_pd(values.as_ptr()),
-                _mm256_loadu_pd(values.as_ptr().add(4)),
-            ])
+        let mut out = Self::zeroed();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation; 4 r + 4 <= LANES.
+            out.0[r] = unsafe { _mm256_loadu_pd(values.as_ptr().add(4 * r)) };
         }
+        out
     }
 
     #[inline(always)]
     pub(crate) fn store(self) -> [f64; LANES] {
         let mut out = [0.0; LANES];
-        // SAFETY: see the module documentation; the pointers cover 4 + 4 f64 of `out`.
-        unsafe {
-            _mm256_storeu_pd(out.as_mut_ptr(), self.0[0]);
-            _mm256_storeu_pd(out.as_mut_ptr().add(4), self.0[1]);
+        for r in 0..REGS {
+            // SAFETY: see the module documentation; 4 r + 4 <= LANES.
+            unsafe { _mm256_storeu_pd(out.as_mut_ptr().add(4 * r), self.0[r]) };
         }
         out
     }
 
     #[inline(always)]
     pub(crate) fn sqrt(self) -> Self {
-        // SAFETY: see the module documentation.
-        unsafe { Self([_mm256_sqrt_pd(self.0[0]), _mm256_sqrt_pd(self.0[1])]) }
+        per_register!(F64s, _mm256_sqrt_pd, self)
     }
 
     #[inline(always)]
@@ -139,16 +152,17 @@ impl F64s {
         (self.to_bits() & U64s::splat(!SIGN)).as_f64_bits()
     }
 
-    /// Lane-wise `if self > other { self } else { other }` (the array version's NaN behaviour).
+    /// Lane-wise `if self > other { self } else { other }`: exactly `vmaxpd`'s definition,
+    /// NaN included, so the array version agrees.
     #[inline(always)]
     pub(crate) fn max(self, other: Self) -> Self {
-        self.gt(other).select(self, other)
+        per_register!(F64s, _mm256_max_pd, self, other)
     }
 
-    /// Lane-wise `if self < other { self } else { other }`.
+    /// Lane-wise `if self < other { self } else { other }` (`vminpd`).
     #[inline(always)]
     pub(crate) fn min(self, other: Self) -> Self {
-        self.lt(other).select(self, other)
+        per_register!(F64s, _mm256_min_pd, self, other)
     }
 
     #[inline(always)]
@@ -168,58 +182,59 @@ impl F64s {
 
     #[inline(always)]
     fn compare<const PREDICATE: i32>(self, other: Self) -> U64s {
-        // SAFETY: see the module documentation.
-        unsafe {
-            U64s([
-                _mm256_castpd_si256(_mm256_cmp_pd::<PREDICATE>(self.0[0], other.0[0])),
-                _mm256_castpd_si256(_mm256_cmp_pd::<PREDICATE>(self.0[1], other.0[1])),
-            ])
+        let mut out = U64s::zeroed();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation.
+            out.0[r] =
+                unsafe { _mm256_castpd_si256(_mm256_cmp_pd::<PREDICATE>(self.0[r], other.0[r])) };
         }
+        out
     }
 
     #[inline(always)]
     pub(crate) fn to_bits(self) -> U64s {
-        // SAFETY: see the module documentation.
-        unsafe {
-            U64s([
-                _mm256_castpd_si256(self.0[0]),
-                _mm256_castpd_si256(self.0[1]),
-            ])
-        }
+        per_register!(U64s, _mm256_castpd_si256, self)
     }
 }
 
 impl U64s {
     #[inline(always)]
+    fn zeroed() -> Self {
+        // SAFETY: see the module documentation.
+        Self([unsafe { _mm256_setzero_si256() }; REGS])
+    }
+
+    #[inline(always)]
     pub(crate) fn splat(x: u64) -> Self {
         // SAFETY: see the module documentation.
-        unsafe { Self([_mm256_set1_epi64x(x as i64); 2]) }
+        Self([unsafe { _mm256_set1_epi64x(x as i64) }; REGS])
     }
 
     #[inline(always)]
     pub(crate) fn load(values: [u64; LANES]) -> Self {
-        // SAFETY: see the module documentation; the pointers cover 4 + 4 u64 of `values`.
-        unsafe {
-            let p = values.as_ptr().cast::<__m256i>();
-            Self([_mm256_loadu_si256(p), _mm256_loadu_si256(p.add(1))])
+        let mut out = Self::zeroed();
+        let p = values.as_ptr().cast::<__m256i>();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation; register r covers u64 4 r .. 4 r + 4.
+            out.0[r] = unsafe { _mm256_loadu_si256(p.add(r)) };
         }
+        out
     }
 
     #[inline(always)]
     pub(crate) fn store(self) -> [u64; LANES] {
         let mut out = [0u64; LANES];
-        // SAFETY: see the module documentation; the pointers cover 4 + 4 u64 of `out`.
-        unsafe {
-            let p = out.as_mut_ptr().cast::<__m256i>();
-            _mm256_storeu_si256(p, self.0[0]);
-            _mm256_storeu_si256(p.add(1), self.0[1]);
+        let p = out.as_mut_ptr().cast::<__m256i>();
+        for r in 0..REGS {
+            // SAFETY: see the module documentation; register r covers u64 4 r .. 4 r + 4.
+            unsafe { _mm256_storeu_si256(p.add(r), self.0[r]) };
         }
         out
     }
 
     #[inline(always)]
     pub(crate) fn wrapping_add(self, other: Self) -> Self {
-        both!(U64s, _mm256_add_epi64, self, other)
+        per_register!(U64s, _mm256_add_epi64, self, other)
     }
 
     #[inline(always)]
@@ -229,34 +244,31 @@ impl U64s {
 
     #[inline(always)]
     pub(crate) fn as_f64_bits(self) -> F64s {
-        // SAFETY: see the module documentation.
-        unsafe {
-            F64s([
-                _mm256_castsi256_pd(self.0[0]),
-                _mm256_castsi256_pd(self.0[1]),
-            ])
-        }
+        per_register!(F64s, _mm256_castsi256_pd, self)
     }
 
     #[inline(always)]
     pub(crate) fn eq_u64(self, other: Self) -> U64s {
-        both!(U64s, _mm256_cmpeq_epi64, self, other)
+        per_register!(U64s, _mm256_cmpeq_epi64, self, other)
     }
 
-    /// As a mask: `a` where set, `b` elsewhere (bitwise, so exact for any value).
+    /// As a mask: `a` where set, `b` elsewhere. One `vblendvpd` per register; it looks at the
+    /// sign bit only, which for an all-ones / zero mask is the same choice.
     #[inline(always)]
     pub(crate) fn select(self, a: F64s, b: F64s) -> F64s {
-        ((self & a.to_bits()) | (!self & b.to_bits())).as_f64_bits()
+        let mask = self.as_f64_bits();
+        per_register!(F64s, _mm256_blendv_pd, b, a, mask)
     }
 
     /// As a mask: one bit per lane, lane 0 in bit 0.
     #[inline(always)]
     pub(crate) fn bitmask(self) -> u32 {
-        // SAFETY: see the module documentation.
-        unsafe {
-            let low = _mm256_movemask_pd(_mm256_castsi256_pd(self.0[0])) as u32;
-            let high = _mm256_movemask_pd(_mm256_castsi256_pd(self.0[1])) as u32;
-            low | (high << 4)
+        let mut bits = 0;
+        for r in 0..REGS {
+            // SAFETY: see the module documentation.
+            let four = unsafe { _mm256_movemask_pd(_mm256_castsi256_pd(self.0[r])) } as u32;
+            bits |= four << (4 * r);
         }
+        bits
     }
 }
