@@ -31,6 +31,8 @@ mod photon_lanes;
 mod simd;
 #[cfg(target_arch = "x86_64")]
 mod simd_avx2;
+#[cfg(target_arch = "x86_64")]
+mod simd_avx512;
 mod tally;
 mod transport;
 
@@ -40,6 +42,12 @@ pub use fresnel::{fresnel_reflectance, refracted_cos};
 pub use layers_file::LayersFile;
 pub use medium::{Layer, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
+
+/// Names the random streams and the order in which photons draw from them (`LANES` photons in
+/// flight per batch, xoshiro256++ per lane). The result for a given (medium, config) is fixed
+/// while this stays the same and changes, within the noise, when it does: caches of Monte Carlo
+/// results must include it in their key.
+pub const RANDOM_STREAMS: &str = "xoshiro256++, 8 lanes of 4096-photon batches, v1";
 
 /// Errors of the Monte Carlo module.
 #[derive(Debug, thiserror::Error)]

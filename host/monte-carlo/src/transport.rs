@@ -240,6 +240,18 @@ mod tests {
             .install(f)
     }
 
+    /// Changing the lane count or the batch size changes every result: the stream name that
+    /// caches key on must say so.
+    #[test]
+    fn the_stream_name_follows_the_lane_count_and_batch_size() {
+        let name = crate::RANDOM_STREAMS;
+        assert!(
+            name.contains(&format!("{} lanes", crate::simd::LANES)),
+            "{name}"
+        );
+        assert!(name.contains(&format!("{BATCH_PHOTONS}-photon")), "{name}");
+    }
+
     #[test]
     fn result_does_not_depend_on_the_thread_count() {
         let medium = Medium::slab(Layer::from_albedo(0.95, 3.0, 0.8, 1.4), 1.0, 1.33);
