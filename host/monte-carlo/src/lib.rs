@@ -19,11 +19,20 @@
 //!   leaves the top after entering the medium is diffuse reflectance (as in MCML).
 //! - Results depend only on the medium, the configuration and the seed, never on the number of
 //!   threads: photons are simulated in fixed batches, each with its own random stream, and the
-//!   batch tallies are summed in batch order.
+//!   batch tallies are summed in batch order. Within a batch, `LANES` photons are in flight at once
+//!   (SIMD over photons, see `photon_lanes`), each lane with its own random stream.
 
+mod fast_math;
 mod fresnel;
+mod lane_rng;
 mod layers_file;
 mod medium;
+mod photon_lanes;
+mod simd;
+#[cfg(target_arch = "x86_64")]
+mod simd_avx2;
+#[cfg(target_arch = "x86_64")]
+mod simd_avx512;
 mod tally;
 mod transport;
 
@@ -33,6 +42,12 @@ pub use fresnel::{fresnel_reflectance, refracted_cos};
 pub use layers_file::LayersFile;
 pub use medium::{Layer, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
+
+/// Names the random streams and the order in which photons draw from them (`LANES` photons in
+/// flight per batch, xoshiro256++ per lane). The result for a given (medium, config) is fixed
+/// while this stays the same and changes, within the noise, when it does: caches of Monte Carlo
+/// results must include it in their key.
+pub const RANDOM_STREAMS: &str = "xoshiro256++, 8 lanes of 4096-photon batches, v1";
 
 /// Errors of the Monte Carlo module.
 #[derive(Debug, thiserror::Error)]
@@ -132,8 +147,14 @@ pub struct McResult {
     pub photons: u64,
     /// Wall-clock throughput of this run (all threads together).
     pub photons_per_second: f64,
+    /// Wall-clock interaction (absorption + scattering) events per second, all threads together:
+    /// the throughput figure that does not depend on how long photons live in the medium.
+    pub interactions_per_second: f64,
     /// Worker threads used (does not change the result).
     pub threads: usize,
+    /// Instruction set the photon lanes ran on ("avx512", "avx2" or "baseline"); every choice
+    /// gives bit-identical results.
+    pub simd: &'static str,
     /// Mean number of interaction (absorption + scattering) events per photon: the cost driver.
     pub interactions_per_photon: f64,
     /// The 2-D exit response, when `McConfig::grid` was given.

@@ -58,6 +58,8 @@ pub struct ResponseCache {
 #[derive(Debug, Serialize, Deserialize, PartialEq)]
 struct CacheKey {
     format: String,
+    /// `mlsss_mc::RANDOM_STREAMS`: a response computed with other streams is another draw.
+    random_streams: String,
     /// Per channel: the layered medium.
     media: Vec<Medium>,
     incidence_deg: f64,
@@ -183,6 +185,7 @@ impl ResponseCache {
     ) -> Result<Lookup, VirtualBoothError> {
         let key = CacheKey {
             format: CACHE_FORMAT.into(),
+            random_streams: mlsss_mc::RANDOM_STREAMS.into(),
             media: (0..3).map(|c| material_medium(material, c)).collect(),
             incidence_deg: angle,
             photons: settings.photons,

@@ -164,7 +164,9 @@ fn result_json(r: &McResult) -> serde_json::Value {
         "exit_centroid_mm": r.exit_centroid_mm,
         "photons": r.photons,
         "photons_per_second": r.photons_per_second,
+        "interactions_per_second": r.interactions_per_second,
         "threads": r.threads,
+        "simd": r.simd,
         "interactions_per_photon": r.interactions_per_photon,
         "unaccounted_energy": unaccounted_energy(r),
     })
@@ -188,8 +190,8 @@ fn print_human(r: &McResult) {
         r.exit_centroid_mm[0], r.exit_centroid_mm[1]
     );
     println!(
-        "{} photons, {:.0} photons/s on {} thread(s)",
-        r.photons, r.photons_per_second, r.threads
+        "{} photons, {:.0} photons/s ({:.3e} interactions/s) on {} thread(s), {} lanes",
+        r.photons, r.photons_per_second, r.interactions_per_second, r.threads, r.simd
     );
 }
 
@@ -246,6 +248,8 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
             "cpu_seconds": cpu_used,
             "diffuse_reflectance": result.diffuse_reflectance,
             "interactions_per_photon": result.interactions_per_photon,
+            "interactions_per_second": result.interactions_per_second,
+            "simd": result.simd,
         });
         println!("{value}");
     } else {

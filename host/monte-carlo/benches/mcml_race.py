@@ -1,0 +1,187 @@
+#!/usr/bin/env python3
+"""Race `mlsss mc layers` against MCML itself on MCML's own 7-layer skin input at 600 nm.
+
+    python3 host/monte-carlo/benches/mcml_race.py PATH/TO/gpumcml/cpumcml \
+        [--photons 100000] [--rounds 2] [--seed 1] [--mlsss target/release/mlsss]
+
+PATH/TO/gpumcml/cpumcml is the `cpumcml/` folder of the public repository ominux/gpumcml (the
+original MCML C code of Wang & Jacques with the 7-layer input `7layerskin_600nm.mci`). Its code
+carries a copyright and no licence, so this project never commits it: the script copies it to a
+temporary folder, applies the one fix it needs (`FindDataLine` in `mcmlio.c` returns a local
+buffer; it is made static), compiles it with the Makefile's `-O3` and runs it on the same layers as
+`host/monte-carlo/data/mcml-7layer-skin-600nm.toml` (our file, in mm; MCML's input is in cm).
+
+Both programs run single-threaded (`RAYON_NUM_THREADS=1` for ours), alternately MCML then ours for
+`--rounds` rounds, so a change in the load of a shared machine hits both alike. Speed is photons
+per CPU second of the child process (user + system, from getrusage), which does not depend on the
+other load. Agreement: for the diffuse reflectance, transmittance and the absorption of every layer,
+the difference in units of the combined standard error. MCML prints no standard errors; its
+per-photon variance is taken equal to ours (MCML's statistical reflection at the surfaces is
+slightly noisier than our partial reflection, so this overstates the z-scores a little).
+
+Exits with status 1 if any |z| exceeds 3.
+"""
+
+import argparse
+import json
+import math
+import os
+import re
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[3]
+LAYERS_TOML = REPO / "host/monte-carlo/data/mcml-7layer-skin-600nm.toml"
+
+# MCML's 7-layer skin at 600 nm (cpumcml/7layerskin_600nm.mci, Meglinsky & Matcher 2001):
+# n, mu_a (1/cm), mu_s (1/cm), g, d (cm). Must match LAYERS_TOML (checked below).
+LAYERS_CM = [
+    (1.53, 0.2, 1000, 0.9, 0.002),
+    (1.34, 0.15, 400, 0.85, 0.008),
+    (1.4, 0.7, 300, 0.8, 0.01),
+    (1.39, 1, 350, 0.9, 0.008),
+    (1.4, 0.7, 200, 0.76, 0.162),
+    (1.39, 1, 350, 0.95, 0.02),
+    (1.44, 0.3, 150, 0.8, 0.59),
+]
+
+
+def mci_text(photons: int) -> str:
+    """One run of the 7-layer input with the original file's grid (its cost is part of MCML's)."""
+    layers = "\n".join(f"{n} {mua} {mus} {g} {d}" for n, mua, mus, g, d in LAYERS_CM)
+    return f"""1.0
+1
+race.mco A
+{photons}
+0.002 0.01
+500 200 30
+{len(LAYERS_CM)}
+1.0
+{layers}
+1.0
+"""
+
+
+def check_layers_match_toml() -> None:
+    text = LAYERS_TOML.read_text()
+    values = {k: [float(v) for v in re.findall(rf"^{k}\s*=\s*([0-9.eE+-]+)", text, re.M)]
+              for k in ("thickness_mm", "mu_a", "mu_s", "g", "n")}
+    for i, (n, mua, mus, g, d) in enumerate(LAYERS_CM):
+        ours = (values["n"][i], values["mu_a"][i], values["mu_s"][i], values["g"][i],
+                values["thickness_mm"][i])
+        want = (n, mua / 10, mus / 10, g, d * 10)
+        if any(abs(a - b) > 1e-9 * max(1.0, abs(b)) for a, b in zip(ours, want)):
+            sys.exit(f"{LAYERS_TOML} layer {i} {ours} differs from MCML's {want} (in mm)")
+
+
+def build_mcml(source: Path, work: Path) -> Path:
+    for f in list(source.glob("*.c")) + list(source.glob("*.h")):
+        shutil.copy(f, work)
+    io = work / "mcmlio.c"
+    text = io.read_text()
+    fixed = re.sub(r"(char \* ?FindDataLine\(FILE \*File_Ptr\)\s*\{\s*)char buf\[STRLEN\];",
+                   r"\1static char buf[STRLEN];", text)
+    if fixed == text:
+        sys.exit("could not apply the FindDataLine fix: is this cpumcml/ from ominux/gpumcml?")
+    io.write_text(fixed)
+    sources = sorted(str(p) for p in work.glob("*.c"))
+    exe = work / "mcml"
+    subprocess.run(["cc", "-O3", "-w", "-o", str(exe), *sources, "-lm"], check=True, cwd=work)
+    return exe
+
+
+def timed(cmd, cwd=None, env=None) -> tuple[str, float]:
+    """Runs cmd, returns (stdout, CPU seconds of the child)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    out = subprocess.run(cmd, cwd=cwd, env=env, check=True, capture_output=True, text=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return out.stdout, cpu
+
+
+def parse_mco(path: Path) -> dict:
+    lines = path.read_text().splitlines()
+    i = next(k for k, l in enumerate(lines) if l.startswith("RAT"))
+    rat = [float(lines[i + j].split()[0]) for j in range(1, 5)]
+    k = next(k for k, l in enumerate(lines) if l.startswith("A_l"))
+    absorbed = [float(lines[k + 1 + j].split()[0]) for j in range(len(LAYERS_CM))]
+    return {"specular": rat[0], "diffuse_reflectance": rat[1], "total_transmittance": rat[3],
+            "absorbed": absorbed}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("cpumcml", type=Path, help="the cpumcml/ folder of ominux/gpumcml")
+    ap.add_argument("--photons", type=int, default=100_000)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=1, help="seed of our first round (+1 per round)")
+    ap.add_argument("--mlsss", type=Path, default=REPO / "target/release/mlsss")
+    args = ap.parse_args()
+    check_layers_match_toml()
+    if not args.mlsss.exists():
+        sys.exit(f"{args.mlsss} not found: cargo build --release --bin mlsss")
+
+    with tempfile.TemporaryDirectory(prefix="mcml-race-") as tmp:
+        work = Path(tmp)
+        exe = build_mcml(args.cpumcml, work)
+        (work / "race.mci").write_text(mci_text(args.photons))
+        env = dict(os.environ, RAYON_NUM_THREADS="1")
+        rows = []
+        for r in range(args.rounds):
+            _, mcml_cpu = timed([str(exe), "race.mci"], cwd=work)
+            mcml = parse_mco(work / "race.mco")
+            out, ours_cpu = timed([str(args.mlsss), "mc", "layers", "--file", str(LAYERS_TOML),
+                                   "--photons", str(args.photons), "--seed", str(args.seed + r),
+                                   "--json"], env=env)
+            ours = json.loads(out)
+            rows.append((mcml, mcml_cpu, ours, ours_cpu))
+
+    print(f"7-layer skin at 600 nm, {args.photons} photons per run, one thread each, "
+          f"alternated MCML then ours, {args.rounds} round(s)")
+    print(f"{'round':>5} {'MCML ph/CPU-s':>14} {'ours ph/CPU-s':>14} {'ratio':>7} "
+          f"{'ours interactions/CPU-s':>24} {'simd':>8}")
+    ratios = []
+    for r, (mcml, mcml_cpu, ours, ours_cpu) in enumerate(rows):
+        mcml_rate = args.photons / mcml_cpu
+        ours_rate = args.photons / ours_cpu
+        ratios.append(ours_rate / mcml_rate)
+        inter = ours["interactions_per_photon"] * ours_rate
+        print(f"{r + 1:>5} {mcml_rate:>14.4g} {ours_rate:>14.4g} {ours_rate / mcml_rate:>6.2f}x "
+              f"{inter:>24.4g} {ours.get('simd', '?'):>8}")
+    geo = math.exp(sum(math.log(x) for x in ratios) / len(ratios))
+    print(f"speed-up per core (geometric mean over rounds): {geo:.2f}x")
+
+    print(f"\n{'quantity':<22} {'MCML':>10} {'ours':>10} {'ours SE':>9} {'z':>6}")
+    worst = 0.0
+    for r, (mcml, _, ours, _) in enumerate(rows):
+        pairs = [("specular", mcml["specular"], ours["specular"], 0.0),
+                 ("diffuse_reflectance", mcml["diffuse_reflectance"],
+                  ours["diffuse_reflectance"], ours["diffuse_reflectance_se"]),
+                 ("total_transmittance", mcml["total_transmittance"],
+                  ours["total_transmittance"], ours["total_transmittance_se"])]
+        pairs += [(f"absorbed[{i}]", m, o, se) for i, (m, o, se) in
+                  enumerate(zip(mcml["absorbed"], ours["absorbed"], ours["absorbed_se"]))]
+        print(f"round {r + 1}")
+        for name, m, o, se in pairs:
+            if se > 0:
+                # MCML prints A_l to 4 significant digits: add its rounding to the noise.
+                rounding = 0.5 * 10 ** (math.floor(math.log10(abs(m))) - 3) if m else 0.0
+                z = (o - m) / math.sqrt(2 * se * se + rounding * rounding / 3)
+                worst = max(worst, abs(z))
+                zs = f"{z:>6.2f}"
+            else:
+                zs = "exact" if abs(o - m) < 1e-5 else "DIFF"
+                if zs == "DIFF":
+                    worst = math.inf
+            print(f"  {name:<20} {m:>10.5g} {o:>10.5g} {se:>9.2g} {zs:>6}")
+    print(f"\nlargest |z| {worst:.2f}: " + ("agree within 3 standard errors" if worst <= 3
+                                           else "DISAGREE"))
+    sys.exit(0 if worst <= 3 else 1)
+
+
+if __name__ == "__main__":
+    main()
