@@ -221,7 +221,7 @@ impl Booth {
             self.validate_projector(p)
                 .map_err(|(f, r)| invalid(format!("projector[{i}].{f}"), r))?;
         }
-        validate_patterns(&self.patterns).map_err(|(f, r)| invalid(f, r))?;
+        validate_patterns(&self.patterns).map_err(|e| invalid(e.field, e.reason))?;
         let t = &self.timing;
         if !(t.fps > 0.0 && t.fps.is_finite() && t.refresh_hz > 0.0 && t.refresh_hz.is_finite()) {
             return Err(invalid(
@@ -424,43 +424,54 @@ fn check_pose(
     Ok(())
 }
 
+/// A value of the pattern plan out of range: the field (e.g. `patterns.slit_period_px`) and why.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("`{field}`: {reason}")]
+pub struct InvalidPattern {
+    pub field: String,
+    pub reason: String,
+}
+
 /// The pattern plan: Gray-code bits in 1..=[`MAX_GRAY_BITS`], slit width and period positive
 /// with the period a multiple of the width, a positive stripe width; a bounded number of shifts.
-pub fn validate_patterns(pat: &PatternSpec) -> Result<(), (String, String)> {
+pub fn validate_patterns(pat: &PatternSpec) -> Result<(), InvalidPattern> {
     for (field, bits) in [
         ("patterns.gray_bits_x", pat.gray_bits_x),
         ("patterns.gray_bits_y", pat.gray_bits_y),
     ] {
         if !(1..=MAX_GRAY_BITS).contains(&bits) {
-            return Err((
-                field.into(),
-                format!("must be 1..={MAX_GRAY_BITS}, got {bits}"),
-            ));
+            return Err(InvalidPattern {
+                field: field.into(),
+                reason: format!("must be 1..={MAX_GRAY_BITS}, got {bits}"),
+            });
         }
     }
     if pat.slit_width_px == 0 {
-        return Err(("patterns.slit_width_px".into(), "must be positive".into()));
+        return Err(InvalidPattern {
+            field: "patterns.slit_width_px".into(),
+            reason: "must be positive".into(),
+        });
     }
     if pat.slit_period_px == 0 || !pat.slit_period_px.is_multiple_of(pat.slit_width_px) {
-        return Err((
-            "patterns.slit_period_px".into(),
-            format!(
+        return Err(InvalidPattern {
+            field: "patterns.slit_period_px".into(),
+            reason: format!(
                 "must be a positive multiple of slit_width_px ({}), got {}",
                 pat.slit_width_px, pat.slit_period_px
             ),
-        ));
+        });
     }
     if pat.slit_shifts() > MAX_PATTERN_SHIFTS {
-        return Err((
-            "patterns.slit_period_px".into(),
-            format!("at most {MAX_PATTERN_SHIFTS} slit widths per period"),
-        ));
+        return Err(InvalidPattern {
+            field: "patterns.slit_period_px".into(),
+            reason: format!("at most {MAX_PATTERN_SHIFTS} slit widths per period"),
+        });
     }
     if pat.hf_stripe_px == 0 || pat.hf_shifts() > MAX_PATTERN_SHIFTS {
-        return Err((
-            "patterns.hf_stripe_px".into(),
-            format!("must be 1..={}", MAX_PATTERN_SHIFTS / 2),
-        ));
+        return Err(InvalidPattern {
+            field: "patterns.hf_stripe_px".into(),
+            reason: format!("must be 1..={}", MAX_PATTERN_SHIFTS / 2),
+        });
     }
     Ok(())
 }

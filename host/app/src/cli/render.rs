@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use image::Rgb32FImage;
-use mlsss::booth::{PatternSpec, validate_patterns};
+use mlsss::booth::{InvalidPattern, PatternSpec, validate_patterns};
 use mlsss::capture::{Axis, Pattern};
 use mlsss::imageio;
 use mlsss::layer_model::model_file::{Baseline, SubsurfaceModel, render_projector};
@@ -70,7 +70,7 @@ fn parse_pattern(label: &str, args: &Args, booth: &PatternSpec) -> anyhow::Resul
         hf_stripe_px: args.stripe.unwrap_or(booth.hf_stripe_px),
         ..booth.clone()
     };
-    if let Err((field, reason)) = validate_patterns(&spec) {
+    if let Err(InvalidPattern { field, reason }) = validate_patterns(&spec) {
         let flag = match field.as_str() {
             "patterns.slit_width_px" => "--slit-width",
             "patterns.slit_period_px" => "--slit-period",
