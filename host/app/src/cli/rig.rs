@@ -582,6 +582,7 @@ fn run_show(args: ShowArgs) -> anyhow::Result<()> {
                 "window_height": presented.window_height,
                 "native_mode": (monitor.width, monitor.height) == (spec.width, spec.height),
                 "presented": true,
+                "vblank_msc": presented.vblank.map(|v| v.msc),
             })
         );
     } else {
