@@ -36,7 +36,7 @@ const OPEN_TIMEOUT: Duration = Duration::from_secs(20);
 const PRESENT_TIMEOUT: Duration = Duration::from_secs(5);
 /// How long to wait for the vblank after a present (a 60 Hz display has one every 17 ms; the
 /// margin is for a loaded machine).
-const VBLANK_TIMEOUT: Duration = Duration::from_secs(1);
+const VBLANK_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// One projector window to open.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
