@@ -189,6 +189,12 @@ fn run_window_thread(
         .build()
     {
         Ok(event_loop) => event_loop,
+        Err(winit::error::EventLoopError::RecreationAttempt) => {
+            let _ = ready.send(Err(RigError::Display(
+                "the projector windows can be opened once per process (winit's event loop)".into(),
+            )));
+            return;
+        }
         Err(e) => {
             let _ = ready.send(Err(RigError::Display(format!(
                 "cannot open the X display (is DISPLAY set and an X server running?): {e}"
