@@ -561,6 +561,19 @@ mod tests {
     }
 
     #[test]
+    fn projector_monitors_are_read_and_optional() {
+        let full = Booth::builtin(false);
+        let monitors: Vec<_> = full.projectors.iter().map(|p| p.monitor).collect();
+        assert_eq!(monitors, [Some(0), Some(1), Some(2), Some(3)]);
+        // The quick booth leaves it out (projector K on monitor K), and a snapshot without it
+        // round-trips without the key.
+        let quick = Booth::builtin(true);
+        assert!(quick.projectors.iter().all(|p| p.monitor.is_none()));
+        let json = serde_json::to_string(&quick.projectors[0]).unwrap();
+        assert!(!json.contains("monitor"), "{json}");
+    }
+
+    #[test]
     fn ray_through_projected_pixel_hits_the_point() {
         let booth = Booth::builtin(false);
         let cam = booth.camera_calibration();

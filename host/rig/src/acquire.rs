@@ -32,6 +32,10 @@ pub struct Acquired {
     pub complete: bool,
     /// Everything the controller reported.
     pub log: RunLog,
+    /// Triggered frames whose image the camera could not deliver (dropped, incomplete or
+    /// missing payload, camera gone), with the reason; the folder keeps the frames before the
+    /// first of them.
+    pub camera_failures: Vec<(u32, String)>,
 }
 
 /// Where a capture goes and what it records about its origin.
@@ -64,17 +68,23 @@ pub fn acquire<L: ByteLink>(
     let writer = CaptureWriter::create(target.out, manifest)?;
 
     let (tx, rx) = mpsc::channel::<Exposure>();
-    let worker = thread::spawn(
-        move || -> Result<(CaptureWriter, BTreeSet<u32>), RigError> {
-            let mut written = BTreeSet::new();
-            for exposure in rx {
-                let image = camera.capture(&exposure)?;
-                writer.write_frame(exposure.frame, &image)?;
-                written.insert(exposure.frame);
+    // A camera failure is recorded for its frame and the worker goes on (the next trigger's
+    // payload may well arrive); only a failure to write the folder stops it.
+    type WorkerResult = Result<(CaptureWriter, BTreeSet<u32>, Vec<(u32, String)>), RigError>;
+    let worker = thread::spawn(move || -> WorkerResult {
+        let mut written = BTreeSet::new();
+        let mut failures = Vec::new();
+        for exposure in rx {
+            match camera.capture(&exposure) {
+                Ok(image) => {
+                    writer.write_frame(exposure.frame, &image)?;
+                    written.insert(exposure.frame);
+                }
+                Err(e) => failures.push((exposure.frame, e.to_string())),
             }
-            Ok((writer, written))
-        },
-    );
+        }
+        Ok((writer, written, failures))
+    });
 
     let mut hooks = AcquireHooks {
         schedule,
@@ -85,10 +95,11 @@ pub fn acquire<L: ByteLink>(
     };
     let run = session.run(schedule, &mut hooks, faults);
     drop(hooks); // closes the channel: the worker finishes the queued frames and returns
-    let (mut writer, written) = worker.join().map_err(|_| RigError::Backend {
-        backend: "camera",
-        message: "the camera worker panicked".into(),
-    })??;
+    let (mut writer, written, camera_failures) =
+        worker.join().map_err(|_| RigError::Backend {
+            backend: "camera",
+            message: "the camera worker panicked".into(),
+        })??;
     let log = run?;
 
     // Keep the longest prefix of frames that were both triggered and written.
@@ -121,6 +132,7 @@ pub fn acquire<L: ByteLink>(
         frames_written: captured as u32,
         complete,
         log,
+        camera_failures,
     })
 }
 

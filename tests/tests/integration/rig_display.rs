@@ -226,12 +226,19 @@ fn rig_show_puts_every_pattern_kind_on_screen_pixel_for_pixel() {
             shift: 1,
         },
     ];
+    let mut last_vblank = 0;
     for pattern in patterns {
         let label = pattern.label();
         let showing = show(&x, &["--projector", "0", "--pattern", &label]);
         assert_eq!(showing.json["pattern"], label.as_str());
         assert_eq!(showing.json["presented"], true);
         assert_eq!(showing.json["native_mode"], true);
+        // Acknowledged at a vblank (Xvfb's Present extension counts them), each after the last.
+        let vblank = showing.json["vblank_msc"]
+            .as_u64()
+            .expect("a vblank counter");
+        assert!(vblank > last_vblank, "{vblank} after {last_vblank}");
+        last_vblank = vblank;
         assert_screen_shows(&x, &pattern, (p.width, p.height));
     }
 }

@@ -402,6 +402,11 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
                 "complete": acquired.complete,
                 "frames_late": report.frames_late,
                 "frames_dropped": report.frames_dropped,
+                "camera_failures": acquired
+                    .camera_failures
+                    .iter()
+                    .map(|(frame, reason)| serde_json::json!({ "frame": frame, "reason": reason }))
+                    .collect::<Vec<_>>(),
             })
         );
     } else {
@@ -416,10 +421,14 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             }
         );
     }
+    for (frame, reason) in &acquired.camera_failures {
+        eprintln!("camera: frame {frame}: {reason}");
+    }
     if !acquired.complete {
         bail!(
-            "the run did not capture every frame: {:?}",
-            acquired.log.done.outcome
+            "the run did not capture every frame: {:?}, {} camera failure(s)",
+            acquired.log.done.outcome,
+            acquired.camera_failures.len()
         );
     }
     Ok(())
@@ -582,6 +591,7 @@ fn run_show(args: ShowArgs) -> anyhow::Result<()> {
                 "window_height": presented.window_height,
                 "native_mode": (monitor.width, monitor.height) == (spec.width, spec.height),
                 "presented": true,
+                "vblank_msc": presented.vblank.map(|v| v.msc),
             })
         );
     } else {

@@ -3,12 +3,14 @@
 //! native resolution, and "shown" reported only once the frame has reached the display server.
 //!
 //! - [`raster`]: a pattern as 8-bit window pixels.
+//! - [`vblank`]: waiting for the next vertical blank (X Present extension).
 //! - [`windows`]: the window thread (winit + softbuffer, X11) and the [`ProjectorWindows`] backend.
 //!
 //! Monitors are numbered left to right, then top to bottom (by their position on the virtual
 //! screen), so "monitor K" names the same connector as long as the desktop layout is unchanged.
 
 pub mod raster;
+pub mod vblank;
 pub mod windows;
 
 use serde::Serialize;

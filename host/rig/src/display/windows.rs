@@ -24,6 +24,7 @@ use winit::platform::x11::EventLoopBuilderExtX11;
 use winit::window::{Fullscreen, Window, WindowId};
 
 use super::raster::rasterise;
+use super::vblank::{Vblank, VblankWaiter};
 use super::{MonitorInfo, find_monitor, number_monitors};
 use crate::RigError;
 use crate::backend::ProjectorBackend;
@@ -33,6 +34,9 @@ use mlsss_core::capture::Pattern;
 const OPEN_TIMEOUT: Duration = Duration::from_secs(20);
 /// How long one present may take.
 const PRESENT_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long to wait for the vblank after a present (a 60 Hz display has one every 17 ms; the
+/// margin is for a loaded machine).
+const VBLANK_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// One projector window to open.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -59,6 +63,9 @@ pub struct Presented {
     pub window_width: u32,
     /// See `window_width`.
     pub window_height: u32,
+    /// The vertical blank after which the frame is scanned out whole; `None` when the X server
+    /// has no Present extension (then not aligned to the refresh).
+    pub vblank: Option<Vblank>,
 }
 
 enum Command {
@@ -182,6 +189,12 @@ fn run_window_thread(
         .build()
     {
         Ok(event_loop) => event_loop,
+        Err(winit::error::EventLoopError::RecreationAttempt) => {
+            let _ = ready.send(Err(RigError::Display(
+                "the projector windows can be opened once per process (winit's event loop)".into(),
+            )));
+            return;
+        }
         Err(e) => {
             let _ = ready.send(Err(RigError::Display(format!(
                 "cannot open the X display (is DISPLAY set and an X server running?): {e}"
@@ -197,6 +210,7 @@ fn run_window_thread(
         context: None,
         monitors: vec![],
         windows: BTreeMap::new(),
+        vblank: None,
     };
     if let Err(e) = event_loop.run_app(&mut app) {
         app.fail(RigError::Display(format!(
@@ -252,6 +266,16 @@ impl ProjectorWindow {
         let _ = self.window.inner_position();
         Ok((width, height))
     }
+
+    /// The X window id (for the Present extension).
+    fn x_window(&self) -> Option<u32> {
+        use raw_window_handle::{HasWindowHandle, RawWindowHandle};
+        match self.window.window_handle().ok()?.as_raw() {
+            RawWindowHandle::Xlib(h) => u32::try_from(h.window).ok(),
+            RawWindowHandle::Xcb(h) => Some(h.window.get()),
+            _ => None,
+        }
+    }
 }
 
 struct WindowApp {
@@ -263,6 +287,7 @@ struct WindowApp {
     context: Option<Context<OwnedDisplayHandle>>,
     monitors: Vec<MonitorInfo>,
     windows: BTreeMap<u8, ProjectorWindow>,
+    vblank: Option<VblankWaiter>,
 }
 
 impl WindowApp {
@@ -303,6 +328,7 @@ impl WindowApp {
             );
         }
         self.context = Some(context);
+        self.vblank = VblankWaiter::connect()?;
         Ok(())
     }
 
@@ -335,11 +361,16 @@ impl WindowApp {
             .ok_or_else(|| RigError::Display(format!("projector {projector} has no window")))?;
         window.content = pattern;
         let (window_width, window_height) = window.draw()?;
+        let vblank = match (&mut self.vblank, window.x_window()) {
+            (Some(waiter), Some(id)) => Some(waiter.next_vblank(id, VBLANK_TIMEOUT)?),
+            _ => None,
+        };
         Ok(Presented {
             projector,
             monitor: window.monitor.clone(),
             window_width,
             window_height,
+            vblank,
         })
     }
 }
