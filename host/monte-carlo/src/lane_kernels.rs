@@ -88,7 +88,9 @@ pub(crate) fn ln(x: F64s) -> F64s {
     let z = s * s;
     let w = z * z;
     let odd = w * (c(fast_math::LG2) + w * (c(fast_math::LG4) + w * c(fast_math::LG6)));
-    let even = z * (c(fast_math::LG1) + w * (c(fast_math::LG3) + w * (c(fast_math::LG5) + w * c(fast_math::LG7))));
+    let even = z
+        * (c(fast_math::LG1)
+            + w * (c(fast_math::LG3) + w * (c(fast_math::LG5) + w * c(fast_math::LG7))));
     let r = even + odd;
     s * (half_f_sq + r) + k * c(fast_math::LN2_LO) - half_f_sq + f + k * c(fast_math::LN2_HI)
 }
@@ -98,8 +100,14 @@ pub(crate) fn ln(x: F64s) -> F64s {
 pub(crate) fn sin_cos_quarter(a: F64s) -> (F64s, F64s) {
     let c = F64s::splat;
     let z = a * a;
-    let sin_poly = c(fast_math::S1) + z * (c(fast_math::S2) + z * (c(fast_math::S3) + z * (c(fast_math::S4) + z * (c(fast_math::S5) + z * c(fast_math::S6)))));
-    let cos_poly = c(fast_math::C1) + z * (c(fast_math::C2) + z * (c(fast_math::C3) + z * (c(fast_math::C4) + z * (c(fast_math::C5) + z * c(fast_math::C6)))));
+    let sin_poly = c(fast_math::S1)
+        + z * (c(fast_math::S2)
+            + z * (c(fast_math::S3)
+                + z * (c(fast_math::S4) + z * (c(fast_math::S5) + z * c(fast_math::S6)))));
+    let cos_poly = c(fast_math::C1)
+        + z * (c(fast_math::C2)
+            + z * (c(fast_math::C3)
+                + z * (c(fast_math::C4) + z * (c(fast_math::C5) + z * c(fast_math::C6)))));
     let sin = a + a * z * sin_poly;
     let cos = c(1.0) - c(0.5) * z + z * z * cos_poly;
     (sin, cos)
@@ -127,8 +135,7 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let resume = optical_left.eq(zero);
     let tau = resume.select(sampled, optical_left);
     let going_down = uz.gt(zero);
-    let depth_to_boundary =
-        going_down.select(layer.z_bottom - z, z - layer.z_top);
+    let depth_to_boundary = going_down.select(layer.z_bottom - z, z - layer.z_top);
     let step = tau * layer.inv_mu_t;
     // A NaN (infinite step along a clear layer) compares false, so it counts as a boundary hit.
     let inside = (step * uz.abs()).lt(depth_to_boundary);
@@ -209,9 +216,14 @@ pub(crate) fn spin(dir: [F64s; 3], cos_t: F64s, cos_p: F64s, sin_p: F64s) -> [F6
     let sin_t = sin_t_sq.sqrt();
     let signed_cos_t = uz.lt(c(0.0)).select(-cos_t, cos_t);
     [
-        vertical.select(sin_t * cos_p, k * (ux * uz * cos_p - uy * sin_p) + ux * cos_t),
-        vertical.select(sin_t * sin_p, k * (uy * uz * cos_p + ux * sin_p) + uy * cos_t),
+        vertical.select(
+            sin_t * cos_p,
+            k * (ux * uz * cos_p - uy * sin_p) + ux * cos_t,
+        ),
+        vertical.select(
+            sin_t * sin_p,
+            k * (uy * uz * cos_p + ux * sin_p) + uy * cos_t,
+        ),
         vertical.select(signed_cos_t, -k * cos_p * one_minus_uz2 + uz * cos_t),
     ]
 }
-

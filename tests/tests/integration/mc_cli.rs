@@ -49,10 +49,17 @@ fn slab_json_has_the_issue_keys_and_the_mcml_value() {
         "total_transmittance_se",
         "photons",
         "photons_per_second",
+        "interactions_per_second",
+        "interactions_per_photon",
     ] {
         assert!(v[key].is_number(), "{key} in {v}");
     }
     assert_eq!(v["photons"], 50000);
+    // Interactions per second is the photon rate times the interactions per photon.
+    let ratio = num(&v, "interactions_per_second")
+        / (num(&v, "photons_per_second") * num(&v, "interactions_per_photon"));
+    assert!((ratio - 1.0).abs() < 1e-9, "{v}");
+    assert!(v["simd"].is_string(), "{v}");
     // van de Hulst / MCML: R_d 0.09739, T 0.66096.
     let rd = num(&v, "diffuse_reflectance");
     let t = num(&v, "total_transmittance");
