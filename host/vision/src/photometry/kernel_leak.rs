@@ -172,6 +172,60 @@ pub fn separate_with_leak(
     })
 }
 
+/// Makes the direct part colourless and smooth, keeping each pixel's total: the direct part
+/// becomes the mean over channels, averaged over separated neighbours with a Gaussian of
+/// `sigma_px` camera px (0: no averaging), at most each channel's total. Why: skin's surface
+/// reflection is a dielectric's, colourless under white light and smooth where the surface is,
+/// while the per-pixel estimate carries the noise of the stripe frames several times over
+/// (`1 / (1 - lambda)`); the averaging trades that noise for blur at highlight edges.
+pub fn colourless_smoothed_direct(sep: &mut LeakSeparation, sigma_px: f64) {
+    use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
+    let (w, h) = sep.direct.dimensions();
+    let (w, h) = (w as usize, h as usize);
+    let ok: Vec<bool> = sep.flags.iter().map(|f| *f == LeakFlag::Ok).collect();
+    let mut grey: Vec<f32> = sep
+        .direct
+        .pixels()
+        .zip(&ok)
+        .map(|(p, &ok)| {
+            if ok {
+                p.0.iter().sum::<f32>() / 3.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let mut weight: Vec<f32> = ok.iter().map(|&ok| f32::from(u8::from(ok))).collect();
+    if sigma_px > 0.0 {
+        let kernel = GaussianKernel::new(sigma_px as f32, 3.0, Normalisation::Outputs);
+        // Both have the image's size, so the blur cannot fail; keep the unsmoothed values if
+        // it ever did.
+        let smoothed = blur_2d(&mut grey, w, h, &kernel, Border::Clamp)
+            .and_then(|()| blur_2d(&mut weight, w, h, &kernel, Border::Clamp));
+        if smoothed.is_err() {
+            return;
+        }
+    }
+    let direct = sep.direct.as_mut();
+    let global = sep.global.as_mut();
+    for (i, &ok) in ok.iter().enumerate() {
+        if !ok {
+            continue;
+        }
+        let d = if weight[i] > 1e-6 {
+            grey[i] / weight[i]
+        } else {
+            0.0
+        };
+        for c in 0..3 {
+            let total = direct[i * 3 + c] + global[i * 3 + c];
+            let kept = d.clamp(0.0, total.max(0.0));
+            direct[i * 3 + c] = kept;
+            global[i * 3 + c] = total - kept;
+        }
+    }
+}
+
 /// The frames' common size, after checking their number and the parameters.
 fn check_frames(
     frames: &[&Rgb32FImage],
@@ -632,6 +686,46 @@ mod tests {
         let sep = separate_with_leak(&refs, &leaks, &LeakParams::default()).unwrap();
         for v in sep.direct.as_raw().iter().chain(sep.global.as_raw()) {
             assert!(v.is_finite() && *v >= 0.0, "{v}");
+        }
+    }
+
+    #[test]
+    fn colourless_smoothing_keeps_totals_and_averages_noise() {
+        // A colourless direct of 0.02 with per-channel noise, global coloured.
+        let (w, h) = (16u32, 16u32);
+        let mut state = 7u32;
+        let mut noise = || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+        };
+        let direct = Rgb32FImage::from_fn(w, h, |_, _| {
+            image::Rgb([
+                0.02 + 0.02 * noise(),
+                0.02 + 0.02 * noise(),
+                0.02 + 0.02 * noise(),
+            ])
+        });
+        let global = Rgb32FImage::from_pixel(w, h, image::Rgb([0.4, 0.25, 0.2]));
+        let totals: Vec<f32> = direct
+            .as_raw()
+            .iter()
+            .zip(global.as_raw())
+            .map(|(d, g)| d + g)
+            .collect();
+        let mut sep = LeakSeparation {
+            direct,
+            global,
+            flags: vec![LeakFlag::Ok; (w * h) as usize],
+            stats: LeakStats::default(),
+        };
+        colourless_smoothed_direct(&mut sep, 2.0);
+        for (i, p) in sep.direct.pixels().enumerate() {
+            assert!(p.0[0] == p.0[1] && p.0[1] == p.0[2]);
+            assert!((p.0[0] - 0.02).abs() < 0.003, "{}", p.0[0]);
+            for c in 0..3 {
+                let sum = p.0[c] + sep.global.as_raw()[i * 3 + c];
+                assert!((sum - totals[i * 3 + c]).abs() < 1e-6);
+            }
         }
     }
 

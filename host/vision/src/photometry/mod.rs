@@ -8,3 +8,4 @@ pub mod photometric_stereo;
 pub mod ps_scene;
 pub mod response;
 pub mod separation;
+pub mod slit_leak;
