@@ -131,7 +131,7 @@ fn pixel_leak(
             total += q;
             weighted += q * weights[(j + count - brightest) % count];
         }
-        if !(total > 0.0) || !weighted.is_finite() {
+        if total <= 0.0 || !total.is_finite() || !weighted.is_finite() {
             continue;
         }
         any = true;
