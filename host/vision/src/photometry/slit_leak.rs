@@ -7,11 +7,12 @@
 //! projector and the slit's width), plus the direct reflection in the slit that lands on it.
 //! The leak is that profile's normalised transfer at the stripe frequency `f = 1 / (2 stripe)`:
 //!
-//! `lambda = sum_d q(d) cos(2 pi f x_d) / (sum_d q(d) sinc(w f))`,
+//! `lambda = sum_d q(d) cos(2 pi f x_d) / (sum_d q(d) sinc(w f) exp(-2 pi^2 s^2 f^2))`,
 //!
 //! over the slits `d` (distance `x_d = d w` px from the brightest, wrapped into one period), with
-//! `q` the slit value less the black-level light (`b` times the white frame) and `w` the slit
-//! width (the `sinc` undoes the slit's own box).
+//! `q` the slit value less the black-level light (`b` times the white frame), `w` the slit
+//! width and `s` the projector blur (the `sinc` undoes the slit's own box, the exponential the
+//! blur, which the separation accounts for in the pattern itself).
 //!
 //! What it cannot see, and how that shows:
 //! - The direct reflection sits in the brightest slit as if it were kernel; it is a few percent of
@@ -43,6 +44,8 @@ pub struct SweepGeometry {
     pub slit_width_px: u32,
     pub stripe_px: u32,
     pub black_level: f32,
+    /// Blur of the pattern seen by a camera pixel (defocus and footprint), Gaussian sigma, px.
+    pub blur_px: f32,
 }
 
 /// Leak per pixel and channel from the slit frames of one axis (`slits[j]` the frame of offset
@@ -86,6 +89,8 @@ fn slit_weights(count: usize, geometry: &SweepGeometry) -> Vec<f32> {
     let f = 1.0 / (2.0 * f64::from(geometry.stripe_px.max(1)));
     let arg = std::f64::consts::PI * w * f;
     let sinc = if arg > 0.0 { arg.sin() / arg } else { 1.0 };
+    let blur = f64::from(geometry.blur_px);
+    let sinc = sinc * (-2.0 * (std::f64::consts::PI * blur * f).powi(2)).exp();
     (0..count)
         .map(|k| {
             let d = if 2 * k >= count {
@@ -184,6 +189,7 @@ mod tests {
                 slit_width_px: 1,
                 stripe_px: 3,
                 black_level: 0.0,
+                blur_px: 0.0,
             };
             let (leak, stats) = leak_from_slits(&refs, &[[1.0; 3]], &geometry);
             let expected = gaussian_leak(sigma, 3.0) as f32;
@@ -207,6 +213,7 @@ mod tests {
             slit_width_px: 1,
             stripe_px: 3,
             black_level: 0.02,
+            blur_px: 0.6,
         };
         for (frames, counts) in [(flat, Some((1, 0))), (dark, Some((0, 1))), (broken, None)] {
             let refs: Vec<&[[f32; 3]]> = frames.iter().map(|f| f.as_slice()).collect();
@@ -231,6 +238,7 @@ mod tests {
             slit_width_px: 3,
             stripe_px: 3,
             black_level: 0.0,
+            blur_px: 0.0,
         };
         assert!(
             leak_from_slits(&refs, &[[1.0; 3]], &geometry)
