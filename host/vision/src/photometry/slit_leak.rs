@@ -26,6 +26,8 @@
 //! - A pixel with no positive slit light (shadow, outside the projector) gets leak 0 and is
 //!   counted in `no_profile_pixels`; nothing here returns NaN.
 
+use rayon::prelude::*;
+
 /// Counters of the leak measurement.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
 pub struct SlitLeakStats {
@@ -62,17 +64,19 @@ pub fn leak_from_slits(
         ..Default::default()
     };
     let weights = slit_weights(slits.len(), geometry);
-    let leaks = (0..n)
-        .map(|i| {
-            let (leak, outcome) = pixel_leak(slits, white, i, geometry, &weights);
-            match outcome {
-                Outcome::Ok => {}
-                Outcome::NoProfile => stats.no_profile_pixels += 1,
-                Outcome::Wide => stats.wide_kernel_pixels += 1,
-            }
-            leak
-        })
+    let measured: Vec<([f32; 3], Outcome)> = (0..n)
+        .into_par_iter()
+        .map(|i| pixel_leak(slits, white, i, geometry, &weights))
         .collect();
+    let mut leaks = Vec::with_capacity(n);
+    for (leak, outcome) in measured {
+        match outcome {
+            Outcome::Ok => {}
+            Outcome::NoProfile => stats.no_profile_pixels += 1,
+            Outcome::Wide => stats.wide_kernel_pixels += 1,
+        }
+        leaks.push(leak);
+    }
     (leaks, stats)
 }
 
