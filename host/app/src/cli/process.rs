@@ -38,7 +38,7 @@ pub struct Args {
     /// separate stage's direct image), `colourless` (its smallest channel: skin's surface
     /// reflection is colourless, the subsurface light that leaks into a coarse separation is
     /// not) or `none` (all slit light counts as subsurface light).
-    #[arg(long, value_enum, default_value_t = DirectArg::Separation)]
+    #[arg(long, value_enum, default_value_t = DirectArg::None)]
     direct: DirectArg,
     /// Fit stage: fit one pixel per BLOCK x BLOCK tile (1 = every pixel; larger is faster and
     /// coarser).

@@ -105,19 +105,15 @@ pub enum SlitCoordinates {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DirectPart {
-    /// The separation stage's direct image (its method: kernel-aware by default, or Nayar et
-    /// al.). Default, chosen by held-out relighting error on quick heads of seed 21
-    /// (`fit.heldout_global_rel_rmse.white.mlsss`, holdout 3): light skin 0.181 (`none` 0.090),
-    /// dark skin 0.129 (`none` 0.608, `--block 4`); a specular reflection left in the slit
-    /// profiles costs dark skin far more than the kernel-aware direct part costs light skin.
-    #[default]
+    /// The separation stage's direct image (Nayar et al. from the high-frequency frames).
     Separation,
     /// None: all light of a slit frame counts as subsurface light, and renders get no direct
     /// part. For booths whose stripes are too coarse for the separation (short-range subsurface
     /// light then lands in the "direct" image and would be cut out of every profile's peak).
     /// Default: on the quick booth the extracted slit light is 10x closer to the truth this way
-    /// (relative RMSE 0.105 against 0.95 with the Nayar separation, 0.71 colourless), and skin's
+    /// (relative RMSE 0.105 against 0.95 with the separation, 0.71 colourless), and skin's
     /// surface reflection is a few percent of its light.
+    #[default]
     None,
     /// The separation's direct image made colourless: its smallest channel in every channel.
     /// Skin's surface reflection is a dielectric's, colourless under white light, while the
@@ -155,7 +151,7 @@ impl Default for ProfilesParams {
             view_ray: ViewRay::ExitPoint,
             blur_edges: true,
             scanline_projector: 0,
-            direct: DirectPart::Separation,
+            direct: DirectPart::None,
             coordinates: SlitCoordinates::Projected,
             compare_variants: false,
         }
