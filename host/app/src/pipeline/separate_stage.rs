@@ -73,8 +73,9 @@ impl Default for SeparateParams {
             blur_correction: true,
             remove_stray: true,
             method: SeparationMethod::Kernel,
-            // Held-out quick heads (light and dark, seeds 7 tuned): sigma 1 halves the direct
-            // error of the per-pixel split; 2 and 3 gain less than 5 % more.
+            // Held-out quick heads (seed 21; tuned on seed 7): sigma 1 lowers the direct error
+            // of the per-pixel split by 14 % (light skin, 2.20 to 1.88) and 20 % (dark, 0.395
+            // to 0.317); sigma 3 gains about 1 % more.
             direct_smoothing_px: 1.0,
         }
     }
