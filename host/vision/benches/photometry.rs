@@ -2,16 +2,21 @@
 //! frames (1379x1029 RGB), and, in the same run, the numpy implementation of the same formulas in
 //! `photometry_numpy.py` (skipped with a note when python3/numpy are missing).
 //!
-//! Run: `cargo bench -p mlsss-vision --bench photometry`
+//! Run: `cargo bench -p mlsss-vision --bench photometry` (`separation_kernel_aware` races the
+//! kernel-aware separation, slit-sweep leak included, against the Nayar variants).
 
 use std::process::Command;
 
 use criterion::{Criterion, criterion_group};
 use image::Rgb32FImage;
+use mlsss_vision::photometry::kernel_leak::{
+    LeakParams, colourless_smoothed_direct, separate_with_leak,
+};
 use mlsss_vision::photometry::photometric_stereo::{
     DirectionalLights, LightSample, Method, PsParams, solve_images,
 };
 use mlsss_vision::photometry::separation::{SeparationParams, separate};
+use mlsss_vision::photometry::slit_leak::{SweepGeometry, leak_from_slits};
 use nalgebra::Vector3;
 
 const WIDTH: u32 = 1379;
@@ -30,6 +35,24 @@ fn stripe_frames() -> Vec<Rgb32FImage> {
                 let v = direct * e + global * (1.0 + b) / 2.0;
                 image::Rgb([v, 0.8 * v, 0.6 * v])
             })
+        })
+        .collect()
+}
+
+/// Ten 3-px slit frames every 30 px (the full-size sweep along x) of the same kind of scene: a
+/// Gaussian kernel of sigma 2 px around the lit columns, sampled at the pixel's column.
+fn slit_frames() -> Vec<Vec<[f32; 3]>> {
+    (0..10u32)
+        .map(|j| {
+            (0..WIDTH * HEIGHT)
+                .map(|i| {
+                    let x = (i % WIDTH) as f32;
+                    let d = (x - 3.0 * j as f32 - 1.0).rem_euclid(30.0);
+                    let d = d.min(30.0 - d);
+                    let v = 0.02 + 0.3 * (-d * d / 8.0).exp();
+                    [v, 0.8 * v, 0.6 * v]
+                })
+                .collect()
         })
         .collect()
 }
@@ -78,6 +101,31 @@ fn bench(c: &mut Criterion) {
     };
     group.bench_function("separation_blur_corrected", |b| {
         b.iter(|| separate(&refs, &blur).map(|s| s.stats))
+    });
+    // The kernel-aware separation races the baseline: leak from the slit sweep, split, and the
+    // colourless smoothed direct part, as the separate stage runs it (frame reading excluded).
+    let slits = slit_frames();
+    let slit_refs: Vec<&[[f32; 3]]> = slits.iter().map(|s| s.as_slice()).collect();
+    let white: Vec<[f32; 3]> = frames[0].pixels().map(|p| p.0.map(|v| 2.0 * v)).collect();
+    let geometry = SweepGeometry {
+        slit_width_px: 3,
+        stripe_px: 3,
+        black_level: 0.02,
+        blur_px: 0.6,
+    };
+    let leak_params = LeakParams {
+        black_level: 0.02,
+        blur_px: 0.6,
+        ..Default::default()
+    };
+    group.bench_function("separation_kernel_aware", |b| {
+        b.iter(|| {
+            let (leak, _) = leak_from_slits(&slit_refs, &white, &geometry);
+            separate_with_leak(&refs, &leak, &leak_params).map(|mut s| {
+                colourless_smoothed_direct(&mut s, 1.0);
+                s.stats
+            })
+        })
     });
     let lights = booth_lights();
     let images = ps_frames(&lights);

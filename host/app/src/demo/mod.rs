@@ -336,6 +336,14 @@ pub struct SeparationSummary {
     pub global_rel_rmse: Option<f64>,
     pub direct_rel_rmse: Option<f64>,
     pub total_rel_rmse: Option<f64>,
+    /// The separation method run (`kernel` or `nayar`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<crate::pipeline::separate_stage::SeparationMethod>,
+    /// The Nayar baseline's errors on the same frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nayar_global_rel_rmse: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nayar_direct_rel_rmse: Option<f64>,
 }
 
 /// Wall-clock seconds per step.
@@ -791,6 +799,9 @@ fn demo_report(
         global_rel_rmse: s.truth.map(|t| t.global_rel_rmse),
         direct_rel_rmse: s.truth.map(|t| t.direct_rel_rmse),
         total_rel_rmse: s.truth.map(|t| t.total_rel_rmse),
+        method: Some(s.method),
+        nayar_global_rel_rmse: s.nayar_global_rel_rmse,
+        nayar_direct_rel_rmse: s.nayar_direct_rel_rmse,
     });
     DemoReport {
         demo: Some(info),

@@ -2,8 +2,10 @@
 //! (DESIGN section 4, stages 4 and 5).
 
 pub mod image_set;
+pub mod kernel_leak;
 pub mod mat_file;
 pub mod photometric_stereo;
 pub mod ps_scene;
 pub mod response;
 pub mod separation;
+pub mod slit_leak;

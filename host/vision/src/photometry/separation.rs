@@ -48,6 +48,9 @@ pub enum SeparationError {
     /// The blur correction needs exactly one frame per stripe shift.
     #[error("blur correction needs {expected} frames (2 x stripe width), got {got}")]
     ShiftCount { expected: usize, got: usize },
+    /// The per-pixel leak map of the kernel-aware separation has the wrong length.
+    #[error("leak map has {got} pixels, the frames {expected}")]
+    LeakSize { expected: usize, got: usize },
 }
 
 /// Parameters of the separation.
@@ -329,31 +332,30 @@ fn separate_pixel(
 /// [0, 1) of the pattern. 1 for a sharp pattern; e.g. 0.93 at the worst phase for sigma 0.7 px
 /// and 3-px stripes.
 pub fn blurred_contrast(frac: f32, stripe: f32, blur: f32) -> f32 {
-    let period = 2.0 * stripe;
-    let lit = |y: f32| -> f32 {
-        if blur <= 0.0 {
-            return if y.rem_euclid(period) < stripe {
-                1.0
-            } else {
-                0.0
-            };
-        }
-        let y = y.rem_euclid(period);
-        (-2..=2)
-            .map(|m| {
-                let start = m as f32 * period;
-                normal_cdf((y - start) / blur) - normal_cdf((y - start - stripe) / blur)
-            })
-            .sum()
-    };
     let (mut max, mut min) = (f32::MIN, f32::MAX);
     for k in 0..(2 * stripe as u32) {
-        let v = lit(frac + k as f32);
+        let v = blurred_square_wave(frac + k as f32, stripe, blur);
         max = max.max(v);
         min = min.min(v);
     }
     // Never divide by less than a tenth: a washed-out pixel is reported low, not amplified noise.
     (max - min).max(0.1)
+}
+
+/// The lit fraction at position `y` (projector px) of a square wave `stripe` px on from 0, `stripe`
+/// px off, blurred by a Gaussian of sigma `blur` px.
+pub(crate) fn blurred_square_wave(y: f32, stripe: f32, blur: f32) -> f32 {
+    let period = 2.0 * stripe;
+    let y = y.rem_euclid(period);
+    if blur <= 0.0 {
+        return if y < stripe { 1.0 } else { 0.0 };
+    }
+    (-2..=2)
+        .map(|m| {
+            let start = m as f32 * period;
+            normal_cdf((y - start) / blur) - normal_cdf((y - start - stripe) / blur)
+        })
+        .sum()
 }
 
 /// Standard normal CDF (Abramowitz & Stegun 7.1.26, absolute error below 1.5e-7).
