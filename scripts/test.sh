@@ -66,5 +66,7 @@ cargo test --workspace -- --skip rig_hil
 step "hardware-in-the-loop tests, alone"
 # With `-icount sleep=off` the emulated controller's clock runs ahead whenever the host is slow, so
 # a host starved by the heavy tests running beside it answers "late"; these run on a quiet machine.
+# One at a time: two of them side by side (each a QEMU guest plus the host, and one an Xvfb) were
+# enough to starve a host on a 2-core machine and fail the nominal run with one late frame.
 # `--workspace` keeps the feature set of the run above, so nothing is compiled again.
-cargo test --workspace --test integration -- rig_hil
+cargo test --workspace --test integration -- rig_hil --test-threads=1
