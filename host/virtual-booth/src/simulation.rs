@@ -858,7 +858,7 @@ mod tests {
         let booth = scaled_booth(&Booth::builtin(true), 8);
         let cache = tempfile::tempdir().unwrap();
         let mut opts =
-            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, 3);
+            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::LIGHT, 3);
         opts.mc.photons = 300;
         opts.mc.angles_deg = vec![0.0, 60.0];
         opts.cache = ResponseCache::new(cache.path());

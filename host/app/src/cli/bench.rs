@@ -58,7 +58,7 @@ fn capture_for(args: &Args, factor: u32) -> anyhow::Result<(PathBuf, PathBuf)> {
         booth = scaled_booth(&booth, factor);
     }
     let mut opts =
-        SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, args.seed);
+        SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::LIGHT, args.seed);
     args.monte_carlo.apply(&mut opts);
     eprintln!(
         "simulating a {}x{} capture ...",

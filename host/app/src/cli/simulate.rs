@@ -27,7 +27,7 @@ pub struct Args {
     #[arg(long, value_enum)]
     subject: SubjectKind,
     /// Skin type (optical properties from the literature).
-    #[arg(long, value_enum, default_value_t = SkinPreset::Light)]
+    #[arg(long, value_enum, default_value_t = SkinPreset::LIGHT)]
     skin: SkinPreset,
     /// Seed of everything random (material maps, noise, board poses).
     #[arg(long, default_value_t = 1)]

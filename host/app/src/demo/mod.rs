@@ -191,7 +191,7 @@ impl DemoOptions {
         Self {
             booth,
             subject: SubjectKind::Head,
-            skin: SkinPreset::Light,
+            skin: SkinPreset::LIGHT,
             seed: 1,
             holdout: 3,
             calibration: CalibrationMode::Estimated { poses: 5 },

@@ -11,8 +11,12 @@
 //!   coordinate is lit in the pattern and dark in its inverse.
 //!
 //! Algorithm
-//! 1. Lit mask: `white - black` (or, with no black frame, the largest pattern/inverse difference of
-//!    the coarse bits) must exceed `min_amplitude`.
+//! 1. Lit mask, relative to each pixel's noise (`lit_test`): the pattern/inverse differences of
+//!    every pair (and `white - black` when a black frame exists), each divided by its standard
+//!    deviation under the sensor noise model, are summed in squares and tested as a chi-square
+//!    variable at the false-alarm probability `lit_false_alarm`. Pixels significant only at
+//!    `dim_false_alarm` are flagged as [`PixelStatus::Dim`], never called unlit. The absolute
+//!    `min_amplitude` only guards the whole sequence (frames all dark: an error).
 //! 2. Each bit is decided by the sign of `pattern - inverse`. The bit is *reliable* when the
 //!    difference exceeds both `min_bit_snr` standard deviations of the sensor noise and
 //!    `min_bit_contrast` of the pixel's amplitude. Subsurface scattering washes out the finest
@@ -32,6 +36,7 @@
 
 mod axis;
 mod bits;
+mod lit_test;
 mod plane;
 #[cfg(test)]
 mod tests;
@@ -41,6 +46,7 @@ use serde::{Deserialize, Serialize};
 
 use axis::{Grid, decode_axis};
 use bits::decide_bits;
+use lit_test::classify_lighting;
 
 /// Errors of the Gray-code decoder.
 #[derive(Debug, thiserror::Error)]
@@ -104,8 +110,17 @@ pub struct GrayCodeFrames {
 /// Thresholds of the decoder. Noise terms are in the frames' units (linear, full scale 1).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecodeParams {
-    /// Smallest `white - black` for a pixel to count as lit.
+    /// Smallest `white - black` (or coarse-pair difference) of the brightest pixel: below it the
+    /// whole sequence is dark ([`GrayCodeError::NothingLit`]). Not a per-pixel threshold: each
+    /// pixel is judged against its own noise (`lit_false_alarm`).
     pub min_amplitude: f32,
+    /// Probability that a pixel the projector does not light is called lit (chi-square test of
+    /// its pair differences against the sensor noise).
+    #[serde(default = "default_lit_false_alarm")]
+    pub lit_false_alarm: f32,
+    /// Probability that such a pixel is flagged dim (significant, too weak to call lit).
+    #[serde(default = "default_dim_false_alarm")]
+    pub dim_false_alarm: f32,
     /// Smallest |pattern - inverse| relative to the pixel's amplitude for a reliable bit.
     pub min_bit_contrast: f32,
     /// Smallest |pattern - inverse| in noise standard deviations for a reliable bit.
@@ -130,6 +145,8 @@ impl Default for DecodeParams {
     fn default() -> Self {
         Self {
             min_amplitude: 0.02,
+            lit_false_alarm: default_lit_false_alarm(),
+            dim_false_alarm: default_dim_false_alarm(),
             min_bit_contrast: 0.03,
             min_bit_snr: 3.0,
             shot_noise_gain: 1.0 / 12_000.0,
@@ -143,7 +160,35 @@ impl Default for DecodeParams {
     }
 }
 
+fn default_lit_false_alarm() -> f32 {
+    1e-7
+}
+
+fn default_dim_false_alarm() -> f32 {
+    1e-4
+}
+
 impl DecodeParams {
+    /// The noise model of a camera with `full_well_e` electrons at saturation and a read noise of
+    /// `read_noise_dn` codes at `bit_depth` bits, for frames scaled by `1 / exposure_gain` (a
+    /// frame exposed `exposure_gain` times the nominal exposure, brought back to nominal units:
+    /// its noise shrinks by that factor, the shot part by its square root).
+    pub fn with_camera_noise(
+        self,
+        full_well_e: f64,
+        read_noise_dn: f64,
+        bit_depth: u32,
+        exposure_gain: f64,
+    ) -> Self {
+        let max_code = ((1u64 << bit_depth.min(32)) - 1) as f64;
+        let gain = exposure_gain.max(f64::MIN_POSITIVE);
+        Self {
+            shot_noise_gain: (1.0 / (full_well_e.max(1.0) * gain)) as f32,
+            read_noise: (read_noise_dn / max_code / gain) as f32,
+            ..self
+        }
+    }
+
     /// Parameters for 8-bit frames (quantisation dominates the read noise).
     pub fn for_8_bit() -> Self {
         Self {
@@ -172,6 +217,9 @@ pub enum PixelStatus {
     Inconsistent = 5,
     /// The code is beyond the projector's width or height.
     OutOfRange = 6,
+    /// The projector probably lights the pixel, but too weakly to decode (significant against
+    /// the noise only at the dim level).
+    Dim = 7,
 }
 
 impl PixelStatus {
@@ -289,8 +337,14 @@ pub fn decode(
         width: frames.width as usize,
         height: frames.height as usize,
     };
-    let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, params);
-    let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, params);
+    let all_pairs: Vec<&BitPair> = frames.x.iter().chain(&frames.y).collect();
+    let white_black = match (&frames.white, &frames.black) {
+        (Some(w), Some(b)) => Some((w.as_slice(), b.as_slice())),
+        _ => None,
+    };
+    let lighting = classify_lighting(&all_pairs, white_black, params);
+    let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, &lighting, params);
+    let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, &lighting, params);
     let u = decode_axis(
         grid,
         &u_bits,
