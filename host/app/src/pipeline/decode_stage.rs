@@ -161,19 +161,20 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
     })
 }
 
-/// The decoder's thresholds with the noise model of the capture's camera: each pixel's lit and
-/// bit decisions are judged against the noise this camera has at that pixel's level.
+/// The decoder's thresholds with the noise model of the capture's camera at projector `k`'s
+/// exposure: each pixel's lit and bit decisions are judged against the noise this camera has at
+/// that pixel's level (the `shot_noise_gain` and `read_noise` of `params` are replaced).
 fn camera_noise_params(
     params: &DecodeParams,
     capture: &mlsss_core::capture::Capture,
-    _k: usize,
+    k: usize,
 ) -> DecodeParams {
     let camera = &capture.manifest.booth.camera;
     params.clone().with_camera_noise(
         camera.full_well_e,
         camera.read_noise_dn,
         capture.manifest.bit_depth,
-        1.0,
+        &capture.manifest.exposure_of(k),
     )
 }
 

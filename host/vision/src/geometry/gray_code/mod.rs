@@ -47,6 +47,7 @@ use serde::{Deserialize, Serialize};
 use axis::{Grid, decode_axis};
 use bits::decide_bits;
 use lit_test::classify_lighting;
+use mlsss_core::capture::ProjectorExposure;
 
 /// Errors of the Gray-code decoder.
 #[derive(Debug, thiserror::Error)]
@@ -170,21 +171,21 @@ fn default_dim_false_alarm() -> f32 {
 
 impl DecodeParams {
     /// The noise model of a camera with `full_well_e` electrons at saturation and a read noise of
-    /// `read_noise_dn` codes at `bit_depth` bits, for frames scaled by `1 / exposure_gain` (a
-    /// frame exposed `exposure_gain` times the nominal exposure, brought back to nominal units:
-    /// its noise shrinks by that factor, the shot part by its square root).
+    /// `read_noise_dn` codes at `bit_depth` bits, for frames taken at `exposure` and read back in
+    /// nominal units (`Capture::read_frame` divides them by the exposure's scale: longer exposure
+    /// shrinks both noise terms, analog gain only the read noise).
     pub fn with_camera_noise(
         self,
         full_well_e: f64,
         read_noise_dn: f64,
         bit_depth: u32,
-        exposure_gain: f64,
+        exposure: &ProjectorExposure,
     ) -> Self {
         let max_code = ((1u64 << bit_depth.min(32)) - 1) as f64;
-        let gain = exposure_gain.max(f64::MIN_POSITIVE);
+        let (shot, read) = exposure.noise_scale();
         Self {
-            shot_noise_gain: (1.0 / (full_well_e.max(1.0) * gain)) as f32,
-            read_noise: (read_noise_dn / max_code / gain) as f32,
+            shot_noise_gain: (shot / full_well_e.max(1.0)) as f32,
+            read_noise: (read * read_noise_dn / max_code) as f32,
             ..self
         }
     }
