@@ -64,6 +64,49 @@ pub(super) fn classify_lighting(
         .collect()
 }
 
+/// Lit pixels much dimmer than the brightest lit pixel around them (within `radius`) become dim:
+/// a pixel the projector lights only in part (silhouette, shadow edge) or only through the skin
+/// (subsurface light bleeding into a shadow) has the modulation of its lit neighbours' codes, not
+/// of its own. Pixels at grazing light are dim together with their neighbours and stay lit.
+/// `ratio` 0 turns the check off.
+pub(super) fn demote_partly_lit(
+    lighting: &mut [Lighting],
+    amplitude: &[f32],
+    width: usize,
+    radius: usize,
+    ratio: f32,
+) {
+    if ratio <= 0.0 || width == 0 {
+        return;
+    }
+    let height = lighting.len() / width;
+    let lit: Vec<bool> = lighting.iter().map(|&l| l == Lighting::Lit).collect();
+    let demote: Vec<bool> = (0..lighting.len())
+        .into_par_iter()
+        .map(|i| {
+            if !lit[i] {
+                return false;
+            }
+            let (x, y) = (i % width, i / width);
+            let rows = y.saturating_sub(radius)..(y + radius + 1).min(height);
+            let brightest = rows
+                .flat_map(|ny| {
+                    let cols = x.saturating_sub(radius)..(x + radius + 1).min(width);
+                    cols.map(move |nx| ny * width + nx)
+                })
+                .filter(|&j| lit[j])
+                .map(|j| amplitude[j])
+                .fold(0.0f32, f32::max);
+            amplitude[i] < ratio * brightest
+        })
+        .collect();
+    for (l, d) in lighting.iter_mut().zip(demote) {
+        if d {
+            *l = Lighting::Dim;
+        }
+    }
+}
+
 /// `(a - b)^2 / var(a - b)` under the sensor noise model.
 fn pair_chi_square(a: f32, b: f32, params: &DecodeParams) -> f64 {
     let d = (a - b) as f64;
@@ -179,5 +222,22 @@ mod tests {
             .collect();
         let refs: Vec<&BitPair> = pairs.iter().collect();
         assert_eq!(classify_lighting(&refs, None, &params), vec![Lighting::Lit]);
+    }
+
+    #[test]
+    fn a_pixel_far_dimmer_than_its_lit_neighbours_is_demoted_to_dim() {
+        // A 5x5 patch lit at 0.5, one pixel at 0.1 (lit in part), one dim row at 0.04 whose
+        // neighbours are as dim (grazing light: stays lit).
+        let width = 5;
+        let mut amplitude = vec![0.5f32; 25];
+        amplitude[12] = 0.1;
+        let mut lighting = vec![Lighting::Lit; 25];
+        demote_partly_lit(&mut lighting, &amplitude, width, 2, 0.5);
+        assert_eq!(lighting[12], Lighting::Dim);
+        assert_eq!(lighting.iter().filter(|&&l| l == Lighting::Dim).count(), 1);
+        let dim_patch = vec![0.04f32; 25];
+        let mut lighting = vec![Lighting::Lit; 25];
+        demote_partly_lit(&mut lighting, &dim_patch, width, 2, 0.5);
+        assert!(lighting.iter().all(|&l| l == Lighting::Lit));
     }
 }

@@ -46,7 +46,7 @@ use serde::{Deserialize, Serialize};
 
 use axis::{Grid, decode_axis};
 use bits::decide_bits;
-use lit_test::classify_lighting;
+use lit_test::{classify_lighting, demote_partly_lit};
 use mlsss_core::capture::ProjectorExposure;
 
 /// Errors of the Gray-code decoder.
@@ -122,6 +122,11 @@ pub struct DecodeParams {
     /// Probability that such a pixel is flagged dim (significant, too weak to call lit).
     #[serde(default = "default_dim_false_alarm")]
     pub dim_false_alarm: f32,
+    /// A lit pixel whose amplitude is below this fraction of the brightest lit pixel within
+    /// `window_radius` is flagged dim: lit in part (silhouette, shadow edge) or only through the
+    /// skin. 0 turns the check off.
+    #[serde(default)]
+    pub min_neighbour_ratio: f32,
     /// Smallest |pattern - inverse| relative to the pixel's amplitude for a reliable bit.
     pub min_bit_contrast: f32,
     /// Smallest |pattern - inverse| in noise standard deviations for a reliable bit.
@@ -148,6 +153,7 @@ impl Default for DecodeParams {
             min_amplitude: 0.02,
             lit_false_alarm: default_lit_false_alarm(),
             dim_false_alarm: default_dim_false_alarm(),
+            min_neighbour_ratio: 0.5,
             min_bit_contrast: 0.03,
             min_bit_snr: 3.0,
             shot_noise_gain: 1.0 / 12_000.0,
@@ -343,7 +349,14 @@ pub fn decode(
         (Some(w), Some(b)) => Some((w.as_slice(), b.as_slice())),
         _ => None,
     };
-    let lighting = classify_lighting(&all_pairs, white_black, params);
+    let mut lighting = classify_lighting(&all_pairs, white_black, params);
+    demote_partly_lit(
+        &mut lighting,
+        &amplitude,
+        grid.width,
+        params.window_radius as usize,
+        params.min_neighbour_ratio,
+    );
     let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, &lighting, params);
     let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, &lighting, params);
     let u = decode_axis(
