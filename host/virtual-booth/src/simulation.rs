@@ -897,6 +897,9 @@ mod tests {
         opts.mc.photons = 300;
         opts.mc.angles_deg = vec![0.0, 60.0];
         opts.cache = ResponseCache::new(cache.path());
+        // Metering renders every white first, which makes holding unnecessary: off, so the
+        // holding path is the one compared.
+        opts.metering = false;
         let out = tempfile::tempdir().unwrap();
         let capture = |name: &str, budget: usize| {
             let dir = out.path().join(name);
@@ -911,5 +914,45 @@ mod tests {
             let (a, b) = (held.read_frame(i).unwrap(), alone.read_frame(i).unwrap());
             assert!(a == b, "frame {i} differs");
         }
+    }
+
+    #[test]
+    fn metering_a_dark_subject_exposes_longer_and_frames_read_back_in_nominal_units() {
+        let booth = scaled_booth(&Booth::builtin(true), 8);
+        let cache = tempfile::tempdir().unwrap();
+        let out = tempfile::tempdir().unwrap();
+        let simulate = |metering: bool, name: &str| {
+            let mut opts =
+                SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::TypeVI, 3);
+            opts.mc.photons = 300;
+            opts.mc.angles_deg = vec![0.0, 60.0];
+            opts.cache = ResponseCache::new(cache.path());
+            opts.metering = metering;
+            let dir = out.path().join(name);
+            simulate_scan(&booth, &opts, &dir, &NoProgress).unwrap();
+            Capture::open(&dir).unwrap()
+        };
+        let fixed = simulate(false, "fixed");
+        let metered = simulate(true, "metered");
+        assert!(fixed.manifest.exposure.is_empty());
+        assert_eq!(metered.manifest.exposure.len(), booth.projectors.len());
+        for e in &metered.manifest.exposure {
+            // Type VI returns a few percent of the light: longer exposure, within the slot.
+            assert!(
+                e.scale > 2.0 && e.periods > booth.timing.exposure_periods,
+                "{e:?}"
+            );
+        }
+        // Read back in nominal units, the metered white matches the fixed one (less noise).
+        let white = metered.manifest.plan.frames[0].index;
+        let (a, b) = (
+            fixed.read_frame(white).unwrap(),
+            metered.read_frame(white).unwrap(),
+        );
+        let mean = |img: &image::Rgb32FImage| {
+            img.as_raw().iter().map(|&v| v as f64).sum::<f64>() / img.as_raw().len() as f64
+        };
+        let (ma, mb) = (mean(&a), mean(&b));
+        assert!((ma - mb).abs() < 0.05 * ma, "{ma} {mb}");
     }
 }
