@@ -33,12 +33,12 @@ fn semi_infinite_skin() -> Medium {
 
 fn photon_throughput(c: &mut Criterion) {
     let booth = Booth::builtin(true);
-    let opts = SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, 1);
+    let opts = SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::LIGHT, 1);
     let grid = GridSpec {
         cell_mm: opts.mc.cell_mm,
         cells: opts.mc.cells,
     };
-    let base = &SkinPreset::Light.materials()[0];
+    let base = &SkinPreset::LIGHT.materials()[0];
     let mut cases: Vec<(String, Medium, Option<GridSpec>)> = ["red", "green", "blue"]
         .iter()
         .enumerate()

@@ -45,17 +45,29 @@ impl CameraModel {
     /// are approximated by a Gaussian of the same variance (exact enough above ~20 electrons,
     /// and read noise dominates below).
     pub fn add_noise<R: Rng>(&self, values: &mut [f32], rng: &mut R) {
+        self.add_noise_with_gain(values, 1.0, rng);
+    }
+
+    /// [`Self::add_noise`] at analog gain `gain`: camera values are `gain` times the electrons'
+    /// share of the full well, so the shot noise grows with the gain; the read noise (after the
+    /// amplifier) does not.
+    pub fn add_noise_with_gain<R: Rng>(&self, values: &mut [f32], gain: f64, rng: &mut R) {
         // rand_distr's ziggurat deviates: no logarithm or square root for almost every value
         // (the noise was a quarter of a calibration capture's CPU time with polar Box-Muller).
         for v in values.iter_mut() {
-            *v = (*v as f64 + self.noise_sigma(*v as f64) * rng.sample::<f64, _>(StandardNormal))
-                as f32;
+            let sigma = self.noise_sigma_with_gain(*v as f64, gain);
+            *v = (*v as f64 + sigma * rng.sample::<f64, _>(StandardNormal)) as f32;
         }
     }
 
     /// Standard deviation of the noise at camera value `v` (for tests and reports).
     pub fn noise_sigma(&self, v: f64) -> f64 {
-        (v.max(0.0) / self.full_well_e + self.read_noise.powi(2)).sqrt()
+        self.noise_sigma_with_gain(v, 1.0)
+    }
+
+    /// Standard deviation of the noise at camera value `v` and analog gain `gain`.
+    pub fn noise_sigma_with_gain(&self, v: f64, gain: f64) -> f64 {
+        (gain * v.max(0.0) / self.full_well_e + self.read_noise.powi(2)).sqrt()
     }
 }
 

@@ -15,6 +15,7 @@ pub mod camera;
 pub mod frame_render;
 pub mod head;
 pub mod material_maps;
+pub mod metering;
 pub mod projector;
 pub mod response_cache;
 pub mod scene;

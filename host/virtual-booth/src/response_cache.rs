@@ -348,7 +348,7 @@ mod tests {
     fn second_request_is_served_from_disk_without_monte_carlo() {
         let dir = tempfile::tempdir().unwrap();
         let cache = ResponseCache::new(dir.path());
-        let materials = &SkinPreset::Light.materials()[..1];
+        let materials = &SkinPreset::LIGHT.materials()[..1];
         let (first, stats1) = cache.response_set(materials, &settings(), &|_| {}).unwrap();
         assert_eq!((stats1.hits, stats1.misses), (0, 2));
         assert!(stats1.photons_traced > 0);
@@ -371,7 +371,7 @@ mod tests {
     fn parallel_jobs_give_the_sequential_runs_in_their_places() {
         let dir = tempfile::tempdir().unwrap();
         let cache = ResponseCache::new(dir.path());
-        let materials = &SkinPreset::Light.materials()[1..3];
+        let materials = &SkinPreset::LIGHT.materials()[1..3];
         let settings = settings();
         let (set, stats) = cache.response_set(materials, &settings, &|_| {}).unwrap();
         assert_eq!((stats.hits, stats.misses), (0, 4));
@@ -407,7 +407,7 @@ mod tests {
     fn oblique_response_is_symmetric_and_shifted_forward() {
         let dir = tempfile::tempdir().unwrap();
         let cache = ResponseCache::new(dir.path());
-        let materials = &SkinPreset::Light.materials()[..1];
+        let materials = &SkinPreset::LIGHT.materials()[..1];
         let (set, _) = cache.response_set(materials, &settings(), &|_| {}).unwrap();
         let grid = &set.grids[0][1];
         let n = grid.cells;

@@ -22,6 +22,7 @@ use super::VirtualBoothError;
 use super::camera::CameraModel;
 use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::material_maps::MaterialMaps;
+use super::metering::meter_projectors;
 use super::projector::ProjectorModel;
 use super::response_cache::{CacheStats, McSettings, ResponseCache};
 use super::scene::GeometryBuffer;
@@ -33,7 +34,7 @@ use super::truth_writer;
 use mlsss_core::booth::Booth;
 use mlsss_core::capture::folder::CaptureKind;
 use mlsss_core::capture::{
-    CaptureManifest, CaptureWriter, FramePlan, FrameSpec, Pattern, TriggerRecord,
+    CaptureManifest, CaptureWriter, FramePlan, FrameSpec, Pattern, ProjectorExposure, TriggerRecord,
 };
 
 /// Receives progress (the CLI shows it as a bar).
@@ -64,6 +65,9 @@ pub struct SimulationOptions {
     pub material_maps: bool,
     /// Other projectors emit their black level while one is lit.
     pub stray_black: bool,
+    /// Meter the subject before a scan and expose each projector's frames to fit it
+    /// (`metering`); off = every frame at the booth's nominal exposure, as before metering.
+    pub metering: bool,
     pub mc: McSettings,
     pub cache: ResponseCache,
 }
@@ -84,6 +88,7 @@ impl SimulationOptions {
             supersampling: 2,
             material_maps: true,
             stray_black: true,
+            metering: true,
             mc: McSettings {
                 // Small booths: 10k photons per response. Measured on the quick head scan
                 // against 20k (truth global images: white, slits, high frequency): the Monte
@@ -269,7 +274,16 @@ fn simulate_scan_holding(
     let kernel = scan_kernel(&scene, &responses);
 
     let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
-    let writer = CaptureWriter::create(out, scan_manifest(booth, opts, &plan))?;
+    let mut manifest = scan_manifest(booth, opts, &plan);
+    let mut known_whites = vec![None; booth.projectors.len()];
+    if opts.metering {
+        progress.stage("metering", 1);
+        let metering = meter_projectors(&scene, Some(&kernel), &booth.timing, opts.seed);
+        manifest.exposure = metering.exposure;
+        known_whites = metering.whites.into_iter().map(Some).collect();
+        progress.advance(1);
+    }
+    let writer = CaptureWriter::create(out, manifest)?;
     let truth_dir = create_truth_dir(&writer)?;
     truth_writer::write_geometry(&truth_dir, booth, &scene)?;
     write_optics(&truth_dir, opts, &materials)?;
@@ -283,6 +297,7 @@ fn simulate_scan_holding(
         &truth_dir,
         progress,
         hold_budget,
+        known_whites,
         scan_truth_pattern,
     )?;
     let contact: Vec<Rgb32FImage> = frames;
@@ -364,6 +379,7 @@ fn scan_manifest(booth: &Booth, opts: &SimulationOptions, plan: &FramePlan) -> C
         "supersampling": opts.supersampling,
         "material_maps": opts.material_maps,
         "stray_black": opts.stray_black,
+        "metering": opts.metering,
         "monte_carlo": opts.mc,
     });
     manifest
@@ -451,6 +467,7 @@ pub fn simulate_calibration(
             &truth_dir,
             progress,
             HOLD_BUDGET_BYTES,
+            vec![None; booth.projectors.len()],
             |p| matches!(p, Pattern::White),
         )?;
         if let Some(first) = frames.into_iter().next() {
@@ -539,6 +556,8 @@ fn stray_light(
 /// Adds stray light and camera noise to a frame's noise-free values and writes it.
 struct FrameFinisher<'a> {
     scene: &'a Scene,
+    /// Each projector's exposure (from the manifest: nominal where not metered).
+    exposure: Vec<ProjectorExposure>,
     seed: u64,
     writer: &'a CaptureWriter,
     progress: &'a dyn Progress,
@@ -554,13 +573,21 @@ impl FrameFinisher<'_> {
         stray: &[[f32; 3]],
     ) -> Result<(), VirtualBoothError> {
         let geo = &self.scene.geometry;
+        let exposure = spec
+            .projector
+            .and_then(|k| self.exposure.get(k as usize))
+            .copied();
+        let (scale, gain) = exposure.map_or((1.0, 1.0), |e| (e.scale as f32, e.analog_gain));
+        // The exposure scales all the light the camera collects, stray light included.
         let mut values: Vec<f32> = totals
             .iter()
             .zip(stray)
-            .flat_map(|(t, s)| [t[0] + s[0], t[1] + s[1], t[2] + s[2]])
+            .flat_map(|(t, s)| [t[0] + s[0], t[1] + s[1], t[2] + s[2]].map(|v| v * scale))
             .collect();
         let mut rng = Pcg64::seed_from_u64(self.seed ^ (0x5eed_0000 + spec.index as u64) << 8);
-        self.scene.camera.add_noise(&mut values, &mut rng);
+        self.scene
+            .camera
+            .add_noise_with_gain(&mut values, gain, &mut rng);
         let img = Rgb32FImage::from_raw(geo.width, geo.height, values)
             .ok_or(VirtualBoothError::Internal("frame buffer size mismatch"))?;
         self.writer.write_frame(spec.index, &img)?;
@@ -587,8 +614,10 @@ impl FrameFinisher<'_> {
     }
 }
 
-/// Renders every frame of `plan`, writes it (with noise) and the truth of the patterns selected
-/// by `truth_for`; returns a few frames for the contact sheet.
+/// Renders every frame of `plan`, writes it (with noise, at each projector's exposure from the
+/// writer's manifest) and the truth of the patterns selected by `truth_for`; returns a few frames
+/// for the contact sheet. `known_whites[k]` is projector `k`'s noise-free white when already
+/// rendered (metering).
 ///
 /// Every frame of projector `k` carries the stray light of the other projectors' black level,
 /// i.e. their whites. Projectors are rendered in order, each in batches of frames; each white is
@@ -605,6 +634,7 @@ fn render_frames(
     truth_dir: &Path,
     progress: &dyn Progress,
     hold_budget: usize,
+    known_whites: Vec<Option<Vec<[f32; 3]>>>,
     truth_for: impl Fn(&Pattern) -> bool + Sync,
 ) -> Result<Vec<Rgb32FImage>, VirtualBoothError> {
     let geo = &scene.geometry;
@@ -614,7 +644,8 @@ fn render_frames(
     let specs: Vec<Vec<FrameSpec>> = (0..count)
         .map(|k| plan.for_projector(k as u8).copied().collect())
         .collect();
-    let held = if opts.stray_black {
+    let all_whites_known = known_whites.len() == count && known_whites.iter().all(Option::is_some);
+    let held = if opts.stray_black && !all_whites_known {
         held_projectors(
             &specs.iter().map(Vec::len).collect::<Vec<_>>(),
             n,
@@ -623,15 +654,19 @@ fn render_frames(
     } else {
         0
     };
-    let mut whites: Vec<Option<Vec<[f32; 3]>>> = if opts.stray_black {
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = if all_whites_known {
+        known_whites
+    } else if opts.stray_black {
         whites_rendered_alone(scene, kernel, &specs, held, progress)
     } else {
         vec![None; count]
     };
 
     progress.stage("frames", plan.len() as u64);
+    let manifest = writer.manifest();
     let finisher = FrameFinisher {
         scene,
+        exposure: (0..count).map(|k| manifest.exposure_of(k)).collect(),
         seed: opts.seed,
         writer,
         progress,
@@ -858,10 +893,13 @@ mod tests {
         let booth = scaled_booth(&Booth::builtin(true), 8);
         let cache = tempfile::tempdir().unwrap();
         let mut opts =
-            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, 3);
+            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::LIGHT, 3);
         opts.mc.photons = 300;
         opts.mc.angles_deg = vec![0.0, 60.0];
         opts.cache = ResponseCache::new(cache.path());
+        // Metering renders every white first, which makes holding unnecessary: off, so the
+        // holding path is the one compared.
+        opts.metering = false;
         let out = tempfile::tempdir().unwrap();
         let capture = |name: &str, budget: usize| {
             let dir = out.path().join(name);
@@ -876,5 +914,45 @@ mod tests {
             let (a, b) = (held.read_frame(i).unwrap(), alone.read_frame(i).unwrap());
             assert!(a == b, "frame {i} differs");
         }
+    }
+
+    #[test]
+    fn metering_a_dark_subject_exposes_longer_and_frames_read_back_in_nominal_units() {
+        let booth = scaled_booth(&Booth::builtin(true), 8);
+        let cache = tempfile::tempdir().unwrap();
+        let out = tempfile::tempdir().unwrap();
+        let simulate = |metering: bool, name: &str| {
+            let mut opts =
+                SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::TypeVI, 3);
+            opts.mc.photons = 300;
+            opts.mc.angles_deg = vec![0.0, 60.0];
+            opts.cache = ResponseCache::new(cache.path());
+            opts.metering = metering;
+            let dir = out.path().join(name);
+            simulate_scan(&booth, &opts, &dir, &NoProgress).unwrap();
+            Capture::open(&dir).unwrap()
+        };
+        let fixed = simulate(false, "fixed");
+        let metered = simulate(true, "metered");
+        assert!(fixed.manifest.exposure.is_empty());
+        assert_eq!(metered.manifest.exposure.len(), booth.projectors.len());
+        for e in &metered.manifest.exposure {
+            // Type VI returns a few percent of the light: longer exposure, within the slot.
+            assert!(
+                e.scale > 2.0 && e.periods > booth.timing.exposure_periods,
+                "{e:?}"
+            );
+        }
+        // Read back in nominal units, the metered white matches the fixed one (less noise).
+        let white = metered.manifest.plan.frames[0].index;
+        let (a, b) = (
+            fixed.read_frame(white).unwrap(),
+            metered.read_frame(white).unwrap(),
+        );
+        let mean = |img: &image::Rgb32FImage| {
+            img.as_raw().iter().map(|&v| v as f64).sum::<f64>() / img.as_raw().len() as f64
+        };
+        let (ma, mb) = (mean(&a), mean(&b));
+        assert!((ma - mb).abs() < 0.05 * ma, "{ma} {mb}");
     }
 }

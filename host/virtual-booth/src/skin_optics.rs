@@ -133,14 +133,39 @@ fn layer(name: &str, thickness_mm: f64, comp: Composition) -> LayerOptics {
     }
 }
 
-/// A skin type: composition of the base skin and of its spatial variations.
+/// A skin type (Fitzpatrick I-VI): composition of the base skin and of its spatial variations.
+///
+/// The types differ only in epidermal melanin (blood and thicknesses as in the constants below).
+/// Melanosome volume fractions of the epidermis from Jacques 1998 ("Skin optics"): lightly
+/// pigmented adults 1.3-6.3 %, moderately pigmented 11-16 %, darkly pigmented 18-43 %, read as
+/// types I-II, III-IV and V-VI. `light` and `dark` are the presets the project used before the
+/// six types (types II and V), kept as aliases so earlier figures reproduce.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
 pub enum SkinPreset {
-    /// Lightly pigmented skin: epidermal melanin 2 % (Jacques 1998: 1.3-6.3 %).
-    Light,
-    /// Darkly pigmented skin: epidermal melanin 25 % (Jacques 1998: 18-43 %).
-    Dark,
+    /// Type I (very light): epidermal melanin 1.3 % (Jacques 1998: lower end of 1.3-6.3 %).
+    #[value(name = "I", alias = "i")]
+    #[serde(rename = "I")]
+    TypeI,
+    /// Type II (light; alias `light`): epidermal melanin 2 % (Jacques 1998: 1.3-6.3 %).
+    #[value(name = "II", alias = "ii", alias = "light")]
+    #[serde(rename = "II")]
+    TypeII,
+    /// Type III (light brown): epidermal melanin 6.3 % (Jacques 1998: upper end of 1.3-6.3 %).
+    #[value(name = "III", alias = "iii")]
+    #[serde(rename = "III")]
+    TypeIII,
+    /// Type IV (moderate brown): epidermal melanin 13 % (Jacques 1998: 11-16 %).
+    #[value(name = "IV", alias = "iv")]
+    #[serde(rename = "IV")]
+    TypeIV,
+    /// Type V (dark brown; alias `dark`): epidermal melanin 25 % (Jacques 1998: 18-43 %).
+    #[value(name = "V", alias = "v", alias = "dark")]
+    #[serde(rename = "V")]
+    TypeV,
+    /// Type VI (very dark): epidermal melanin 40 % (Jacques 1998: upper end of 18-43 %).
+    #[value(name = "VI", alias = "vi")]
+    #[serde(rename = "VI")]
+    TypeVI,
 }
 
 /// Thickness of the epidermis, mm (Meglinski & Matcher 2002: stratum corneum + living epidermis).
@@ -167,19 +192,53 @@ pub const STUBBLE: usize = 3;
 pub const MATERIAL_COUNT: usize = 4;
 
 impl SkinPreset {
-    /// Epidermal melanin volume fraction of the base skin.
+    /// The preset `--skin light` names (type II).
+    pub const LIGHT: SkinPreset = SkinPreset::TypeII;
+    /// The preset `--skin dark` names (type V).
+    pub const DARK: SkinPreset = SkinPreset::TypeV;
+    /// Every type, lightest first.
+    pub const ALL: [SkinPreset; 6] = [
+        SkinPreset::TypeI,
+        SkinPreset::TypeII,
+        SkinPreset::TypeIII,
+        SkinPreset::TypeIV,
+        SkinPreset::TypeV,
+        SkinPreset::TypeVI,
+    ];
+
+    /// Epidermal melanin volume fraction of the base skin (sources on [`SkinPreset`]).
     pub fn melanin(self) -> f64 {
         match self {
-            SkinPreset::Light => 0.02,
-            SkinPreset::Dark => 0.25,
+            SkinPreset::TypeI => 0.013,
+            SkinPreset::TypeII => 0.02,
+            SkinPreset::TypeIII => 0.063,
+            SkinPreset::TypeIV => 0.13,
+            SkinPreset::TypeV => 0.25,
+            SkinPreset::TypeVI => 0.40,
         }
     }
 
-    /// Melanin of a mole (weight 1 in the melanin map); freckles use partial weights.
+    /// The Fitzpatrick type's Roman numeral (what `--skin` takes and reports print).
+    pub fn label(self) -> &'static str {
+        match self {
+            SkinPreset::TypeI => "I",
+            SkinPreset::TypeII => "II",
+            SkinPreset::TypeIII => "III",
+            SkinPreset::TypeIV => "IV",
+            SkinPreset::TypeV => "V",
+            SkinPreset::TypeVI => "VI",
+        }
+    }
+
+    /// Melanin of a mole (weight 1 in the melanin map); freckles use partial weights. A mole is
+    /// darker than the skin around it: 0.3 on light skin (types I-III), rising with the base
+    /// melanin to 0.45 (type V, as before) and 0.55 (type VI).
     fn mole_melanin(self) -> f64 {
         match self {
-            SkinPreset::Light => 0.3,
-            SkinPreset::Dark => 0.45,
+            SkinPreset::TypeI | SkinPreset::TypeII | SkinPreset::TypeIII => 0.3,
+            SkinPreset::TypeIV => 0.35,
+            SkinPreset::TypeV => 0.45,
+            SkinPreset::TypeVI => 0.55,
         }
     }
 
@@ -263,11 +322,45 @@ mod tests {
 
     #[test]
     fn dark_skin_absorbs_more_blue_in_the_epidermis_than_light_skin() {
-        let light = &SkinPreset::Light.materials()[BASE].layers[0];
-        let dark = &SkinPreset::Dark.materials()[BASE].layers[0];
+        let light = &SkinPreset::LIGHT.materials()[BASE].layers[0];
+        let dark = &SkinPreset::DARK.materials()[BASE].layers[0];
         assert!(dark.mu_a[2] > 5.0 * light.mu_a[2]);
         // Both share the scattering of the dermis and the skin index.
         assert_eq!(dark.mu_s, light.mu_s);
         assert_eq!(dark.n, SKIN_INDEX);
+    }
+
+    #[test]
+    fn presets_span_the_literature_range_and_darken_monotonically() {
+        // Jacques 1998: epidermal melanosome fraction from 1.3 % (light) to 43 % (dark).
+        let melanin: Vec<f64> = SkinPreset::ALL.iter().map(|s| s.melanin()).collect();
+        assert!(melanin[0] >= 0.013 && melanin[5] <= 0.43, "{melanin:?}");
+        assert!(melanin.windows(2).all(|w| w[0] < w[1]), "{melanin:?}");
+        // Blue absorption of the epidermis follows the melanin, and a mole stays darker than
+        // the skin around it on every type.
+        for s in SkinPreset::ALL {
+            let m = s.materials();
+            assert!(
+                m[MELANIN_RICH].layers[0].mu_a[2] > m[BASE].layers[0].mu_a[2],
+                "{s:?}"
+            );
+        }
+        // `light` and `dark` name the presets they named before the six types.
+        assert_eq!(SkinPreset::LIGHT.melanin(), 0.02);
+        assert_eq!(SkinPreset::DARK.melanin(), 0.25);
+    }
+
+    #[test]
+    fn light_and_dark_parse_as_aliases_of_types_ii_and_v() {
+        use clap::ValueEnum;
+        let parse = |s: &str| SkinPreset::from_str(s, false).ok();
+        assert_eq!(parse("light"), Some(SkinPreset::TypeII));
+        assert_eq!(parse("dark"), Some(SkinPreset::TypeV));
+        assert_eq!(parse("VI"), Some(SkinPreset::TypeVI));
+        assert_eq!(parse("i"), Some(SkinPreset::TypeI));
+        assert_eq!(
+            serde_json::to_value(SkinPreset::TypeIV).ok(),
+            Some("IV".into())
+        );
     }
 }

@@ -147,7 +147,7 @@ fn global_light_on_a_plane_matches_the_monte_carlo_albedo() {
     let cos_i = p.z.abs() / p.norm();
     let angle = cos_i.acos().to_degrees();
     let exit = DiffuseExit::new(SKIN_INDEX);
-    let base = &SkinPreset::Light.materials()[BASE];
+    let base = &SkinPreset::LIGHT.materials()[BASE];
     for c in 0..3 {
         let result = mc::run(
             &material_medium(base, c),

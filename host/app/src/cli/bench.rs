@@ -6,10 +6,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use mlsss::booth::Booth;
+use mlsss::demo::{CalibrationMode, DemoOptions, DemoProgress, run_demo};
+use mlsss::evaluate::skin_types::{self, row_from_demo};
 use mlsss::pipeline::CalibrationSource;
 use mlsss::quality_sweep::{SweepInputs, plan, run_sweep, summary, write_outputs};
 use mlsss::virtual_booth::{
-    NoProgress, SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_scan,
+    NoProgress, Progress, SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_scan,
 };
 
 use super::monte_carlo_args::MonteCarloArgs;
@@ -34,6 +36,12 @@ pub struct Args {
     /// Seed of the simulated head.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Instead of the quality sweep: the per-skin-type table. One demo per Fitzpatrick type I-VI
+    /// (simulator's calibration, metering on) under OUT/skin-types/TYPE, reduced to decode
+    /// coverage, normals, subsurface errors and the paper's two claims; writes
+    /// OUT/skin_types.csv and prints `skin_types` in the JSON.
+    #[arg(long)]
+    skin_types: bool,
     #[command(flatten)]
     monte_carlo: MonteCarloArgs,
     /// Output folder: captures (simulated once, reused on later runs), pipeline outputs,
@@ -58,7 +66,7 @@ fn capture_for(args: &Args, factor: u32) -> anyhow::Result<(PathBuf, PathBuf)> {
         booth = scaled_booth(&booth, factor);
     }
     let mut opts =
-        SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::Light, args.seed);
+        SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::LIGHT, args.seed);
     args.monte_carlo.apply(&mut opts);
     eprintln!(
         "simulating a {}x{} capture ...",
@@ -73,9 +81,54 @@ fn ensure_dir(dir: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
 }
 
+/// The per-skin-type table: a demo of each type, then the table (`evaluate::skin_types`).
+fn run_skin_types(args: &Args) -> anyhow::Result<()> {
+    let mut rows = Vec::new();
+    for skin in SkinPreset::ALL {
+        let dir = args.out.join("skin-types").join(skin.label());
+        let mut opts = DemoOptions::new(args.quick, args.scale_down, &dir);
+        opts.skin = skin;
+        opts.seed = args.seed;
+        opts.holdout = args.holdout;
+        opts.calibration = CalibrationMode::Truth;
+        opts.photons = args.monte_carlo.photons;
+        opts.cache = args.monte_carlo.cache.clone();
+        eprintln!("skin type {} ...", skin.label());
+        let outcome = run_demo(&opts, &QuietDemo)
+            .with_context(|| format!("demo of skin type {}", skin.label()))?;
+        rows.push(row_from_demo(skin.label(), skin.melanin(), &outcome.report));
+    }
+    let table = skin_types::table(rows);
+    let csv = args.out.join("skin_types.csv");
+    std::fs::write(&csv, skin_types::to_csv(&table))
+        .with_context(|| format!("writing {}", csv.display()))?;
+    if args.json {
+        println!("{}", serde_json::json!({ "skin_types": table, "csv": csv }));
+    } else {
+        eprint!("{}", skin_types::to_csv(&table));
+        eprintln!("wrote {}", csv.display());
+    }
+    Ok(())
+}
+
+/// Demo progress that prints nothing (the table run reports per type).
+struct QuietDemo;
+
+impl DemoProgress for QuietDemo {
+    fn step(&self, _: &str) {}
+}
+
+impl Progress for QuietDemo {
+    fn stage(&self, _: &str, _: u64) {}
+    fn advance(&self, _: u64) {}
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     anyhow::ensure!(args.scale_down >= 1, "--scale-down must be at least 1");
     ensure_dir(&args.out)?;
+    if args.skin_types {
+        return run_skin_types(&args);
+    }
     let factors = if args.minimal {
         vec![args.scale_down]
     } else {

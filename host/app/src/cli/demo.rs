@@ -30,11 +30,15 @@ pub struct Args {
     #[arg(long, value_enum, default_value_t = SubjectKind::Head)]
     subject: SubjectKind,
     /// Skin type (optical properties from the literature).
-    #[arg(long, value_enum, default_value_t = SkinPreset::Light)]
+    #[arg(long, value_enum, default_value_t = SkinPreset::LIGHT)]
     skin: SkinPreset,
     /// Seed of everything random (material maps, noise, board poses).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Take every frame at the booth's nominal exposure (no metering step before the scan; how
+    /// the demo ran before metering).
+    #[arg(long)]
+    fixed_exposure: bool,
     /// Projector held out of the fit, relit from the model and compared with its frames.
     #[arg(long, default_value_t = 3)]
     holdout: usize,
@@ -81,6 +85,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     opts.skin = args.skin;
     opts.seed = args.seed;
+    opts.metering = !args.fixed_exposure;
     opts.holdout = args.holdout;
     opts.calibration = match args.calib {
         CalibChoice::Truth => CalibrationMode::Truth,

@@ -27,7 +27,7 @@ pub struct Args {
     #[arg(long, value_enum)]
     subject: SubjectKind,
     /// Skin type (optical properties from the literature).
-    #[arg(long, value_enum, default_value_t = SkinPreset::Light)]
+    #[arg(long, value_enum, default_value_t = SkinPreset::LIGHT)]
     skin: SkinPreset,
     /// Seed of everything random (material maps, noise, board poses).
     #[arg(long, default_value_t = 1)]
@@ -44,6 +44,9 @@ pub struct Args {
     /// Dark projectors emit nothing (default: they emit their black level, as real ones do).
     #[arg(long)]
     no_stray_black: bool,
+    /// Take every frame at the booth's nominal exposure (no metering step before the scan).
+    #[arg(long)]
+    fixed_exposure: bool,
     /// Camera sub-samples per pixel along each axis.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
     supersampling: u32,
@@ -73,6 +76,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut opts = SimulationOptions::for_booth(&booth, args.subject, args.skin, args.seed);
     opts.material_maps = !args.no_maps;
     opts.stray_black = !args.no_stray_black;
+    opts.metering = !args.fixed_exposure;
     opts.supersampling = args.supersampling;
     args.monte_carlo.apply(&mut opts);
     let progress = Bar::on_stderr()?;

@@ -334,6 +334,7 @@ mod tests {
                     computed: 0,
                 },
                 out: dir.path().to_owned(),
+                exposure: Vec::new(),
             }),
             relight: Some(RelightReport {
                 psnr_db: [("mlsss".into(), 31.25), ("homogeneous".into(), 29.5)].into(),

@@ -50,7 +50,7 @@ use crate::pipeline::{CalibrationSource, Pipeline, PipelineError, PipelineReport
 use crate::pose_calibration::{PoseCalibrationError, calibrate_poses};
 use mlsss_core::booth::Booth;
 use mlsss_core::calibration::{Calibration, CalibrationError};
-use mlsss_core::capture::{Capture, CaptureError, Pattern, truth};
+use mlsss_core::capture::{Capture, CaptureError, Pattern, ProjectorExposure, truth};
 use mlsss_core::resources::peak_memory_mb;
 use mlsss_layer_model::model_file::{Baseline, ModelFileError, SubsurfaceModel};
 use mlsss_layer_model::render::RenderOptions;
@@ -177,6 +177,9 @@ pub struct DemoOptions {
     pub photons: Option<u64>,
     /// Monte Carlo response cache folder (`None`: the simulator's default).
     pub cache: Option<PathBuf>,
+    /// Meter the subject and expose each projector to fit it (off: the booth's nominal exposure
+    /// for every frame, as the demo ran before metering).
+    pub metering: bool,
     pub out: PathBuf,
 }
 
@@ -191,13 +194,14 @@ impl DemoOptions {
         Self {
             booth,
             subject: SubjectKind::Head,
-            skin: SkinPreset::Light,
+            skin: SkinPreset::LIGHT,
             seed: 1,
             holdout: 3,
             calibration: CalibrationMode::Estimated { poses: 5 },
             fit: quick_fit_params(),
             render: RenderOptions::default(),
             photons: None,
+            metering: true,
             cache: None,
             out: out.to_owned(),
         }
@@ -276,6 +280,9 @@ pub struct DemoInfo {
     pub calibration: CalibrationMode,
     pub monte_carlo: MonteCarloCounts,
     pub out: PathBuf,
+    /// Each projector's exposure, from the capture's metering (empty: nominal exposure).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub exposure: Vec<ProjectorExposure>,
 }
 
 /// Monte Carlo responses reused from the cache and computed.
@@ -429,6 +436,7 @@ fn prepare_output(opts: &DemoOptions) -> Result<(), DemoError> {
 
 fn simulation_options(opts: &DemoOptions, subject: SubjectKind) -> SimulationOptions {
     let mut sim = SimulationOptions::for_booth(&opts.booth, subject, opts.skin, opts.seed);
+    sim.metering = opts.metering;
     if let Some(p) = opts.photons {
         sim.mc.photons = p;
     }
@@ -621,6 +629,7 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
             computed: sim.cache.misses,
         },
         out: out.clone(),
+        exposure: Capture::open(&capture)?.manifest.exposure,
     };
     let demo = DemoReport {
         report_json: Some(out.join(REPORT_FILE)),

@@ -6,3 +6,4 @@ pub mod backscatter;
 pub mod calibration_error;
 pub mod holdout;
 pub mod metrics;
+pub mod skin_types;

@@ -120,7 +120,8 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
                 source,
             })
         })?;
-        let decoded = match decode(&frames, (proj.width, proj.height), params) {
+        let params = camera_noise_params(params, capture, k);
+        let decoded = match decode(&frames, (proj.width, proj.height), &params) {
             Ok(d) => d,
             Err(err @ (GrayCodeError::NothingLit { .. } | GrayCodeError::Saturated { .. })) => {
                 projectors.push(ProjectorDecodeReport {
@@ -158,6 +159,23 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
         projectors,
         valid_fraction: valid_sum / f64::from(decoded_count.max(1)),
     })
+}
+
+/// The decoder's thresholds with the noise model of the capture's camera at projector `k`'s
+/// exposure: each pixel's lit and bit decisions are judged against the noise this camera has at
+/// that pixel's level (the `shot_noise_gain` and `read_noise` of `params` are replaced).
+fn camera_noise_params(
+    params: &DecodeParams,
+    capture: &mlsss_core::capture::Capture,
+    k: usize,
+) -> DecodeParams {
+    let camera = &capture.manifest.booth.camera;
+    params.clone().with_camera_noise(
+        camera.full_well_e,
+        camera.read_noise_dn,
+        capture.manifest.bit_depth,
+        &capture.manifest.exposure_of(k),
+    )
 }
 
 /// The report entry of one projector (used by the pipeline and by `mlsss decode --layout opencv`).

@@ -18,6 +18,7 @@ use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{ImageEncoder, Rgb32FImage};
 use serde::{Deserialize, Serialize};
 
+use super::exposure::ProjectorExposure;
 use super::frame_plan::{FramePlan, FrameSpec};
 use crate::atomic_file::{FolderLock, LOCK_FILE};
 use crate::booth::{Booth, BoothError};
@@ -116,6 +117,11 @@ pub struct CaptureManifest {
     /// Free-form description of where the capture came from (simulator settings, rig port, ...).
     #[serde(default)]
     pub source: serde_json::Value,
+    /// Exposure of each projector's frames, chosen by metering before the scan
+    /// (`capture::exposure`); a projector not listed was taken at the booth's nominal exposure.
+    /// Frames are read back divided by the exposure's scale (nominal units).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub exposure: Vec<ProjectorExposure>,
 }
 
 /// The units of a capture (fixed; written so a reader never has to guess).
@@ -149,7 +155,29 @@ impl CaptureManifest {
             trigger_log: Vec::new(),
             units: Units::default(),
             source: serde_json::Value::Null,
+            exposure: Vec::new(),
         }
+    }
+
+    /// The exposure projector `k`'s frames were taken with (nominal when not metered).
+    pub fn exposure_of(&self, k: usize) -> ProjectorExposure {
+        let nominal = ProjectorExposure::nominal(k as u8, &self.booth.timing);
+        self.exposure
+            .iter()
+            .find(|e| e.projector as usize == k)
+            .copied()
+            .filter(|e| e.scale.is_finite() && e.scale > 0.0)
+            .unwrap_or(nominal)
+    }
+
+    /// Signal of frame `index` relative to the nominal exposure (1 for unlit or unknown frames).
+    fn frame_exposure_scale(&self, index: u32) -> f64 {
+        self.plan
+            .frames
+            .iter()
+            .find(|f| f.index == index)
+            .and_then(|f| f.projector)
+            .map_or(1.0, |k| self.exposure_of(k as usize).scale)
     }
 }
 
@@ -265,7 +293,8 @@ impl Capture {
         dir.is_dir().then_some(dir)
     }
 
-    /// Reads frame `index` as linear RGB in [0, 1].
+    /// Reads frame `index` as linear RGB in [0, 1] at the nominal exposure (a metered frame is
+    /// divided by its exposure scale, so it may exceed 1 where the camera did not saturate).
     pub fn read_frame(&self, index: u32) -> Result<Rgb32FImage, CaptureError> {
         let (path, codes) = self.read_codes(index)?;
         let data = codes.samples().collect();
@@ -299,7 +328,9 @@ impl Capture {
         }
         let cam = &self.manifest.booth.camera;
         let path = self.root.join(frame_file(index));
-        let codes = read_frame_codes(&path, self.manifest.bit_depth, (cam.width, cam.height))?;
+        let mut codes = read_frame_codes(&path, self.manifest.bit_depth, (cam.width, cam.height))?;
+        // Back to the nominal exposure, so every stage sees the same units whatever the metering.
+        codes.scale /= self.manifest.frame_exposure_scale(index) as f32;
         Ok((path, codes))
     }
 
@@ -487,6 +518,10 @@ impl CaptureWriter {
     /// Folder where extra files (e.g. `truth/`) can be written before [`CaptureWriter::finish`].
     pub fn staging_dir(&self) -> &Path {
         &self.staging
+    }
+
+    pub fn manifest(&self) -> &CaptureManifest {
+        &self.manifest
     }
 
     pub fn manifest_mut(&mut self) -> &mut CaptureManifest {

@@ -2,11 +2,13 @@
 //! sections 3 and 8). Every producer (rig, virtual booth) and every reader (decode, separation,
 //! profiles) goes through this module so they agree on frame order and pixel encoding.
 
+pub mod exposure;
 pub mod folder;
 pub mod frame_plan;
 pub mod patterns;
 pub mod truth;
 
+pub use exposure::ProjectorExposure;
 pub use folder::{Capture, CaptureError, CaptureManifest, CaptureWriter, TriggerRecord};
 pub use frame_plan::{FramePlan, FrameSpec};
 pub use patterns::{Axis, Pattern};

@@ -4,6 +4,7 @@
 use rayon::prelude::*;
 
 use super::bits::PixelBits;
+use super::lit_test::Lighting;
 use super::plane::{jump_limit, robust_plane_at_centre};
 use super::{AxisDecode, DecodeParams, PixelStatus};
 use mlsss_core::capture::patterns::gray_decode;
@@ -84,8 +85,10 @@ const REPAIR_ROUNDS: usize = 3;
 
 /// Pass 1 for one pixel. Pixels that need repair are marked `RepairFailed` until pass 2 succeeds.
 fn initial_code(b: &PixelBits, nbits: u32, size: u32, params: &DecodeParams) -> (i32, PixelStatus) {
-    if !b.lit {
-        return (-1, PixelStatus::Unlit);
+    match b.lighting {
+        Lighting::Unlit => return (-1, PixelStatus::Unlit),
+        Lighting::Dim => return (-1, PixelStatus::Dim),
+        Lighting::Lit => {}
     }
     let unreliable = !b.reliable & bit_mask(nbits);
     if unreliable == 0 {

@@ -2,6 +2,7 @@
 
 use rayon::prelude::*;
 
+use super::lit_test::{Lighting, pair_variance};
 use super::{BitPair, DecodeParams};
 
 /// Bits of one axis at one pixel: the raw Gray code and which bits are reliable.
@@ -9,7 +10,7 @@ use super::{BitPair, DecodeParams};
 pub(super) struct PixelBits {
     pub(super) gray: u16,
     pub(super) reliable: u16,
-    pub(super) lit: bool,
+    pub(super) lighting: Lighting,
 }
 
 /// Decides every bit of every pixel against its inverse. Also returns the summed relative contrast
@@ -17,29 +18,30 @@ pub(super) struct PixelBits {
 pub(super) fn decide_bits(
     pairs: &[BitPair],
     amplitude: &[f32],
+    lighting: &[Lighting],
     params: &DecodeParams,
 ) -> (Vec<PixelBits>, Vec<f32>) {
     let nbits = pairs.len();
     amplitude
         .par_iter()
+        .zip(lighting.par_iter())
         .enumerate()
-        .map(|(i, &amp)| {
-            let lit = amp >= params.min_amplitude;
+        .map(|(i, (&amp, &lighting))| {
             let mut bits = PixelBits {
-                lit,
+                lighting,
                 ..PixelBits::default()
             };
             let mut contrast = 0.0;
-            if !lit {
+            if lighting != Lighting::Lit {
                 return (bits, contrast);
             }
+            // The contrast reference: the pixel's modulation, never below its noise.
+            let amp = amp.max(f32::MIN_POSITIVE);
             for (j, pair) in pairs.iter().enumerate() {
                 let bit = nbits - 1 - j;
                 let (p, q) = (pair.pattern[i], pair.inverse[i]);
                 let d = p - q;
-                let sigma = (params.shot_noise_gain * (p + q).max(0.0)
-                    + 2.0 * params.read_noise * params.read_noise)
-                    .sqrt();
+                let sigma = pair_variance(p, q, params).sqrt() as f32;
                 let relative = d.abs() / amp;
                 if d > 0.0 {
                     bits.gray |= 1 << bit;

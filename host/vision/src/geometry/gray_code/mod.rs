@@ -11,8 +11,12 @@
 //!   coordinate is lit in the pattern and dark in its inverse.
 //!
 //! Algorithm
-//! 1. Lit mask: `white - black` (or, with no black frame, the largest pattern/inverse difference of
-//!    the coarse bits) must exceed `min_amplitude`.
+//! 1. Lit mask, relative to each pixel's noise (`lit_test`): the pattern/inverse differences of
+//!    every pair (and `white - black` when a black frame exists), each divided by its standard
+//!    deviation under the sensor noise model, are summed in squares and tested as a chi-square
+//!    variable at the false-alarm probability `lit_false_alarm`. Pixels significant only at
+//!    `dim_false_alarm` are flagged as [`PixelStatus::Dim`], never called unlit. The absolute
+//!    `min_amplitude` only guards the whole sequence (frames all dark: an error).
 //! 2. Each bit is decided by the sign of `pattern - inverse`. The bit is *reliable* when the
 //!    difference exceeds both `min_bit_snr` standard deviations of the sensor noise and
 //!    `min_bit_contrast` of the pixel's amplitude. Subsurface scattering washes out the finest
@@ -32,6 +36,7 @@
 
 mod axis;
 mod bits;
+mod lit_test;
 mod plane;
 #[cfg(test)]
 mod tests;
@@ -41,6 +46,8 @@ use serde::{Deserialize, Serialize};
 
 use axis::{Grid, decode_axis};
 use bits::decide_bits;
+use lit_test::{classify_lighting, demote_partly_lit};
+use mlsss_core::capture::ProjectorExposure;
 
 /// Errors of the Gray-code decoder.
 #[derive(Debug, thiserror::Error)]
@@ -114,8 +121,22 @@ pub struct GrayCodeFrames {
 /// Thresholds of the decoder. Noise terms are in the frames' units (linear, full scale 1).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DecodeParams {
-    /// Smallest `white - black` for a pixel to count as lit.
+    /// Smallest `white - black` (or coarse-pair difference) of the brightest pixel: below it the
+    /// whole sequence is dark ([`GrayCodeError::NothingLit`]). Not a per-pixel threshold: each
+    /// pixel is judged against its own noise (`lit_false_alarm`).
     pub min_amplitude: f32,
+    /// Probability that a pixel the projector does not light is called lit (chi-square test of
+    /// its pair differences against the sensor noise).
+    #[serde(default = "default_lit_false_alarm")]
+    pub lit_false_alarm: f32,
+    /// Probability that such a pixel is flagged dim (significant, too weak to call lit).
+    #[serde(default = "default_dim_false_alarm")]
+    pub dim_false_alarm: f32,
+    /// A lit pixel whose amplitude is below this fraction of the brightest lit pixel within
+    /// `window_radius` is flagged dim: lit in part (silhouette, shadow edge) or only through the
+    /// skin. 0 turns the check off.
+    #[serde(default)]
+    pub min_neighbour_ratio: f32,
     /// Smallest |pattern - inverse| relative to the pixel's amplitude for a reliable bit.
     pub min_bit_contrast: f32,
     /// Smallest |pattern - inverse| in noise standard deviations for a reliable bit.
@@ -140,6 +161,9 @@ impl Default for DecodeParams {
     fn default() -> Self {
         Self {
             min_amplitude: 0.02,
+            lit_false_alarm: default_lit_false_alarm(),
+            dim_false_alarm: default_dim_false_alarm(),
+            min_neighbour_ratio: 0.5,
             min_bit_contrast: 0.03,
             min_bit_snr: 3.0,
             shot_noise_gain: 1.0 / 12_000.0,
@@ -151,6 +175,14 @@ impl Default for DecodeParams {
             min_neighbours: 5,
         }
     }
+}
+
+fn default_lit_false_alarm() -> f32 {
+    1e-7
+}
+
+fn default_dim_false_alarm() -> f32 {
+    1e-4
 }
 
 /// Largest `window_radius`: the repair window is `4 * radius + 1` pixels a side.
@@ -165,6 +197,7 @@ impl DecodeParams {
         let bad = |key, reason: String| Err(GrayCodeError::BadParams { key, reason });
         for (key, value) in [
             ("min_amplitude", self.min_amplitude),
+            ("min_neighbour_ratio", self.min_neighbour_ratio),
             ("min_bit_contrast", self.min_bit_contrast),
             ("min_bit_snr", self.min_bit_snr),
             ("shot_noise_gain", self.shot_noise_gain),
@@ -174,6 +207,14 @@ impl DecodeParams {
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return bad(key, format!("must be a finite number >= 0, got {value}"));
+            }
+        }
+        for (key, value) in [
+            ("lit_false_alarm", self.lit_false_alarm),
+            ("dim_false_alarm", self.dim_false_alarm),
+        ] {
+            if !(value > 0.0 && value < 1.0) {
+                return bad(key, format!("must be a probability in (0, 1), got {value}"));
             }
         }
         if self.window_radius == 0 || self.window_radius > MAX_WINDOW_RADIUS {
@@ -207,6 +248,26 @@ impl DecodeParams {
         Ok(())
     }
 
+    /// The noise model of a camera with `full_well_e` electrons at saturation and a read noise of
+    /// `read_noise_dn` codes at `bit_depth` bits, for frames taken at `exposure` and read back in
+    /// nominal units (`Capture::read_frame` divides them by the exposure's scale: longer exposure
+    /// shrinks both noise terms, analog gain only the read noise).
+    pub fn with_camera_noise(
+        self,
+        full_well_e: f64,
+        read_noise_dn: f64,
+        bit_depth: u32,
+        exposure: &ProjectorExposure,
+    ) -> Self {
+        let max_code = ((1u64 << bit_depth.min(32)) - 1) as f64;
+        let (shot, read) = exposure.noise_scale();
+        Self {
+            shot_noise_gain: (shot / full_well_e.max(1.0)) as f32,
+            read_noise: (read * read_noise_dn / max_code) as f32,
+            ..self
+        }
+    }
+
     /// Parameters for 8-bit frames (quantisation dominates the read noise).
     pub fn for_8_bit() -> Self {
         Self {
@@ -235,6 +296,9 @@ pub enum PixelStatus {
     Inconsistent = 5,
     /// The code is beyond the projector's width or height.
     OutOfRange = 6,
+    /// The projector probably lights the pixel, but too weakly to decode (significant against
+    /// the noise only at the dim level).
+    Dim = 7,
 }
 
 impl PixelStatus {
@@ -358,8 +422,21 @@ pub fn decode(
         width: frames.width as usize,
         height: frames.height as usize,
     };
-    let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, params);
-    let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, params);
+    let all_pairs: Vec<&BitPair> = frames.x.iter().chain(&frames.y).collect();
+    let white_black = match (&frames.white, &frames.black) {
+        (Some(w), Some(b)) => Some((w.as_slice(), b.as_slice())),
+        _ => None,
+    };
+    let mut lighting = classify_lighting(&all_pairs, white_black, params);
+    demote_partly_lit(
+        &mut lighting,
+        &amplitude,
+        grid.width,
+        params.window_radius as usize,
+        params.min_neighbour_ratio,
+    );
+    let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, &lighting, params);
+    let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, &lighting, params);
     let u = decode_axis(
         grid,
         &u_bits,

@@ -78,6 +78,47 @@ fn subsurface_blur_of_fine_bits_is_repaired_or_flagged_never_silently_wrong() {
 }
 
 #[test]
+fn a_dim_subject_a_few_read_noises_above_black_is_decoded_not_called_unlit() {
+    // Very dark skin at nominal exposure: white 0.012 of full scale, about 10 noise standard
+    // deviations of a pair difference, blurred fine bits. A fixed 0.02 threshold called all of it
+    // unlit; judged against its own noise every pixel is lit, and decoded or flagged. (At half
+    // that level about half the pixels are flagged: metering is what brings such skin up.)
+    let mut scene = SyntheticGrayScene::new((160, 120), (256, 192));
+    scene.u = [40.3, 0.47, 0.03];
+    scene.v = [30.6, -0.02, 0.52];
+    scene.albedo = 0.012;
+    // The projector's black is 2 % of its white, as in the booth.
+    scene.black_level = 0.02 * scene.albedo;
+    scene.direct_fraction = 0.5;
+    scene.global_blur_px = 1.5;
+    scene.seed = 3;
+    // The whole-sequence guard (brightest pixel, a format check) set below this scene's level.
+    let params = DecodeParams {
+        min_amplitude: 0.004,
+        ..DecodeParams::default()
+    };
+    let decode_dim = |scene: &SyntheticGrayScene| {
+        let decoded = decode(&scene.render(), scene.projector_size, &params);
+        decoded.map(|d| {
+            let cmp = TruthComparison::new(&d, &truth_of(scene));
+            (d, cmp)
+        })
+    };
+    let (decoded, cmp) = decode_dim(&scene).unwrap();
+    let summary = decoded.summary();
+    assert_eq!(summary.unlit, 0, "{summary:?}");
+    assert!(cmp.missed_fraction < 0.1, "{cmp:?} {summary:?}");
+    assert!(cmp.wrong_fraction < 0.002, "{cmp:?}");
+    // Far below the noise nothing is decoded: the frames are all dark (an error), or every
+    // pixel is unlit or flagged dim, never given a code.
+    scene.albedo = 0.00005;
+    scene.black_level = 0.0;
+    if let Ok((decoded, cmp)) = decode_dim(&scene) {
+        assert_eq!(decoded.summary().valid, 0, "{cmp:?}");
+    }
+}
+
+#[test]
 fn frames_without_black_use_the_coarse_pairs_for_the_lit_mask() {
     let mut scene = SyntheticGrayScene::new((120, 90), (256, 192));
     scene.shadow_disc = Some([30.0, 30.0, 15.0]);
