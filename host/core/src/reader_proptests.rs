@@ -146,7 +146,10 @@ fn apply(edit: &ManifestEdit, manifest: &mut serde_json::Value) {
             *numbers[pick % count] = value.clone();
         }
         ManifestEdit::Swap(a, b) => {
-            if let Some(frames) = manifest["plan"]["frames"].as_array_mut() {
+            // A plan already cut to nothing has no entries to swap.
+            if let Some(frames) = manifest["plan"]["frames"].as_array_mut()
+                && !frames.is_empty()
+            {
                 let n = frames.len();
                 frames.swap(a % n, b % n);
             }
