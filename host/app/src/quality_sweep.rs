@@ -324,9 +324,11 @@ pub fn run_sweep(
 /// Writes `bench.csv` and `pareto.png` into `dir`; returns their paths.
 pub fn write_outputs(dir: &Path, rows: &[SweepRow]) -> Result<(PathBuf, PathBuf), SweepError> {
     let csv = dir.join("bench.csv");
-    std::fs::write(&csv, to_csv(rows)).map_err(|source| SweepError::Io {
-        path: csv.clone(),
-        source,
+    mlsss_core::atomic_file::write_bytes_atomically(&csv, to_csv(rows)).map_err(|source| {
+        SweepError::Io {
+            path: csv.clone(),
+            source,
+        }
     })?;
     let png = dir.join("pareto.png");
     pareto_plot(rows).save_png(&png)?;

@@ -72,9 +72,10 @@ where
     )
 }
 
-/// [`write_atomically`] of a byte buffer.
-pub fn write_bytes_atomically(target: &Path, bytes: &[u8]) -> io::Result<()> {
-    write_atomically(target, |out| out.write_all(bytes))
+/// [`write_atomically`] of a byte buffer: a drop-in for `std::fs::write` that never leaves a
+/// truncated file.
+pub fn write_bytes_atomically(target: impl AsRef<Path>, bytes: impl AsRef<[u8]>) -> io::Result<()> {
+    write_atomically(target.as_ref(), |out| out.write_all(bytes.as_ref()))
 }
 
 /// Errors taking a folder's lock.

@@ -165,10 +165,22 @@ pub fn write_png_preview(path: &Path, img: &Rgb32FImage, white: f32) -> Result<(
         let p = img.get_pixel(x, y).0;
         image::Rgb(p.map(|v| (linear_to_srgb(v * scale) * 255.0).round() as u8))
     });
+    write_png(path, &out)
+}
+
+/// Writes a PNG (previews, figures; grey or RGB) whole or not at all.
+pub fn write_png<P>(
+    path: &Path,
+    img: &image::ImageBuffer<P, Vec<P::Subpixel>>,
+) -> Result<(), ImageIoError>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+{
     write_via_temporary(
         path,
         |temporary| {
-            out.save_with_format(temporary, image::ImageFormat::Png)
+            img.save_with_format(temporary, image::ImageFormat::Png)
                 .map_err(|source| ImageIoError::Png {
                     path: path.to_owned(),
                     source,

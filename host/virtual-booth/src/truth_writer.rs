@@ -136,9 +136,11 @@ pub fn write_target(
 /// Writes a value as pretty JSON.
 pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), VirtualBoothError> {
     let text = serde_json::to_string_pretty(value).map_err(VirtualBoothError::Json)?;
-    std::fs::write(path, text).map_err(|source| VirtualBoothError::Io {
-        path: path.to_owned(),
-        source,
+    mlsss_core::atomic_file::write_bytes_atomically(path, text).map_err(|source| {
+        VirtualBoothError::Io {
+            path: path.to_owned(),
+            source,
+        }
     })
 }
 

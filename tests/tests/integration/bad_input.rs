@@ -253,6 +253,24 @@ fn out_of_range_numbers_on_the_command_line_are_refused_naming_the_flag() {
             .arg(dir.path().join("decoded")),
         &["window_radius", "1..=64"],
     );
+    // `ps-scene --noise -1` rendered a test set with negative noise.
+    for (flag, value, needle) in [
+        ("--noise", "-1", "finite number >= 0"),
+        ("--specular", "NaN", "finite number >= 0"),
+    ] {
+        fails_with(
+            mlsss()
+                .arg("ps-scene")
+                .args(["--out"])
+                .arg(dir.path().join("ps"))
+                .arg(format!("{flag}={value}")),
+            &[flag, needle],
+        );
+    }
+    assert!(
+        !dir.path().join("ps").exists(),
+        "a refused ps-scene wrote its folder"
+    );
 }
 
 #[test]

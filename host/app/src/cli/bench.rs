@@ -100,7 +100,7 @@ fn run_skin_types(args: &Args) -> anyhow::Result<()> {
     }
     let table = skin_types::table(rows);
     let csv = args.out.join("skin_types.csv");
-    std::fs::write(&csv, skin_types::to_csv(&table))
+    mlsss_core::atomic_file::write_bytes_atomically(&csv, skin_types::to_csv(&table))
         .with_context(|| format!("writing {}", csv.display()))?;
     if args.json {
         println!("{}", serde_json::json!({ "skin_types": table, "csv": csv }));

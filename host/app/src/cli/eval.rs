@@ -23,7 +23,8 @@ pub struct Args {
     #[arg(long)]
     holdout: Option<usize>,
     /// Gaussian kernels of the renderer are cut at this many standard deviations.
-    #[arg(long, default_value_t = RenderOptions::default().truncate_sigmas)]
+    #[arg(long, default_value_t = RenderOptions::default().truncate_sigmas,
+          value_parser = super::number_arg::positive_finite)]
     truncate_sigmas: f64,
     /// Also write an HTML report with the figures (recorded vs rendered, scanlines).
     #[arg(long, value_name = "FILE")]

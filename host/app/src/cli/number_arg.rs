@@ -14,6 +14,29 @@ pub fn positive_finite(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A finite number >= 0 (`--noise 0`; refuses `NaN`, infinities and negatives).
+pub fn non_negative_finite(s: &str) -> Result<f64, String> {
+    let value = finite(s).map_err(|_| format!("must be a finite number >= 0, got {s}"))?;
+    if value >= 0.0 {
+        Ok(value)
+    } else {
+        Err(format!("must be a finite number >= 0, got {s}"))
+    }
+}
+
+/// Any finite number (`--gain-db -3`; refuses `NaN` and infinities).
+pub fn finite(s: &str) -> Result<f64, String> {
+    let value: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number"))?;
+    if value.is_finite() {
+        Ok(value)
+    } else {
+        Err(format!("must be a finite number, got {s}"))
+    }
+}
+
 /// [`positive_finite`] for `f32` arguments.
 pub fn positive_finite_f32(s: &str) -> Result<f32, String> {
     let value = positive_finite(s)?;
@@ -37,5 +60,18 @@ mod tests {
         }
         assert!(positive_finite_f32("1e300").is_err());
         assert_eq!(positive_finite_f32("0.5"), Ok(0.5));
+    }
+
+    #[test]
+    fn non_negative_accepts_zero_and_finite_accepts_negatives() {
+        assert_eq!(non_negative_finite("0"), Ok(0.0));
+        assert_eq!(non_negative_finite("2.5"), Ok(2.5));
+        for bad in ["-1", "-1e-9", "NaN", "inf"] {
+            assert!(non_negative_finite(bad).is_err(), "{bad}");
+        }
+        assert_eq!(finite("-3"), Ok(-3.0));
+        for bad in ["NaN", "-inf", "x"] {
+            assert!(finite(bad).is_err(), "{bad}");
+        }
     }
 }

@@ -94,7 +94,8 @@ pub struct Args {
     separation: SeparationArg,
     /// Separate stage, `kernel`: Gaussian sigma (camera px) over which the colourless direct part
     /// is averaged (0: per pixel).
-    #[arg(long, default_value_t = SeparateParams::default().direct_smoothing_px)]
+    #[arg(long, default_value_t = SeparateParams::default().direct_smoothing_px,
+          value_parser = super::number_arg::non_negative_finite)]
     direct_smoothing: f64,
     /// Normals stage: the images photometric stereo reads, `nayar-direct` (the Nayar baseline's
     /// direct part, whatever `--separation` says), `white` (the stray-free white frames),

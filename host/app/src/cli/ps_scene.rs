@@ -18,10 +18,10 @@ pub struct Args {
     #[arg(long, default_value_t = 128)]
     size: u32,
     /// Blinn-Phong specular weight (0: purely Lambertian).
-    #[arg(long, default_value_t = 0.8)]
+    #[arg(long, default_value_t = 0.8, value_parser = super::number_arg::non_negative_finite)]
     specular: f64,
     /// Standard deviation of the additive noise, linear units.
-    #[arg(long, default_value_t = 0.002)]
+    #[arg(long, default_value_t = 0.002, value_parser = super::number_arg::non_negative_finite)]
     noise: f64,
     /// Random seed (noise and light intensities).
     #[arg(long, default_value_t = 1)]

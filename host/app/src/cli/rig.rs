@@ -86,7 +86,7 @@ struct CameraSettingsArgs {
     #[arg(long, default_value = "Line0")]
     trigger_line: String,
     /// Analogue gain of a u3v camera, dB.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = super::number_arg::finite)]
     gain_db: f64,
 }
 
@@ -114,7 +114,7 @@ struct ShowArgs {
     #[arg(long)]
     pattern: String,
     /// Seconds to show it (default: until a key is pressed in the window).
-    #[arg(long)]
+    #[arg(long, value_parser = super::number_arg::positive_finite)]
     hold: Option<f64>,
     /// Print one JSON object on stdout once the pattern is on screen.
     #[arg(long)]

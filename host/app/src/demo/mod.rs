@@ -639,7 +639,8 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
     html_report::write_report(&html, &demo, Some(&figures), &processed)?;
     let path = out.join(REPORT_FILE);
     let text = serde_json::to_string_pretty(&demo).unwrap_or_default();
-    std::fs::write(&path, text).map_err(|source| DemoError::Io { path, source })?;
+    mlsss_core::atomic_file::write_bytes_atomically(&path, text)
+        .map_err(|source| DemoError::Io { path, source })?;
     Ok(DemoOutcome {
         report: demo,
         capture,

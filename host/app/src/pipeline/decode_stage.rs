@@ -232,9 +232,7 @@ pub fn write_decode(dir: &Path, k: usize, d: &ProjectorDecode) -> Result<(), Dec
         }
     });
     let path = dir.join(format!("proj{k}_codes.png"));
-    preview
-        .save(&path)
-        .map_err(|source| ImageIoError::Png { path, source })?;
+    imageio::write_png(&path, &preview)?;
     Ok(())
 }
 

@@ -201,8 +201,6 @@ fn write_artefacts(
     imageio::write_exr_rgb(&dir.join("points.exr"), &points)?;
     mesh.write_ply(&dir.join("mesh.ply"))?;
     let path = dir.join("shaded.png");
-    shaded_preview(map, camera_centre)
-        .save(&path)
-        .map_err(|source| ImageIoError::Png { path, source })?;
+    imageio::write_png(&path, &shaded_preview(map, camera_centre))?;
     Ok(())
 }

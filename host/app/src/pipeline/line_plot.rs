@@ -97,7 +97,8 @@ impl LinePlot {
             return Ok(());
         };
         let svg = stem.with_extension("svg");
-        std::fs::write(&svg, text).map_err(|source| LinePlotError::Io { path: svg, source })?;
+        mlsss_core::atomic_file::write_bytes_atomically(&svg, text)
+            .map_err(|source| LinePlotError::Io { path: svg, source })?;
         self.raster().save_png(&stem.with_extension("png"))?;
         Ok(())
     }

@@ -243,9 +243,11 @@ impl HtmlReport {
 
     /// Writes the document to `path`.
     pub fn save(&self, path: &Path) -> Result<(), HtmlReportError> {
-        std::fs::write(path, self.to_html()).map_err(|source| HtmlReportError::Io {
-            path: path.to_owned(),
-            source,
+        mlsss_core::atomic_file::write_bytes_atomically(path, self.to_html()).map_err(|source| {
+            HtmlReportError::Io {
+                path: path.to_owned(),
+                source,
+            }
         })
     }
 }

@@ -28,12 +28,15 @@ pub enum PlotError {
     /// `plotters` failed to draw (a font or backend error).
     #[error("drawing plot `{title}`: {message}")]
     Draw { title: String, message: String },
-    /// The PNG could not be encoded or written.
+    /// The PNG could not be encoded.
     #[error("{path}: {source}")]
     Png {
         path: PathBuf,
         source: image::ImageError,
     },
+    /// The PNG file could not be written.
+    #[error(transparent)]
+    File(#[from] mlsss_core::imageio::ImageIoError),
     /// The SVG could not be written.
     #[error("{path}: {source}")]
     Io {
@@ -363,19 +366,16 @@ impl Plot {
 
     /// Writes the plot as a PNG file.
     pub fn save_png(&self, path: &Path) -> Result<(), PlotError> {
-        self.render()?
-            .save_with_format(path, ImageFormat::Png)
-            .map_err(|source| PlotError::Png {
-                path: path.to_owned(),
-                source,
-            })
+        Ok(mlsss_core::imageio::write_png(path, &self.render()?)?)
     }
 
     /// Writes the plot as an SVG file.
     pub fn save_svg(&self, path: &Path) -> Result<(), PlotError> {
-        std::fs::write(path, self.svg()?).map_err(|source| PlotError::Io {
-            path: path.to_owned(),
-            source,
+        mlsss_core::atomic_file::write_bytes_atomically(path, self.svg()?).map_err(|source| {
+            PlotError::Io {
+                path: path.to_owned(),
+                source,
+            }
         })
     }
 }

@@ -13,7 +13,7 @@
 
 use nalgebra::{DVector, Point3, Rotation3, Vector2, Vector3};
 
-use super::levenberg_marquardt::{LmError, LmOptions, minimise};
+use super::levenberg_marquardt::{self, LmError, LmOptions, minimise};
 use mlsss_core::calibration::Intrinsics;
 
 /// Why a bundle adjustment failed.
@@ -264,6 +264,43 @@ pub fn refine(
     };
     let outcome = minimise(residual_vector, model.to_vector(), &free, &options.lm)?;
     Ok(model.with_vector(&outcome.parameters))
+}
+
+/// Standard errors of each device's focal lengths `(fx, fy)`, pixels, for `model` fitted to
+/// `observations` with `options` (see [`levenberg_marquardt::standard_errors`]; corners are taken
+/// as no better than `sigma_floor_px`). A device whose focal lengths the views do not determine
+/// at all (singular normal equations) gets infinite errors.
+pub fn focal_standard_errors(
+    model: &RigModel,
+    observations: &[Observation],
+    options: &RefineOptions,
+    sigma_floor_px: f64,
+) -> Vec<(f64, f64)> {
+    let residual_vector = |v: &DVector<f64>| -> Vec<f64> {
+        model
+            .with_vector(v)
+            .residuals(observations)
+            .into_iter()
+            .flat_map(|r| r.map_or([f64::NAN; 2], |r| [r.x, r.y]))
+            .collect()
+    };
+    let errors = levenberg_marquardt::standard_errors(
+        residual_vector,
+        &model.to_vector(),
+        &model.free_mask(options),
+        sigma_floor_px,
+    );
+    (0..model.devices())
+        .map(|d| {
+            let error = |i: usize| {
+                errors
+                    .as_ref()
+                    .and_then(|e| e[d * INTRINSIC_PARAMS + i])
+                    .unwrap_or(f64::INFINITY)
+            };
+            (error(0), error(1))
+        })
+        .collect()
 }
 
 /// Root mean square of the residual lengths (OpenCV's reprojection RMS), `None` when empty.

@@ -128,6 +128,33 @@ where
     })
 }
 
+/// Standard errors of the free parameters at `x` (in `free` order, `None` for fixed ones), from
+/// the Gauss-Newton covariance `sigma^2 (J^T J)^-1` with `sigma` the residuals' standard deviation
+/// (never taken below `sigma_floor`, so exact data does not hide an unobservable parameter).
+/// `None` when `J^T J` is singular: some combination of parameters is not observed at all.
+pub fn standard_errors<F>(
+    residuals: F,
+    x: &DVector<f64>,
+    free: &[bool],
+    sigma_floor: f64,
+) -> Option<Vec<Option<f64>>>
+where
+    F: Fn(&DVector<f64>) -> Vec<f64> + Sync,
+{
+    let free_index: Vec<usize> = (0..x.len()).filter(|&i| free[i]).collect();
+    let r = residuals(x);
+    let dof = r.len().checked_sub(free_index.len()).filter(|&d| d > 0)?;
+    let sigma2 = (r.iter().map(|v| v * v).sum::<f64>() / dof as f64).max(sigma_floor.powi(2));
+    let jac = jacobian(&residuals, x, &free_index, r.len());
+    let covariance = (jac.transpose() * &jac).cholesky()?.inverse();
+    let mut errors = vec![None; x.len()];
+    for (k, &i) in free_index.iter().enumerate() {
+        let variance = sigma2 * covariance[(k, k)];
+        errors[i] = Some(variance.max(0.0).sqrt()).filter(|e| e.is_finite());
+    }
+    Some(errors)
+}
+
 /// Central-difference Jacobian of the free parameters (columns in `free_index` order).
 fn jacobian<F>(residuals: &F, x: &DVector<f64>, free_index: &[usize], rows: usize) -> DMatrix<f64>
 where

@@ -99,9 +99,11 @@ pub fn write_opencv(calibration: &Calibration, path: &Path) -> Result<(), OpenCv
         Format::Xml => to_xml(&entries),
         Format::Yaml => to_yaml(&entries),
     };
-    std::fs::write(path, text).map_err(|source| OpenCvStorageError::Io {
-        path: path.display().to_string(),
-        source,
+    mlsss_core::atomic_file::write_bytes_atomically(path, text).map_err(|source| {
+        OpenCvStorageError::Io {
+            path: path.display().to_string(),
+            source,
+        }
     })
 }
 

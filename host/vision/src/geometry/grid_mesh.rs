@@ -6,7 +6,7 @@
 //! `max_edge_mm` (depth discontinuities are not bridged). Faces wind counter-clockwise as seen
 //! from the camera.
 
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector3;
@@ -74,12 +74,6 @@ impl GridMesh {
 
     /// Writes a binary little-endian PLY.
     pub fn write_ply(&self, path: &Path) -> Result<(), GridMeshError> {
-        let io = |source| GridMeshError::Io {
-            path: path.to_owned(),
-            source,
-        };
-        let file = std::fs::File::create(path).map_err(io)?;
-        let mut out = BufWriter::new(file);
         let header = format!(
             "ply\nformat binary_little_endian 1.0\ncomment mlsss geometry, world frame, mm\n\
              element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
@@ -87,19 +81,23 @@ impl GridMesh {
             self.vertices.len(),
             self.triangles.len()
         );
-        out.write_all(header.as_bytes()).map_err(io)?;
-        for v in &self.vertices {
-            for c in v {
-                out.write_all(&c.to_le_bytes()).map_err(io)?;
+        mlsss_core::atomic_file::write_atomically(path, |out| {
+            out.write_all(header.as_bytes())?;
+            for c in self.vertices.iter().flatten() {
+                out.write_all(&c.to_le_bytes())?;
             }
-        }
-        for t in &self.triangles {
-            out.write_all(&[3u8]).map_err(io)?;
-            for i in t {
-                out.write_all(&(*i as i32).to_le_bytes()).map_err(io)?;
+            for t in &self.triangles {
+                out.write_all(&[3u8])?;
+                for i in t {
+                    out.write_all(&(*i as i32).to_le_bytes())?;
+                }
             }
-        }
-        out.flush().map_err(io)
+            Ok(())
+        })
+        .map_err(|source| GridMeshError::Io {
+            path: path.to_owned(),
+            source,
+        })
     }
 }
 

@@ -93,7 +93,8 @@ pub(super) fn write_figures(
         "pixel_profiles": series_json(&profiles_plot),
     });
     let path = ctx.dir().join("fig10.json");
-    std::fs::write(&path, data.to_string()).map_err(|source| FitStageError::Io { path, source })
+    mlsss_core::atomic_file::write_bytes_atomically(&path, data.to_string())
+        .map_err(|source| FitStageError::Io { path, source })
 }
 
 /// Fig. 10: the held-out projector's slit (first training projector without holdout) along the

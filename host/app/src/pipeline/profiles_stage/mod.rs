@@ -776,9 +776,11 @@ fn run_profiles(
     };
     let path = ctx.dir().join(RECORD_FILE);
     let text = serde_json::to_string_pretty(&record).unwrap_or_default();
-    std::fs::write(&path, text).map_err(|e| ProfilesStageError::Record {
-        path,
-        message: e.to_string(),
+    mlsss_core::atomic_file::write_bytes_atomically(&path, text).map_err(|e| {
+        ProfilesStageError::Record {
+            path,
+            message: e.to_string(),
+        }
     })?;
     write_scanline_plot(ctx, &inputs, &record, truth_dir.as_deref(), size)?;
     // The fit stage of the same run starts from these instead of decoding the slit frames again.

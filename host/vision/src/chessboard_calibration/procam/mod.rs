@@ -15,7 +15,8 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 use serde::Serialize;
 
 use super::bundle_adjustment::{
-    BundleAdjustmentError, Observation, Pose, RefineOptions, RigModel, refine, rms,
+    BundleAdjustmentError, Observation, Pose, RefineOptions, RigModel, focal_standard_errors,
+    refine, rms,
 };
 use super::homography::{HomographyError, fit_homography};
 use super::zhang::{ZhangError, intrinsics_from_homographies, pose_from_homography};
@@ -39,6 +40,17 @@ pub enum ProcamError {
     /// The closed-form initialisation failed.
     #[error("{device}: {source}")]
     Initialisation { device: String, source: ZhangError },
+    /// The views leave the focal length undetermined (e.g. every board facing the same way).
+    #[error(
+        "{device}: the board poses determine the focal length only to +/-{relative_percent:.0} % \
+         (fx {fx:.0} px): tilt the board by 10-30 degrees about both of its axes between poses \
+         instead of only moving it"
+    )]
+    FocalUnobservable {
+        device: String,
+        fx: f64,
+        relative_percent: f64,
+    },
     /// The non-linear refinement failed.
     #[error("{device}: {source}")]
     Refinement {
@@ -211,6 +223,7 @@ fn fit_device(
         })
         .collect();
     let (model, distortion) = refine_device(device, &model, &observations, distortion, select)?;
+    refuse_unobservable_focal(device, &model, &observations, distortion)?;
     let residuals = model.residuals(&observations);
     let view_rms = (0..views.len())
         .map(|v| {
@@ -231,6 +244,48 @@ fn fit_device(
             .map(|r| r.unwrap_or(Vector2::repeat(1e6))))
         .unwrap_or(0.0),
         distortion,
+    })
+}
+
+/// Corner positions are taken as no better than this, pixels, when judging how well the views
+/// determine the focal length: exact (synthetic) corners must not hide a degenerate pose set.
+const CORNER_SIGMA_FLOOR_PX: f64 = 0.05;
+
+/// A focal length known to worse than this relative standard error is refused. Well-spread poses
+/// give about 0.1-0.5 %; boards that all face one way give tens of percent or infinity.
+const MAX_FOCAL_RELATIVE_ERROR: f64 = 0.05;
+
+/// Refuses a fit whose focal length the views do not determine: translating a board without
+/// tilting it leaves the focal length unobservable (Zhang 2000, section 3.3), and the fit then
+/// reports any focal length with a small RMS (fx 63 px for a true 1 500 on five parallel boards).
+fn refuse_unobservable_focal(
+    device: &str,
+    model: &RigModel,
+    observations: &[Observation],
+    distortion: [bool; 5],
+) -> Result<(), ProcamError> {
+    let options = RefineOptions {
+        distortion,
+        ..RefineOptions::default()
+    };
+    let errors = focal_standard_errors(model, observations, &options, CORNER_SIGMA_FLOOR_PX);
+    let k = &model.intrinsics[0];
+    let (fx_error, fy_error) = errors
+        .first()
+        .copied()
+        .unwrap_or((f64::INFINITY, f64::INFINITY));
+    let relative = (fx_error / k.fx.abs()).max(fy_error / k.fy.abs());
+    if relative <= MAX_FOCAL_RELATIVE_ERROR {
+        return Ok(());
+    }
+    Err(ProcamError::FocalUnobservable {
+        device: device.into(),
+        fx: k.fx,
+        relative_percent: if relative.is_finite() {
+            100.0 * relative
+        } else {
+            f64::INFINITY
+        },
     })
 }
 

@@ -287,3 +287,41 @@ fn too_few_poses_is_a_clear_error() {
         "{err}"
     );
 }
+
+#[test]
+fn boards_that_all_face_the_same_way_are_refused() {
+    // Translating a board without tilting it leaves the focal length unobservable (Zhang 2000,
+    // section 3.3): the calibration must refuse, not report a focal length that fits the noise.
+    let (mut rig, board) = synthetic_rig(5);
+    for (j, pose) in rig.view_poses.iter_mut().enumerate() {
+        pose.rotation = Vector3::new(0.2, -0.15, 0.05);
+        pose.translation = Vector3::new(
+            -140.0 + 30.0 * j as f64,
+            -90.0 + 10.0 * j as f64,
+            700.0 + 60.0 * j as f64,
+        );
+    }
+    let poses: Vec<PoseCorners> = (0..5)
+        .map(|v| PoseCorners {
+            name: format!("pose{v}"),
+            camera: Ok(measure(&rig, &board, v, 0)
+                .into_iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    p + Vector2::new(
+                        0.1 * ((i * 7 + v) as f64).sin(),
+                        0.1 * ((i * 3 + v) as f64).cos(),
+                    )
+                })
+                .collect()),
+            projectors: vec![],
+        })
+        .collect();
+    let (cam, _) = sizes();
+    let err = calibrate_procam(&poses, &board, cam, &[], &ProcamOptions::default()).unwrap_err();
+    assert!(
+        matches!(err, ProcamError::FocalUnobservable { .. }),
+        "{err}"
+    );
+    assert!(err.to_string().contains("tilt the board"), "{err}");
+}
