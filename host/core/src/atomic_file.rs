@@ -11,17 +11,18 @@
 use std::fs::{self, File};
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Name of the lock file inside a locked folder.
 pub const LOCK_FILE: &str = ".lock";
 
-/// Distinguishes temporary files of one process (several threads may write at once).
-static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
-/// The hidden temporary sibling `target` is written to before the rename. It keeps the
-/// target's extension: some writers choose the format by it.
-fn temporary_path(target: &Path) -> PathBuf {
+/// A hidden, uniquely named temporary sibling of `target`, created empty. It keeps the target's
+/// extension (some writers choose the format by it) and the permissions a plain `File::create`
+/// would give (tempfile's default is owner-only, which would hide artefacts from other users).
+fn temporary_sibling(target: &Path) -> io::Result<tempfile::NamedTempFile> {
+    let folder = target
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
     let name = target
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -30,8 +31,12 @@ fn temporary_path(target: &Path) -> PathBuf {
         .extension()
         .map(|e| format!(".{}", e.to_string_lossy()))
         .unwrap_or_default();
-    let n = TEMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-    target.with_file_name(format!(".{name}.tmp-{}-{n}{extension}", std::process::id()))
+    let prefix = format!(".{name}.tmp-");
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix).suffix(&extension);
+    #[cfg(unix)]
+    builder.permissions(<fs::Permissions as std::os::unix::fs::PermissionsExt>::from_mode(0o666));
+    builder.tempfile_in(folder)
 }
 
 /// Lets `write` write a temporary sibling of `target` (the path it is given), then flushes it
@@ -42,17 +47,16 @@ pub fn write_via_temporary<E>(
     write: impl FnOnce(&Path) -> Result<(), E>,
     io_error: impl FnOnce(io::Error) -> E,
 ) -> Result<(), E> {
-    let temporary = temporary_path(target);
-    let result = write(&temporary).and_then(|()| {
-        File::open(&temporary)
-            .and_then(|f| f.sync_all())
-            .and_then(|()| fs::rename(&temporary, target))
-            .map_err(io_error)
-    });
-    if result.is_err() {
-        let _ = fs::remove_file(&temporary);
-    }
-    result
+    let temporary = match temporary_sibling(target) {
+        Ok(t) => t,
+        Err(e) => return Err(io_error(e)),
+    };
+    // On an error below, dropping `temporary` removes the file.
+    write(temporary.path())?;
+    File::open(temporary.path())
+        .and_then(|f| f.sync_all())
+        .and_then(|()| temporary.persist(target).map(drop).map_err(|e| e.error))
+        .map_err(io_error)
 }
 
 /// Writes `target` through `write` into a temporary sibling, then renames it into place (see
@@ -167,6 +171,18 @@ mod tests {
             .map(|e| e.unwrap().file_name())
             .collect();
         assert_eq!(names, ["model.bin"]);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_written_file_has_the_permissions_of_a_plain_create() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let (atomic, plain) = (dir.path().join("a.json"), dir.path().join("p.json"));
+        write_bytes_atomically(&atomic, b"{}").unwrap();
+        fs::write(&plain, b"{}").unwrap();
+        let mode = |p: &Path| fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode(&atomic), mode(&plain));
     }
 
     #[test]
