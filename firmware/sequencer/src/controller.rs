@@ -224,6 +224,16 @@ where
                 .is_some_and(|run| run.waits_for_edges_only(now, feedback, SLEEP_GUARD_US))
     }
 
+    /// The (frame, attempt) of a pattern request that has been sent and not yet confirmed by
+    /// the host (see [`Run::awaited_ack`]): the only host answer a run's timing depends on.
+    /// `None` while the request is still in the outbox.
+    pub fn awaits_host(&self) -> Option<(u16, u8)> {
+        if !self.out.is_empty() {
+            return None;
+        }
+        self.run.as_ref().and_then(Run::awaited_ack)
+    }
+
     /// The VSYNC tracker of each projector.
     pub fn vsync(&self) -> &[VsyncTracker; N] {
         &self.vsync

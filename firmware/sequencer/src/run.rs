@@ -499,6 +499,15 @@ impl Run {
         }
     }
 
+    /// The (frame, attempt) whose pattern request the host has not confirmed yet, while the
+    /// run waits for that confirmation before the slot starts. A board whose time is virtual
+    /// may hold its clock meanwhile (the QEMU board does), so the host's real-time latency does
+    /// not become booth time.
+    pub fn awaited_ack(&self) -> Option<(u16, u8)> {
+        (self.stage == Stage::AwaitSlot && self.shown_at_us.is_none())
+            .then_some((self.frame, self.attempt))
+    }
+
     /// `Resume` after a pause: the same frame is requested again with a full slot ahead.
     pub fn resume(&mut self, schedule: &Schedule, now_us: u64, out: &mut Outbox) -> bool {
         if self.stage != Stage::Paused {
