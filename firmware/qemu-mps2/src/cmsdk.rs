@@ -239,8 +239,9 @@ pub struct FpgaLed;
 
 /// FPGAIO LED register (QEMU `mps2-fpgaio` at 0x4002_8000).
 const FPGAIO_LED0: usize = 0x4002_8000;
-/// FPGAIO 100 Hz up-counter (offset 0x1C), free-running on QEMU's virtual clock.
-const FPGAIO_CLK100HZ: usize = 0x1C;
+/// FPGAIO 100 Hz up-counter (`CLK100HZ`, offset 0x14 in QEMU `hw/misc/mps2-fpgaio.c`),
+/// free-running on QEMU's virtual clock.
+const FPGAIO_CLK100HZ: usize = 0x14;
 
 /// Centiseconds of QEMU virtual time since reset, from the FPGAIO 100 Hz counter: a clock the
 /// firmware never stops (unlike the booth timers), so it measures how long the host was waited
