@@ -353,7 +353,9 @@ fn late_ack_of_frame_100_is_reported_retried_and_captured_correctly() {
 }
 
 /// A schedule with a short host-silence timeout and enough retries that the silence, not the
-/// retry limit, decides what happens.
+/// retry limit, decides what happens. The tests' stalls and disconnects last 5 s of real time:
+/// the QEMU board holds booth time for up to 0.5 s of virtual time while it waits for an answer
+/// (up to ~2 s of real time on a loaded machine), then the 0.5 s silence timeout must pass.
 fn silence_schedule(quick: bool, frames: usize) -> (Booth, FramePlan, RigSchedule) {
     let (booth, plan, mut schedule) = scan(quick, frames);
     schedule.header.host_silence_timeout_us = 500_000;
@@ -369,7 +371,7 @@ fn disconnect_mid_run_pauses_and_the_host_resumes() {
         late_ack_frames: vec![],
         disconnect: Some(Disconnect {
             at_frame: 12,
-            duration: Duration::from_secs(3),
+            duration: Duration::from_secs(5),
             then: ReconnectAction::Resume,
         }),
     };
@@ -420,7 +422,7 @@ fn a_host_too_slow_to_answer_resumes_the_paused_run() {
             shown: vec![],
         },
         frame: 2,
-        stall: Duration::from_secs(2),
+        stall: Duration::from_secs(5),
         stalled: false,
     };
     let log = session
@@ -448,7 +450,7 @@ fn disconnect_then_abort_keeps_every_frame_already_captured() {
         late_ack_frames: vec![],
         disconnect: Some(Disconnect {
             at_frame: 8,
-            duration: Duration::from_secs(3),
+            duration: Duration::from_secs(5),
             then: ReconnectAction::Abort,
         }),
     };
