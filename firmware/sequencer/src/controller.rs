@@ -429,6 +429,22 @@ where
                 let _ = self.out.push_back(ControllerMessage::Ack(Ack { seq }));
                 run.resume(schedule, now, &mut self.out);
             }
+            HostMessage::Retrigger(rt) => {
+                let (Some(run), Some(schedule)) = (self.run.as_mut(), self.schedule.as_ref())
+                else {
+                    return Err(ErrorCode::RetriggerNotTriggered);
+                };
+                run.check_retrigger(schedule, rt)?;
+                // Ack first, then what the re-run queues (an extended run's request at once).
+                let _ = self.out.push_back(ControllerMessage::Ack(Ack { seq }));
+                let was_finished = run.is_finished();
+                run.retrigger(schedule, rt, now, &mut self.out);
+                if was_finished && !run.is_finished() {
+                    // The extended run ends with its own Done.
+                    self.done_sent = false;
+                    self.drop_cursor = None;
+                }
+            }
             HostMessage::Hello(_) | HostMessage::Heartbeat(_) => {}
         }
         Ok(())
@@ -451,7 +467,7 @@ where
         let not_reached = if outcome == RunOutcome::Completed {
             0
         } else {
-            let first = run.frame().saturating_add(1);
+            let first = run.next_unrun();
             let mut next = self.drop_cursor.unwrap_or(first);
             while next < frame_count && self.out.len() + DONE_MESSAGES < self.out.capacity() {
                 let dropped = FrameDropped {

@@ -289,7 +289,10 @@ pub fn controller_messages() -> Vec<(&'static str, C)> {
     ));
     // Codes added in protocol version 2 (appended here so the earlier lines keep their seq).
     for (name, error) in [
-        ("nack_retrigger_not_triggered", ErrorCode::RetriggerNotTriggered),
+        (
+            "nack_retrigger_not_triggered",
+            ErrorCode::RetriggerNotTriggered,
+        ),
         ("nack_retrigger_queue_full", ErrorCode::RetriggerQueueFull),
     ] {
         out.push((name, C::Nack(Nack { seq: 7, error })));
