@@ -1,5 +1,8 @@
 //! Hardware-in-the-loop tests: the host's rig control against the real firmware image under QEMU
 //! (`qemu-system-arm -machine mps2-an386 -icount shift=4,sleep=off`), over a pseudo-terminal.
+//! The QEMU board's booth time waits for the host's answer to each pattern request (up to 0.5 s
+//! of virtual time, see `firmware/qemu-mps2`), so the trigger logs do not depend on the
+//! machine's load; the fault-injection tests stall or disconnect for longer than that.
 //!
 //! They need `qemu-system-arm` and the image that `scripts/test.sh` builds (firmware/build.sh);
 //! without them they FAIL with the command that fixes it. They run one at a time (one QEMU at a
@@ -10,6 +13,7 @@ use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
 use mlsss::booth::Booth;
+use mlsss::capture::exposure::{ProjectorExposure, max_exposure_periods};
 use mlsss::capture::{Capture, FramePlan};
 use mlsss::rig::RigError;
 use mlsss::rig::acquire::{Acquired, CaptureTarget, acquire, checked_pattern};
@@ -224,6 +228,47 @@ fn nominal_268_frames_twice_with_identical_trigger_logs() {
         trigger_log(&second),
         "runs are deterministic"
     );
+}
+
+/// Metered exposure (issue 18): each projector's frames are exposed for its own periods, the
+/// longest the host allows included, and the 268-frame plan keeps its timing.
+#[test]
+fn metered_exposure_up_to_the_longest_allowed_keeps_the_268_frame_timing() {
+    let _one = one_at_a_time();
+    let (booth, _, schedule) = scan(false, 268);
+    let nominal = booth.timing.exposure_periods;
+    let longest = max_exposure_periods(&booth.timing);
+    // By hand: 12 periods per 200 ms slot at 60 Hz - 2 settle - 4 kept for the host.
+    assert_eq!(longest, 6);
+    let periods = [nominal, longest, 4, longest];
+    let exposure: Vec<ProjectorExposure> = (0..4u8)
+        .map(|k| ProjectorExposure {
+            projector: k,
+            periods: periods[usize::from(k)],
+            analog_gain: 1.0,
+            scale: f64::from(periods[usize::from(k)]) / f64::from(nominal),
+        })
+        .collect();
+    let schedule = schedule.with_exposure(&exposure).unwrap();
+    let log = run(&schedule, &HostFaults::default(), LinkFaults::default());
+
+    assert_complete_and_labelled(&log);
+    let report = timing_report(&log, 0.0);
+    assert_eq!((report.frames_lost, report.frames_late), (0, 0));
+    assert_eq!(report.settle_violations, 0);
+    assert!((report.period_us_mean - 200_000.0).abs() < 200.0);
+    for t in log.triggers.values() {
+        // Exposure end - trigger = the projector's periods of its measured refresh period.
+        let period_ns = u64::from(log.projector_timing[&t.projector].period_ns);
+        let want_us = u64::from(periods[usize::from(t.projector)]) * period_ns / 1000;
+        let got_us = log.exposures[&t.frame].timestamp_us - t.timestamp_us;
+        assert!(
+            got_us.abs_diff(want_us) <= 3,
+            "frame {} (projector {}): exposed {got_us} us, want {want_us}",
+            t.frame,
+            t.projector
+        );
+    }
 }
 
 #[test]
