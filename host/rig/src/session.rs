@@ -284,7 +284,9 @@ impl<L: ByteLink> Session<L> {
                         for lost in hooks.lost_payloads(true)? {
                             extended |= self.retrigger(run, lost)?;
                         }
-                        if extended {
+                        // A re-trigger sent just before this Done was read extends the run
+                        // too: this Done is then not the last one.
+                        if extended || run.rerun_outstanding() {
                             last_progress = Instant::now();
                             continue;
                         }
@@ -480,6 +482,18 @@ impl RunState {
             projector_timing: BTreeMap::new(),
             reconnect_statuses: vec![],
         }
+    }
+
+    /// Whether an accepted re-trigger has neither been triggered again nor dropped yet.
+    fn rerun_outstanding(&self) -> bool {
+        self.retriggers.iter().any(|r| {
+            let rerun = self
+                .triggers
+                .get(&r.frame)
+                .is_some_and(|t| t.attempt > r.attempt);
+            let dropped = self.dropped.iter().any(|d| d.frame == r.frame);
+            !rerun && !dropped
+        })
     }
 
     fn finish(self, host_link: HostLinkStats) -> Result<RunLog, RigError> {
