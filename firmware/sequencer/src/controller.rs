@@ -20,7 +20,7 @@ use mlsss_shared::framing::{
 use mlsss_shared::message::{
     Ack, Board, ControllerHeartbeat, ControllerMessage, ControllerState, DoneSummary, DropReason,
     ErrorCode, FrameDropped, Hello, HelloReply, HostMessage, LinkStats, Nack, ProjectorTiming,
-    RunOutcome, StatusReport,
+    RunOutcome, ScheduleCommit, StatusReport,
 };
 use mlsss_shared::{PROTOCOL_VERSION, SCHEMA_HASH};
 
@@ -363,6 +363,12 @@ where
                 self.loader.chunk(chunk, N as u8)?;
                 self.ack(seq);
             }
+            HostMessage::ScheduleCommit(commit)
+                if !self.loader.is_loading() && self.is_committed(commit) =>
+            {
+                // A resent commit whose Ack the host did not see in time.
+                self.ack(seq);
+            }
             HostMessage::ScheduleCommit(commit) => {
                 self.schedule = Some(self.loader.commit(commit)?);
                 log!(info, "schedule of {} frames committed", commit.frame_count);
@@ -448,6 +454,15 @@ where
             HostMessage::Hello(_) | HostMessage::Heartbeat(_) => {}
         }
         Ok(())
+    }
+
+    /// True when `commit` describes the committed schedule and no run has used it yet.
+    fn is_committed(&self, commit: &ScheduleCommit) -> bool {
+        self.run.is_none()
+            && self.schedule.as_ref().is_some_and(|s| {
+                commit.frame_count == s.frame_count()
+                    && commit.checksum == mlsss_shared::schedule_checksum(&s.entries)
+            })
     }
 
     /// Queues `Done` and the measured projector timing once, when the run has ended.

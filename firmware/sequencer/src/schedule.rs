@@ -135,6 +135,10 @@ impl ScheduleLoader {
     pub fn chunk(&mut self, chunk: &ScheduleChunk, projectors: u8) -> Result<(), ErrorCode> {
         let header = self.header.ok_or(ErrorCode::InvalidState)?;
         let entries = chunk.entries.as_slice();
+        if self.is_repeat_of_last_chunk(chunk) {
+            // The host resent a chunk whose Ack it did not see in time: accept it again.
+            return Ok(());
+        }
         if usize::from(chunk.first_frame) != self.entries.len()
             || self.entries.len() + entries.len() > usize::from(header.frame_count)
         {
@@ -153,6 +157,15 @@ impl ScheduleLoader {
             c.update(entries);
         }
         Ok(())
+    }
+
+    /// True for a non-empty chunk equal to the entries received last.
+    fn is_repeat_of_last_chunk(&self, chunk: &ScheduleChunk) -> bool {
+        let entries = chunk.entries.as_slice();
+        let first = usize::from(chunk.first_frame);
+        !entries.is_empty()
+            && first + entries.len() == self.entries.len()
+            && self.entries.get(first..) == Some(entries)
     }
 
     /// Ends the upload: the schedule, when count and checksum match what was received.
