@@ -211,7 +211,12 @@ fn main() -> ! {
             start_booth(&mut core);
             booth_on = true;
         }
-        if let Some(request) = controller.awaits_host()
+        let awaited = controller.awaits_host();
+        if awaited.is_none() {
+            // Answered: a later run may request the same (frame, attempt) again.
+            held_for = None;
+        }
+        if let Some(request) = awaited
             && booth_on
             && held_for != Some(request)
         {
