@@ -13,6 +13,11 @@
 //! controller sends `PatternRequest`, the host shows the pattern and answers `PatternShown`, the
 //! controller triggers after the settle VSYNCs and reports `Triggered` and `ExposureDone`;
 //! misses are reported as `FrameLate` / `FrameRetried` / `FrameDropped`; `Done` ends the run.
+//! A frame whose camera payload the host lost is run again on the host's `Retrigger`
+//! (`FrameRetried`, then a new request and trigger; after `Done` the run is extended and ends
+//! with another `Done`).
+//!
+//! Version 2: per-projector exposure in the schedule header, `Retrigger`.
 #![no_std]
 #![forbid(unsafe_code)]
 
@@ -22,7 +27,7 @@ pub mod message;
 pub use message::{ControllerMessage, HostMessage};
 
 /// Version of the wire protocol; bumped on any incompatible change.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Hash of the message definitions (`src/message.rs` without comments and whitespace): two builds
 /// with the same [`PROTOCOL_VERSION`] but different message types refuse to talk.

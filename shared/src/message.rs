@@ -96,6 +96,9 @@ pub enum HostMessage {
     Heartbeat(HostHeartbeat),
     /// Continues a run paused by host silence, from the controller's `next_frame`.
     Resume,
+    /// The camera payload of a triggered frame was lost or incomplete: run the frame again (a
+    /// new attempt, in the next free slot; after the last frame the run is extended by it).
+    Retrigger(Retrigger),
 }
 
 /// Protocol identification, sent by the host first. Layout frozen.
@@ -148,6 +151,18 @@ pub struct ScheduleHeader {
     pub host_silence_timeout_us: u32,
     /// Late-frame policy.
     pub policy: RetryPolicy,
+    /// Exposure of each projector's frames (metered per projector before the scan); an entry
+    /// with `exposure_periods == 0` uses `exposure_periods` and `trigger_width_us` above.
+    pub projector_exposure: [ProjectorExposure; MAX_PROJECTORS],
+}
+
+/// The exposure of one projector's frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, MaxSize)]
+pub struct ProjectorExposure {
+    /// Exposure as a whole number of the projector's refresh periods (0: the header's).
+    pub exposure_periods: u8,
+    /// Trigger pulse width (a camera in trigger-width mode exposes while the pulse is high).
+    pub trigger_width_us: u32,
 }
 
 /// One frame of the schedule: which projector is lit with which pattern.
@@ -186,6 +201,15 @@ pub struct PatternShown {
     pub attempt: u8,
     /// Pattern identifier from the [`PatternRequest`] (checked by the controller).
     pub pattern: u16,
+}
+
+/// A request to run a triggered frame again.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, MaxSize)]
+pub struct Retrigger {
+    /// Frame index.
+    pub frame: u16,
+    /// The attempt whose payload was lost (from its [`Triggered`]); the re-run is `attempt + 1`.
+    pub attempt: u8,
 }
 
 /// Host liveness.
@@ -303,6 +327,10 @@ pub enum ErrorCode {
     ScheduleMismatch,
     /// A shown-ack names a frame, attempt or pattern that is not the one requested.
     UnexpectedPatternShown,
+    /// A re-trigger names a frame that has not been triggered yet (or not in this run).
+    RetriggerNotTriggered,
+    /// Too many re-triggers are waiting for a slot.
+    RetriggerQueueFull,
 }
 
 /// The controller wants a pattern on screen.

@@ -143,6 +143,14 @@ impl Timer {
         Self(Regs(base))
     }
 
+    /// Stops (`false`) or continues (`true`) the count where it stands, keeping the reload and
+    /// the interrupt setting (QEMU stops and restarts the timer's deadline with it).
+    pub fn set_running(&self, running: bool) {
+        let ctrl = self.0.read(TIMER_CTRL) & !TIMER_CTRL_ENABLE;
+        let enable = if running { TIMER_CTRL_ENABLE } else { 0 };
+        self.0.write(TIMER_CTRL, ctrl | enable);
+    }
+
     /// Sets the count of a stopped timer (what `value` reads until it is started).
     pub fn preset(&self, value: u32) {
         self.0.write(TIMER_VALUE, value);
@@ -203,6 +211,13 @@ impl DualTimer {
         Self(Regs(base))
     }
 
+    /// Stops (`false`) or continues (`true`) the count where it stands, keeping the mode.
+    pub fn set_running(&self, running: bool) {
+        let control = self.0.read(DT_CONTROL) & !DT_CONTROL_ENABLE;
+        let enable = if running { DT_CONTROL_ENABLE } else { 0 };
+        self.0.write(DT_CONTROL, control | enable);
+    }
+
     /// True when this counter's interrupt is pending.
     pub fn pending(&self) -> bool {
         self.0.read(DT_MIS) & 1 != 0
@@ -224,6 +239,16 @@ pub struct FpgaLed;
 
 /// FPGAIO LED register (QEMU `mps2-fpgaio` at 0x4002_8000).
 const FPGAIO_LED0: usize = 0x4002_8000;
+/// FPGAIO 100 Hz up-counter (`CLK100HZ`, offset 0x14 in QEMU `hw/misc/mps2-fpgaio.c`),
+/// free-running on QEMU's virtual clock.
+const FPGAIO_CLK100HZ: usize = 0x14;
+
+/// Centiseconds of QEMU virtual time since reset, from the FPGAIO 100 Hz counter: a clock the
+/// firmware never stops (unlike the booth timers), so it measures how long the host was waited
+/// for.
+pub fn virtual_centiseconds() -> u32 {
+    Regs(FPGAIO_LED0).read(FPGAIO_CLK100HZ)
+}
 
 impl embedded_hal::digital::ErrorType for FpgaLed {
     type Error = Infallible;

@@ -11,13 +11,19 @@
 //! - defmt log frames go to UART1 (dropped unless QEMU is given a second `-serial`).
 //!
 //! Virtual time: run QEMU with `-icount shift=N,sleep=off`. With `sleep=off` virtual time jumps
-//! to the next timer deadline whenever the CPU idles (WFI), so a host round trip spent sleeping
-//! would look arbitrarily long. This firmware therefore busy-polls the UART and the clock
-//! whenever a host answer may be outstanding (virtual time then advances in proportion to
-//! executed instructions, steadily with real time) and sleeps only while the run waits for VSYNC
-//! edges alone ([`Controller::may_sleep`]): settle, exposure, and the wait for the next slot
-//! once its pattern is confirmed. Those phases then cost no real time, so a 268-frame scan
-//! takes about the host's answer latency per slot.
+//! to the next timer deadline whenever the CPU idles (WFI), and while the CPU runs it advances
+//! with the instructions executed, i.e. at QEMU's real-time speed. The booth's time (the TIMER0
+//! clock and the four VSYNC generators) therefore *waits for the host*: once a pattern request
+//! is sent, the firmware stops all five timers and busy-polls the UART until the host's
+//! shown-ack arrives, then restarts them ([`hold_for_host`]). The ack is thus received at the
+//! booth time of its request whatever the host's load, and the trigger log depends only on the
+//! schedule. The hold is bounded ([`HOST_HOLD_CS`], 1 s of QEMU virtual time, measured on the
+//! FPGAIO 100 Hz counter, which is never stopped): a host that does not answer (a withheld ack, a
+//! disconnect) then meets the ack deadline and the host-silence timeout in booth time as a real
+//! controller would. Outside the hold the firmware sleeps while the run waits for VSYNC edges
+//! alone ([`Controller::may_sleep`]): settle, exposure, and the wait for the next slot once its
+//! pattern is confirmed, which cost no real time; so a 268-frame scan takes about the host's
+//! answer latency per slot. (A real board has no such hold: its timers never stop.)
 #![no_std]
 #![no_main]
 
@@ -26,6 +32,7 @@ mod log;
 
 use core::cell::RefCell;
 
+use cortex_m::peripheral::SYST;
 use cortex_m::peripheral::syst::SystClkSource;
 use cortex_m_rt::{entry, exception};
 use critical_section::Mutex;
@@ -33,7 +40,7 @@ use heapless::spsc::Queue;
 use mlsss_sequencer::{BoardInfo, Controller, CounterExtender, MonotonicClock, NoExposureInput};
 use mlsss_shared::message::{Board, ControllerState};
 
-use cmsdk::{DualTimer, FpgaLed, SYSCLK_HZ, Timer, Uart};
+use cmsdk::{DualTimer, FpgaLed, SYSCLK_HZ, Timer, Uart, virtual_centiseconds};
 
 /// The controller of this board.
 type QemuController = Controller<Uart, FpgaLed, NoExposureInput, Timer0Clock, 4>;
@@ -43,6 +50,15 @@ const TICKS_PER_US: u64 = (SYSCLK_HZ / 1_000_000) as u64;
 
 /// Projector refresh rates (millihertz), as in hardware/booth.toml.
 const REFRESH_MHZ: [u32; 4] = [60_000, 59_940, 60_020, 59_970];
+
+/// Longest the booth's time waits for the host's answer to one pattern request, in
+/// centiseconds of QEMU virtual time spent polling. 1 s of virtual time is 0.2-4 s of real
+/// time at `-icount shift=4`, depending on how much CPU QEMU gets: far more than a host's answer
+/// takes even on a busy machine (a few ms; QEMU and the host slow down together; 0.5 s once let
+/// one frame of 268 go late at load average 15), and short enough that the fault-injection
+/// tests' stalls and disconnects (8 s) still reach the ack deadline and the host-silence
+/// timeout.
+const HOST_HOLD_CS: u32 = 100;
 
 /// First VSYNC edge of each projector after boot (ticks): spread so edges rarely coincide.
 const FIRST_EDGE_TICKS: [u32; 3] = [100_000, 200_000, 300_000];
@@ -186,18 +202,29 @@ fn main() -> ! {
     };
     let mut lost_reported = 0;
     let mut booth_on = false;
+    let mut held_for = None;
     loop {
-        while let Some((projector, t)) =
-            critical_section::with(|cs| VSYNC_EDGES.borrow_ref_mut(cs).dequeue())
-        {
-            controller.on_vsync(projector, t);
-        }
+        deliver_edges(controller);
         // The UART and the LED cannot fail (`Infallible`).
         let _ = controller.poll();
         if !booth_on && controller.state() == ControllerState::Running {
             // Time starts with the first run (see `start_booth`).
             start_booth(&mut core);
             booth_on = true;
+        }
+        let awaited = controller.awaits_host();
+        if awaited.is_none() {
+            // Answered: a later run may request the same (frame, attempt) again.
+            held_for = None;
+        }
+        if let Some(request) = awaited
+            && booth_on
+            && held_for != Some(request)
+        {
+            // Once per request: after a hold that ran out, booth time runs on to the deadline.
+            held_for = Some(request);
+            hold_for_host(controller, &mut core.SYST, request);
+            continue;
         }
         if controller.may_sleep() {
             // Interrupts masked while checking, so an edge arriving in between still wakes WFI
@@ -214,6 +241,48 @@ fn main() -> ! {
             lost_reported = lost;
         }
     }
+}
+
+/// Hands the VSYNC edges the interrupt handlers queued to the controller.
+fn deliver_edges(controller: &mut QemuController) {
+    while let Some((projector, t)) =
+        critical_section::with(|cs| VSYNC_EDGES.borrow_ref_mut(cs).dequeue())
+    {
+        controller.on_vsync(projector, t);
+    }
+}
+
+/// Stops booth time (clock and VSYNC generators) until the host confirms `request` or
+/// [`HOST_HOLD_CS`] of virtual time has passed, polling the controller meanwhile (see the crate
+/// documentation on virtual time).
+fn hold_for_host(controller: &mut QemuController, syst: &mut SYST, request: (u16, u8)) {
+    set_booth_running(syst, false);
+    let start = virtual_centiseconds();
+    while controller.awaits_host() == Some(request)
+        && virtual_centiseconds().wrapping_sub(start) < HOST_HOLD_CS
+    {
+        // Edges that were pending when the timers stopped.
+        deliver_edges(controller);
+        let _ = controller.poll();
+    }
+    set_booth_running(syst, true);
+}
+
+/// Stops or restarts the five booth timers together. Each keeps its count, and the stop and the
+/// restart run the same instructions in the same order, so every timer is stopped for the same
+/// virtual time and their phases are kept (to QEMU's tick rounding, deterministically).
+fn set_booth_running(syst: &mut SYST, running: bool) {
+    critical_section::with(|_| {
+        Timer::at(Timer::TIMER0).set_running(running);
+        Timer::at(Timer::TIMER1).set_running(running);
+        DualTimer::at(DualTimer::COUNTER1).set_running(running);
+        DualTimer::at(DualTimer::COUNTER2).set_running(running);
+        if running {
+            syst.enable_counter();
+        } else {
+            syst.disable_counter();
+        }
+    });
 }
 
 /// Starts the microsecond clock and the four VSYNC generators.

@@ -20,7 +20,7 @@ use mlsss_shared::framing::{
 use mlsss_shared::message::{
     Ack, Board, ControllerHeartbeat, ControllerMessage, ControllerState, DoneSummary, DropReason,
     ErrorCode, FrameDropped, Hello, HelloReply, HostMessage, LinkStats, Nack, ProjectorTiming,
-    RunOutcome, StatusReport,
+    RunOutcome, ScheduleCommit, StatusReport,
 };
 use mlsss_shared::{PROTOCOL_VERSION, SCHEMA_HASH};
 
@@ -224,6 +224,16 @@ where
                 .is_some_and(|run| run.waits_for_edges_only(now, feedback, SLEEP_GUARD_US))
     }
 
+    /// The (frame, attempt) of a pattern request that has been sent and not yet confirmed by
+    /// the host (see [`Run::awaited_ack`]): the only host answer a run's timing depends on.
+    /// `None` while the request is still in the outbox.
+    pub fn awaits_host(&self) -> Option<(u16, u8)> {
+        if !self.out.is_empty() {
+            return None;
+        }
+        self.run.as_ref().and_then(Run::awaited_ack)
+    }
+
     /// The VSYNC tracker of each projector.
     pub fn vsync(&self) -> &[VsyncTracker; N] {
         &self.vsync
@@ -353,6 +363,12 @@ where
                 self.loader.chunk(chunk, N as u8)?;
                 self.ack(seq);
             }
+            HostMessage::ScheduleCommit(commit)
+                if !self.loader.is_loading() && self.is_committed(commit) =>
+            {
+                // A resent commit whose Ack the host did not see in time.
+                self.ack(seq);
+            }
             HostMessage::ScheduleCommit(commit) => {
                 self.schedule = Some(self.loader.commit(commit)?);
                 log!(info, "schedule of {} frames committed", commit.frame_count);
@@ -419,9 +435,34 @@ where
                 let _ = self.out.push_back(ControllerMessage::Ack(Ack { seq }));
                 run.resume(schedule, now, &mut self.out);
             }
+            HostMessage::Retrigger(rt) => {
+                let (Some(run), Some(schedule)) = (self.run.as_mut(), self.schedule.as_ref())
+                else {
+                    return Err(ErrorCode::RetriggerNotTriggered);
+                };
+                run.check_retrigger(schedule, rt)?;
+                // Ack first, then what the re-run queues (an extended run's request at once).
+                let _ = self.out.push_back(ControllerMessage::Ack(Ack { seq }));
+                let was_finished = run.is_finished();
+                run.retrigger(schedule, rt, now, &mut self.out);
+                if was_finished && !run.is_finished() {
+                    // The extended run ends with its own Done.
+                    self.done_sent = false;
+                    self.drop_cursor = None;
+                }
+            }
             HostMessage::Hello(_) | HostMessage::Heartbeat(_) => {}
         }
         Ok(())
+    }
+
+    /// True when `commit` describes the committed schedule and no run has used it yet.
+    fn is_committed(&self, commit: &ScheduleCommit) -> bool {
+        self.run.is_none()
+            && self.schedule.as_ref().is_some_and(|s| {
+                commit.frame_count == s.frame_count()
+                    && commit.checksum == mlsss_shared::schedule_checksum(&s.entries)
+            })
     }
 
     /// Queues `Done` and the measured projector timing once, when the run has ended.
@@ -441,7 +482,7 @@ where
         let not_reached = if outcome == RunOutcome::Completed {
             0
         } else {
-            let first = run.frame().saturating_add(1);
+            let first = run.next_unrun();
             let mut next = self.drop_cursor.unwrap_or(first);
             while next < frame_count && self.out.len() + DONE_MESSAGES < self.out.capacity() {
                 let dropped = FrameDropped {

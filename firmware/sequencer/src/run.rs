@@ -28,11 +28,17 @@
 //!    `max_retries`, then dropped (`FrameDropped`) or the run aborts, per the policy. Host
 //!    silence pauses the run (`FrameLate{HostSilent}`) until `Resume`. Nothing is dropped
 //!    silently.
+//! 8. **Re-runs.** A host `Retrigger` of a frame already triggered (its camera payload was
+//!    lost) queues a re-run: when the frame in flight is done, the re-run takes the next slot
+//!    as attempt `lost + 1` (`FrameRetried`, then request, trigger, exposure as any frame), and
+//!    the schedule continues after it. A re-trigger after the last frame extends the finished
+//!    run by one slot (a full slot ahead, as after `Resume`) and ends it with another `Done`.
 
 use heapless::Deque;
 use mlsss_shared::message::{
     ControllerMessage, DropReason, ErrorCode, ExhaustedAction, ExposureDone, FrameDropped,
-    FrameLate, FrameRetried, LateReason, PatternRequest, PatternShown, RunOutcome, Triggered,
+    FrameLate, FrameRetried, LateReason, PatternRequest, PatternShown, Retrigger, RunOutcome,
+    Triggered,
 };
 
 use crate::schedule::Schedule;
@@ -44,6 +50,9 @@ pub type Outbox = Deque<ControllerMessage, OUTBOX_LEN>;
 /// Capacity of the [`Outbox`]; the controller empties it on every poll, and one poll produces at
 /// most a handful of messages.
 pub const OUTBOX_LEN: usize = 32;
+
+/// Re-runs (host `Retrigger`s) that may wait for a slot at once.
+pub const RERUN_QUEUE_LEN: usize = 8;
 
 /// Latest a trigger edge may be fired after its planned time and still count as aligned.
 pub const FIRE_TOLERANCE_US: u64 = 50;
@@ -144,6 +153,10 @@ pub struct Run {
     stage: Stage,
     stats: RunStats,
     last_host_us: u64,
+    /// Re-runs waiting for a slot: (frame, attempt whose payload was lost).
+    reruns: Deque<(u16, u8), RERUN_QUEUE_LEN>,
+    /// While a re-run is in flight: the schedule frame to continue with after it.
+    resume_at: Option<u16>,
 }
 
 impl Run {
@@ -159,6 +172,8 @@ impl Run {
             stage: Stage::AwaitSlot,
             stats: RunStats::default(),
             last_host_us: now_us,
+            reruns: Deque::new(),
+            resume_at: None,
         };
         run.request(schedule, now_us, out);
         run
@@ -172,6 +187,12 @@ impl Run {
     /// The frame being worked on (the frame count once finished).
     pub fn frame(&self) -> u16 {
         self.frame
+    }
+
+    /// The first schedule frame not run yet (after the frame in flight, or where a re-run
+    /// returns to).
+    pub fn next_unrun(&self) -> u16 {
+        self.resume_at.unwrap_or(self.frame.saturating_add(1))
     }
 
     /// Counters so far.
@@ -317,11 +338,14 @@ impl Run {
         }
         let h = &schedule.header;
         let lit = self.lit_projector(schedule).unwrap_or(0);
-        let exposure_us = vsync.get(usize::from(lit)).map_or(
-            u64::from(h.exposure_periods) * u64::from(h.refresh_period_us),
-            |v| v.span_us(u32::from(h.exposure_periods)),
-        );
-        let low_at_us = at_us + u64::from(h.trigger_width_us);
+        // The lit projector's own (metered) exposure and pulse width.
+        let (periods, width_us) = schedule.exposure_of(lit);
+        let exposure_us = vsync
+            .get(usize::from(lit))
+            .map_or(u64::from(periods) * u64::from(h.refresh_period_us), |v| {
+                v.span_us(u32::from(periods))
+            });
+        let low_at_us = at_us + u64::from(width_us);
         self.stage = Stage::Pulse {
             plan,
             low_at_us,
@@ -499,6 +523,83 @@ impl Run {
         }
     }
 
+    /// The (frame, attempt) whose pattern request the host has not confirmed yet, while the
+    /// run waits for that confirmation before the slot starts. A board whose time is virtual
+    /// may hold its clock meanwhile (the QEMU board does), so the host's real-time latency does
+    /// not become booth time.
+    pub fn awaited_ack(&self) -> Option<(u16, u8)> {
+        (self.stage == Stage::AwaitSlot && self.shown_at_us.is_none())
+            .then_some((self.frame, self.attempt))
+    }
+
+    /// Whether a `Retrigger` can be accepted (rule 8): the frame ran already (it was triggered
+    /// or dropped) in a run that has not been aborted, and a re-run can be queued.
+    pub fn check_retrigger(&self, schedule: &Schedule, rt: &Retrigger) -> Result<(), ErrorCode> {
+        let current_fired = matches!(self.stage, Stage::Pulse { .. } | Stage::Exposing { .. });
+        let ran = rt.frame < self.resume_at.unwrap_or(self.frame)
+            || (rt.frame == self.frame && current_fired);
+        if !ran || rt.frame >= schedule.frame_count() {
+            return Err(ErrorCode::RetriggerNotTriggered);
+        }
+        match self.stage {
+            Stage::Finished(RunOutcome::Completed) => Ok(()),
+            Stage::Finished(_) => Err(ErrorCode::InvalidState),
+            _ if self.reruns.is_full() && !self.is_queued(rt.frame) => {
+                Err(ErrorCode::RetriggerQueueFull)
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Queues the re-run of a frame that passed [`Self::check_retrigger`]; a completed run is
+    /// extended by it at once. A frame already queued or being re-run is not queued twice.
+    pub fn retrigger(
+        &mut self,
+        schedule: &Schedule,
+        rt: &Retrigger,
+        now_us: u64,
+        out: &mut Outbox,
+    ) {
+        let rerunning = self.resume_at.is_some() && self.frame == rt.frame;
+        if self.is_queued(rt.frame) || rerunning {
+            return;
+        }
+        if self.stage == Stage::Finished(RunOutcome::Completed) {
+            self.resume_at = Some(self.frame);
+            self.next_slot_at_us = now_us + u64::from(schedule.header.period_us);
+            self.start_rerun(schedule, (rt.frame, rt.attempt), now_us, out);
+            return;
+        }
+        // Cannot fail: check_retrigger refused a full queue.
+        let _ = self.reruns.push_back((rt.frame, rt.attempt));
+    }
+
+    fn is_queued(&self, frame: u16) -> bool {
+        self.reruns.iter().any(|&(f, _)| f == frame)
+    }
+
+    /// Requests `frame` again as the attempt after `lost_attempt`.
+    fn start_rerun(
+        &mut self,
+        schedule: &Schedule,
+        (frame, lost_attempt): (u16, u8),
+        now_us: u64,
+        out: &mut Outbox,
+    ) {
+        self.frame = frame;
+        self.attempt = lost_attempt.saturating_add(1);
+        self.retries_used = 0;
+        self.stats.retried += 1;
+        push(
+            out,
+            ControllerMessage::FrameRetried(FrameRetried {
+                frame,
+                attempt: self.attempt,
+            }),
+        );
+        self.request(schedule, now_us, out);
+    }
+
     /// `Resume` after a pause: the same frame is requested again with a full slot ahead.
     pub fn resume(&mut self, schedule: &Schedule, now_us: u64, out: &mut Outbox) -> bool {
         if self.stage != Stage::Paused {
@@ -526,6 +627,17 @@ impl Run {
             Stage::Finished(_) => return,
             Stage::Pulse { .. } | Stage::Exposing { .. } => {}
             _ => self.drop_frame(DropReason::RunAborted, out),
+        }
+        // Queued re-runs will not happen: each is reported.
+        while let Some((frame, _)) = self.reruns.pop_front() {
+            self.stats.dropped += 1;
+            push(
+                out,
+                ControllerMessage::FrameDropped(FrameDropped {
+                    frame,
+                    reason: DropReason::RunAborted,
+                }),
+            );
         }
         self.stage = Stage::Finished(RunOutcome::AbortedByHost);
     }
@@ -674,7 +786,16 @@ impl Run {
         out: &mut Outbox,
     ) {
         let slot_len = self.slot_len_us(schedule, vsync);
-        self.frame += 1;
+        let next = self.next_unrun();
+        if let Some(rerun) = self.reruns.pop_front() {
+            // Rule 8: a queued re-run takes the next slot; the schedule continues after it.
+            self.resume_at = Some(next);
+            self.next_slot_at_us = slot_start_us + slot_len;
+            self.start_rerun(schedule, rerun, now_us, out);
+            return;
+        }
+        self.resume_at = None;
+        self.frame = next;
         self.attempt = 0;
         self.retries_used = 0;
         if self.frame >= schedule.frame_count() {

@@ -30,6 +30,30 @@ impl Schedule {
     pub fn slot_vsyncs(&self) -> u32 {
         slot_vsyncs(&self.header)
     }
+
+    /// Exposure (refresh periods) and trigger pulse width (us) of `projector`'s frames.
+    pub fn exposure_of(&self, projector: u8) -> (u8, u32) {
+        exposure_of(&self.header, projector)
+    }
+}
+
+/// Exposure (refresh periods) and trigger width (us) of `projector`'s frames: its own entry of
+/// `projector_exposure`, or the header's nominal values when that entry is 0 periods.
+pub fn exposure_of(h: &ScheduleHeader, projector: u8) -> (u8, u32) {
+    match h.projector_exposure.get(usize::from(projector)) {
+        Some(e) if e.exposure_periods > 0 => (e.exposure_periods, e.trigger_width_us),
+        _ => (h.exposure_periods, h.trigger_width_us),
+    }
+}
+
+/// Every exposure the header uses: the nominal one and each projector's own.
+fn exposures(h: &ScheduleHeader) -> impl Iterator<Item = (u8, u32)> + '_ {
+    let own = h
+        .projector_exposure
+        .iter()
+        .filter(|e| e.exposure_periods > 0)
+        .map(|e| (e.exposure_periods, e.trigger_width_us));
+    core::iter::once((h.exposure_periods, h.trigger_width_us)).chain(own)
 }
 
 /// Refresh periods per slot, rounded (a header that passed [`validate_header`] gives >= 1).
@@ -38,10 +62,10 @@ pub fn slot_vsyncs(h: &ScheduleHeader) -> u32 {
     (h.period_us + refresh / 2) / refresh
 }
 
-/// Shortest slot that holds the settle VSYNCs, the trigger phase and the exposure.
+/// Shortest slot that holds the settle VSYNCs, the trigger phase and the longest exposure.
 pub fn min_period_us(h: &ScheduleHeader) -> u64 {
-    (u64::from(h.settle_vsyncs.max(1)) + u64::from(h.exposure_periods))
-        * u64::from(h.refresh_period_us)
+    let longest = exposures(h).map(|(periods, _)| periods).max().unwrap_or(0);
+    (u64::from(h.settle_vsyncs.max(1)) + u64::from(longest)) * u64::from(h.refresh_period_us)
         + u64::from(h.trigger_phase_us)
 }
 
@@ -53,12 +77,12 @@ pub fn validate_header(h: &ScheduleHeader) -> Result<(), ErrorCode> {
     if usize::from(h.frame_count) > MAX_SCHEDULE_FRAMES {
         return Err(ErrorCode::ScheduleTooLong);
     }
-    let exposure_us = u64::from(h.exposure_periods) * u64::from(h.refresh_period_us);
-    if h.exposure_periods == 0
-        || h.refresh_period_us == 0
-        || h.trigger_width_us == 0
-        || u64::from(h.trigger_width_us) > exposure_us
-    {
+    // Each exposure (nominal and per projector) is at least a period, with a pulse inside it.
+    let invalid = |(periods, width_us): (u8, u32)| {
+        let exposure_us = u64::from(periods) * u64::from(h.refresh_period_us);
+        periods == 0 || width_us == 0 || u64::from(width_us) > exposure_us
+    };
+    if h.refresh_period_us == 0 || exposures(h).any(invalid) {
         return Err(ErrorCode::InvalidExposure);
     }
     // The phase must stay inside the refresh period it is aligned to, and the slot must hold
@@ -111,6 +135,10 @@ impl ScheduleLoader {
     pub fn chunk(&mut self, chunk: &ScheduleChunk, projectors: u8) -> Result<(), ErrorCode> {
         let header = self.header.ok_or(ErrorCode::InvalidState)?;
         let entries = chunk.entries.as_slice();
+        if self.is_repeat_of_last_chunk(chunk) {
+            // The host resent a chunk whose Ack it did not see in time: accept it again.
+            return Ok(());
+        }
         if usize::from(chunk.first_frame) != self.entries.len()
             || self.entries.len() + entries.len() > usize::from(header.frame_count)
         {
@@ -129,6 +157,15 @@ impl ScheduleLoader {
             c.update(entries);
         }
         Ok(())
+    }
+
+    /// True for a non-empty chunk equal to the entries received last.
+    fn is_repeat_of_last_chunk(&self, chunk: &ScheduleChunk) -> bool {
+        let entries = chunk.entries.as_slice();
+        let first = usize::from(chunk.first_frame);
+        !entries.is_empty()
+            && first + entries.len() == self.entries.len()
+            && self.entries.get(first..) == Some(entries)
     }
 
     /// Ends the upload: the schedule, when count and checksum match what was received.

@@ -341,3 +341,45 @@ fn an_aborted_scan_reports_every_frame_triggered_or_dropped() {
     assert_eq!(usize::from(done[0].frames_triggered), triggered);
     assert_eq!(usize::from(done[0].frames_dropped), 268 - triggered);
 }
+
+/// Regression (seen under a CPU hog): the host resends a command whose Ack it did not see in
+/// time (with a new sequence number). A resent last chunk or commit is acked again and changes
+/// nothing; a chunk that skips or overlaps differently is still refused.
+#[test]
+fn a_resent_schedule_chunk_or_commit_is_acked_again() {
+    use mlsss_shared::message::{BoundedVec, ScheduleChunk, ScheduleCommit};
+    use mlsss_shared::schedule_checksum;
+
+    let (mut bench, pin) = mock_bench(&[]);
+    let entries = booth_entries(10); // 40 frames: chunks of 32 and 8
+    let chunk = |first: usize, len: usize| {
+        HostMessage::ScheduleChunk(ScheduleChunk {
+            first_frame: first as u16,
+            entries: BoundedVec::from_slice(&entries[first..first + len]).expect("fits"),
+        })
+    };
+    let commit = HostMessage::ScheduleCommit(ScheduleCommit {
+        frame_count: 40,
+        checksum: schedule_checksum(&entries),
+    });
+    bench.send(hello());
+    bench.send(HostMessage::ScheduleBegin(booth_header(40)));
+    bench.send(chunk(0, 32));
+    bench.send(chunk(0, 32)); // resent
+    bench.send(chunk(16, 16)); // the tail of the last chunk only: a repeat too
+    bench.send(chunk(0, 16)); // not where the upload stands
+    bench.send(chunk(32, 8));
+    bench.send(commit.clone());
+    bench.send(commit); // resent
+    bench.send(HostMessage::StatusQuery);
+    bench.run_until(10_000);
+
+    assert_eq!(nacks(&bench), vec![ErrorCode::ChunkOutOfOrder]);
+    let status = bench.find(|m| match m {
+        ControllerMessage::Status(s) => Some(*s),
+        _ => None,
+    });
+    assert_eq!(status[0].schedule_frames, 40);
+    assert_eq!(status[0].state, ControllerState::Ready);
+    finish(bench, pin);
+}

@@ -98,6 +98,14 @@ pub enum RigError {
     /// More distinct patterns than a pattern id can name.
     #[error("more than 65535 distinct patterns in the plan")]
     TooManyPatterns,
+    /// A metered exposure names a projector the protocol cannot address.
+    #[error("projector {projector}: the controller drives at most {max} projectors")]
+    TooManyProjectors {
+        /// The projector.
+        projector: u8,
+        /// The protocol's limit.
+        max: usize,
+    },
     /// More frames than the protocol can number.
     #[error("{0} frames: the protocol numbers at most 65535")]
     TooManyFrames(usize),
@@ -132,6 +140,17 @@ pub enum RigError {
         frame: u16,
         /// Requested pattern id.
         pattern: u16,
+    },
+    /// The camera payload of a triggered frame was lost, incomplete or unusable; the frame can
+    /// be run again (`acquire` re-triggers it).
+    #[error("{backend} backend: {message}")]
+    PayloadLost {
+        /// Which backend.
+        backend: &'static str,
+        /// The frame whose payload is missing.
+        frame: u32,
+        /// What happened.
+        message: String,
     },
     /// A camera or projector backend failed.
     #[error("{backend} backend: {message}")]

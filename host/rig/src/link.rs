@@ -259,5 +259,6 @@ pub fn command_name(message: &HostMessage) -> &'static str {
         HostMessage::PatternShown(_) => "PatternShown",
         HostMessage::Heartbeat(_) => "Heartbeat",
         HostMessage::Resume => "Resume",
+        HostMessage::Retrigger(_) => "Retrigger",
     }
 }

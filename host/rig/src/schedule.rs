@@ -2,12 +2,13 @@
 //! booth's timing, and the pattern table that maps ids back to patterns.
 
 use mlsss_shared::message::{
-    BoundedVec, ExhaustedAction, RetryPolicy, SCHEDULE_CHUNK_LEN, ScheduleChunk, ScheduleCommit,
-    ScheduleEntry, ScheduleHeader,
+    BoundedVec, ExhaustedAction, MAX_PROJECTORS, ProjectorExposure as WireExposure, RetryPolicy,
+    SCHEDULE_CHUNK_LEN, ScheduleChunk, ScheduleCommit, ScheduleEntry, ScheduleHeader,
 };
 
 use super::RigError;
 use mlsss_core::booth::TimingSpec;
+use mlsss_core::capture::exposure::ProjectorExposure;
 use mlsss_core::capture::{FramePlan, Pattern};
 
 /// Time the controller waits for the host's shown-ack after a request. Generous: the run is
@@ -27,6 +28,9 @@ pub struct RigSchedule {
     pub entries: Vec<ScheduleEntry>,
     /// Pattern id -> pattern.
     pub patterns: Vec<Pattern>,
+    /// The metered exposure of each projector (empty: the booth's nominal exposure), as
+    /// `capture.json` records it; the header carries its periods and pulse width.
+    pub exposure: Vec<ProjectorExposure>,
 }
 
 impl RigSchedule {
@@ -66,12 +70,40 @@ impl RigSchedule {
                 max_retries: MAX_RETRIES,
                 when_exhausted: ExhaustedAction::Abort,
             },
+            // Nominal until metered (see `with_exposure`).
+            projector_exposure: Default::default(),
         };
         Ok(Self {
             header,
             entries,
             patterns,
+            exposure: vec![],
         })
+    }
+
+    /// The schedule with each projector's metered exposure (`capture::exposure::meter`): its
+    /// frames are exposed for `periods` refresh periods, and the trigger pulse lasts the whole
+    /// exposure (the camera in trigger-width exposure mode exposes while the pulse is high, so
+    /// the exposure can change from frame to frame without reconfiguring the camera). The
+    /// controller refuses an exposure its slot cannot hold (`PeriodTooShort`).
+    pub fn with_exposure(mut self, exposure: &[ProjectorExposure]) -> Result<Self, RigError> {
+        for e in exposure {
+            let slot = self
+                .header
+                .projector_exposure
+                .get_mut(usize::from(e.projector))
+                .ok_or(RigError::TooManyProjectors {
+                    projector: e.projector,
+                    max: MAX_PROJECTORS,
+                })?;
+            let periods = saturating_u8(e.periods);
+            *slot = WireExposure {
+                exposure_periods: periods,
+                trigger_width_us: u32::from(periods) * self.header.refresh_period_us,
+            };
+        }
+        self.exposure = exposure.to_vec();
+        Ok(self)
     }
 
     /// The upload chunks, in order.
@@ -132,6 +164,45 @@ mod tests {
         assert_eq!(s.header.period_us, 200_000);
         assert_eq!(s.header.refresh_period_us, 16_667);
         assert_eq!((s.header.exposure_periods, s.header.settle_vsyncs), (2, 2));
+    }
+
+    #[test]
+    fn metered_exposure_sets_each_projectors_periods_and_a_pulse_as_long_as_the_exposure() {
+        let booth = Booth::builtin(true);
+        let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
+        let nominal = ProjectorExposure::nominal(2, &booth.timing);
+        let longer = ProjectorExposure {
+            projector: 1,
+            periods: 6,
+            analog_gain: 1.5,
+            scale: 4.5,
+        };
+        let s = RigSchedule::from_plan(&plan, &booth.timing, Some(8))
+            .unwrap()
+            .with_exposure(&[longer, nominal])
+            .unwrap();
+        // 6 periods of 16 667 us; projector 2 at the booth's 2 periods; 0 and 3 not metered.
+        assert_eq!(
+            s.header.projector_exposure[1],
+            WireExposure {
+                exposure_periods: 6,
+                trigger_width_us: 100_002
+            }
+        );
+        assert_eq!(s.header.projector_exposure[2].exposure_periods, 2);
+        assert_eq!(s.header.projector_exposure[2].trigger_width_us, 33_334);
+        assert_eq!(s.header.projector_exposure[0], WireExposure::default());
+        assert_eq!(s.exposure, [longer, nominal]);
+        let too_many = ProjectorExposure {
+            projector: 8,
+            ..longer
+        };
+        assert!(
+            RigSchedule::from_plan(&plan, &booth.timing, Some(8))
+                .unwrap()
+                .with_exposure(&[too_many])
+                .is_err()
+        );
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use mlsss_shared::message::{
     ControllerState, DoneSummary, ErrorCode, ExposureDone, FrameDropped, FrameLate, FrameRetried,
     Hello, HelloReply, HostHeartbeat, LateReason, Nack, PatternRequest, PatternShown,
-    ProjectorTiming, StatusReport, Triggered,
+    ProjectorTiming, Retrigger, RunOutcome, StatusReport, Triggered,
 };
 use mlsss_shared::{ControllerMessage, HostMessage, PROTOCOL_VERSION, SCHEMA_HASH};
 
@@ -85,8 +85,12 @@ pub struct RunLog {
     pub dropped: Vec<FrameDropped>,
     /// Refusals (of pattern acks, typically) during the run.
     pub nacks: Vec<Nack>,
-    /// Frames triggered twice (must stay empty).
+    /// Frames triggered twice without a re-trigger asking for it (must stay empty).
     pub duplicate_triggers: Vec<u16>,
+    /// Re-triggers the controller accepted (frames whose camera payload was lost), in order.
+    pub retriggers: Vec<Retrigger>,
+    /// Re-triggers the controller refused, with its reason (those frames stay missing).
+    pub retrigger_refusals: Vec<(Retrigger, ErrorCode)>,
     /// The final summary.
     pub done: DoneSummary,
     /// Measured VSYNC timing by projector (the latest report of each).
@@ -106,6 +110,12 @@ pub trait RunHooks {
     /// The exposure of a frame ended.
     fn exposure_done(&mut self, _exposure: &ExposureDone) -> Result<(), RigError> {
         Ok(())
+    }
+    /// Frames whose camera payload was lost since the last call, to be re-triggered. With
+    /// `wait_for_all` (at the end of a run) first waits until the payload of every triggered
+    /// frame has been received or found lost.
+    fn lost_payloads(&mut self, _wait_for_all: bool) -> Result<Vec<Retrigger>, RigError> {
+        Ok(vec![])
     }
 }
 
@@ -193,6 +203,10 @@ impl<L: ByteLink> Session<L> {
         let mut withheld: Vec<PatternRequest> = vec![];
         let mut disconnect = faults.disconnect;
         loop {
+            for lost in hooks.lost_payloads(false)? {
+                self.retrigger(run, lost)?;
+                last_sent = Instant::now();
+            }
             if last_sent.elapsed() >= HEARTBEAT_EVERY {
                 self.heartbeat()?;
                 last_sent = Instant::now();
@@ -242,7 +256,12 @@ impl<L: ByteLink> Session<L> {
                     }
                 }
                 ControllerMessage::Triggered(trigger) => {
-                    if run.triggers.insert(trigger.frame, trigger).is_some() {
+                    let asked_again = run
+                        .retriggers
+                        .iter()
+                        .any(|r| r.frame == trigger.frame && r.attempt < trigger.attempt);
+                    // The latest trigger of a frame is the one whose payload is kept.
+                    if run.triggers.insert(trigger.frame, trigger).is_some() && !asked_again {
                         run.duplicate_triggers.push(trigger.frame);
                     }
                     hooks.triggered(&trigger)?;
@@ -258,6 +277,20 @@ impl<L: ByteLink> Session<L> {
                     run.projector_timing.insert(timing.projector, timing);
                 }
                 ControllerMessage::Done(done) => {
+                    // Payloads still in flight may turn out lost: re-trigger them before the
+                    // run ends (the controller extends it and sends another Done).
+                    if done.outcome == RunOutcome::Completed {
+                        let mut extended = false;
+                        for lost in hooks.lost_payloads(true)? {
+                            extended |= self.retrigger(run, lost)?;
+                        }
+                        // A re-trigger sent just before this Done was read extends the run
+                        // too: this Done is then not the last one.
+                        if extended || run.rerun_outstanding() {
+                            last_progress = Instant::now();
+                            continue;
+                        }
+                    }
                     run.done = Some(done);
                     self.collect_after_done(run)?;
                     return Ok(());
@@ -280,6 +313,21 @@ impl<L: ByteLink> Session<L> {
                 ..
             }) => Ok(()),
             other => other,
+        }
+    }
+
+    /// Asks the controller to run a frame again; `false` when it refused (recorded in the log).
+    fn retrigger(&mut self, run: &mut RunState, lost: Retrigger) -> Result<bool, RigError> {
+        match self.link.command(&HostMessage::Retrigger(lost)) {
+            Ok(()) => {
+                run.retriggers.push(lost);
+                Ok(true)
+            }
+            Err(RigError::Refused { error, .. }) => {
+                run.retrigger_refusals.push((lost, error));
+                Ok(false)
+            }
+            Err(e) => Err(e),
         }
     }
 
@@ -406,6 +454,8 @@ struct RunState {
     dropped: Vec<FrameDropped>,
     nacks: Vec<Nack>,
     duplicate_triggers: Vec<u16>,
+    retriggers: Vec<Retrigger>,
+    retrigger_refusals: Vec<(Retrigger, ErrorCode)>,
     done: Option<DoneSummary>,
     projector_timing: BTreeMap<u8, ProjectorTiming>,
     reconnect_statuses: Vec<StatusReport>,
@@ -426,10 +476,24 @@ impl RunState {
             dropped: vec![],
             nacks: vec![],
             duplicate_triggers: vec![],
+            retriggers: vec![],
+            retrigger_refusals: vec![],
             done: None,
             projector_timing: BTreeMap::new(),
             reconnect_statuses: vec![],
         }
+    }
+
+    /// Whether an accepted re-trigger has neither been triggered again nor dropped yet.
+    fn rerun_outstanding(&self) -> bool {
+        self.retriggers.iter().any(|r| {
+            let rerun = self
+                .triggers
+                .get(&r.frame)
+                .is_some_and(|t| t.attempt > r.attempt);
+            let dropped = self.dropped.iter().any(|d| d.frame == r.frame);
+            !rerun && !dropped
+        })
     }
 
     fn finish(self, host_link: HostLinkStats) -> Result<RunLog, RigError> {
@@ -447,6 +511,8 @@ impl RunState {
             dropped: self.dropped,
             nacks: self.nacks,
             duplicate_triggers: self.duplicate_triggers,
+            retriggers: self.retriggers,
+            retrigger_refusals: self.retrigger_refusals,
             done,
             projector_timing: self.projector_timing,
             reconnect_statuses: self.reconnect_statuses,

@@ -215,6 +215,8 @@ mod tests {
             }],
             nacks: vec![],
             duplicate_triggers: vec![],
+            retriggers: vec![],
+            retrigger_refusals: vec![],
             done: DoneSummary {
                 outcome: RunOutcome::Completed,
                 frames_triggered: 3,

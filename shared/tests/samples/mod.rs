@@ -29,6 +29,19 @@ fn header(when_exhausted: ExhaustedAction) -> ScheduleHeader {
             max_retries: 3,
             when_exhausted,
         },
+        // Metered: projector 1 at the longest exposure a slot allows (6 periods, pulse as long
+        // as the exposure), projector 2 at 3 periods, the others at the header's.
+        projector_exposure: core::array::from_fn(|k| match k {
+            1 => ProjectorExposure {
+                exposure_periods: 6,
+                trigger_width_us: 100_002,
+            },
+            2 => ProjectorExposure {
+                exposure_periods: 3,
+                trigger_width_us: 50_001,
+            },
+            _ => ProjectorExposure::default(),
+        }),
     }
 }
 
@@ -96,6 +109,13 @@ pub fn host_messages() -> Vec<(&'static str, H)> {
             }),
         ),
         ("resume", H::Resume),
+        (
+            "retrigger",
+            H::Retrigger(Retrigger {
+                frame: 150,
+                attempt: 1,
+            }),
+        ),
     ]
 }
 
@@ -267,5 +287,15 @@ pub fn controller_messages() -> Vec<(&'static str, C)> {
             period_ns: 16_683_350,
         }),
     ));
+    // Codes added in protocol version 2 (appended here so the earlier lines keep their seq).
+    for (name, error) in [
+        (
+            "nack_retrigger_not_triggered",
+            ErrorCode::RetriggerNotTriggered,
+        ),
+        ("nack_retrigger_queue_full", ErrorCode::RetriggerQueueFull),
+    ] {
+        out.push((name, C::Nack(Nack { seq: 7, error })));
+    }
     out
 }

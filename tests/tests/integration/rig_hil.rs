@@ -1,5 +1,8 @@
 //! Hardware-in-the-loop tests: the host's rig control against the real firmware image under QEMU
 //! (`qemu-system-arm -machine mps2-an386 -icount shift=4,sleep=off`), over a pseudo-terminal.
+//! The QEMU board's booth time waits for the host's answer to each pattern request (up to 1 s
+//! of virtual time, see `firmware/qemu-mps2`), so the trigger logs do not depend on the
+//! machine's load; the fault-injection tests stall or disconnect for longer than that.
 //!
 //! They need `qemu-system-arm` and the image that `scripts/test.sh` builds (firmware/build.sh);
 //! without them they FAIL with the command that fixes it. They run one at a time (one QEMU at a
@@ -10,6 +13,7 @@ use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
 use mlsss::booth::Booth;
+use mlsss::capture::exposure::{ProjectorExposure, max_exposure_periods};
 use mlsss::capture::{Capture, FramePlan};
 use mlsss::rig::RigError;
 use mlsss::rig::acquire::{Acquired, CaptureTarget, acquire, checked_pattern};
@@ -226,6 +230,52 @@ fn nominal_268_frames_twice_with_identical_trigger_logs() {
     );
 }
 
+/// Metered exposure (issue 18): each projector's frames are exposed for its own periods, the
+/// longest the host allows included, and the 268-frame plan keeps its timing.
+#[test]
+fn metered_exposure_up_to_the_longest_allowed_keeps_the_268_frame_timing() {
+    let _one = one_at_a_time();
+    let (booth, _, schedule) = scan(false, 268);
+    let nominal = booth.timing.exposure_periods;
+    let longest = max_exposure_periods(&booth.timing);
+    // By hand: 12 periods per 200 ms slot at 60 Hz - 2 settle - 4 kept for the host.
+    assert_eq!(longest, 6);
+    let periods = [nominal, longest, 4, longest];
+    let exposure: Vec<ProjectorExposure> = (0..4u8)
+        .map(|k| ProjectorExposure {
+            projector: k,
+            periods: periods[usize::from(k)],
+            analog_gain: 1.0,
+            scale: f64::from(periods[usize::from(k)]) / f64::from(nominal),
+        })
+        .collect();
+    let schedule = schedule.with_exposure(&exposure).unwrap();
+    let log = run(&schedule, &HostFaults::default(), LinkFaults::default());
+
+    assert_complete_and_labelled(&log);
+    let report = timing_report(&log, 0.0);
+    assert_eq!(
+        (report.frames_lost, report.frames_late),
+        (0, 0),
+        "late: {:?}",
+        log.late
+    );
+    assert_eq!(report.settle_violations, 0);
+    assert!((report.period_us_mean - 200_000.0).abs() < 200.0);
+    for t in log.triggers.values() {
+        // Exposure end - trigger = the projector's periods of its measured refresh period.
+        let period_ns = u64::from(log.projector_timing[&t.projector].period_ns);
+        let want_us = u64::from(periods[usize::from(t.projector)]) * period_ns / 1000;
+        let got_us = log.exposures[&t.frame].timestamp_us - t.timestamp_us;
+        assert!(
+            got_us.abs_diff(want_us) <= 3,
+            "frame {} (projector {}): exposed {got_us} us, want {want_us}",
+            t.frame,
+            t.projector
+        );
+    }
+}
+
 #[test]
 fn timing_test_command_prints_the_report_for_268_frames() {
     let _one = one_at_a_time();
@@ -353,7 +403,9 @@ fn late_ack_of_frame_100_is_reported_retried_and_captured_correctly() {
 }
 
 /// A schedule with a short host-silence timeout and enough retries that the silence, not the
-/// retry limit, decides what happens.
+/// retry limit, decides what happens. The tests' stalls and disconnects last 8 s of real time:
+/// the QEMU board holds booth time for up to 1 s of virtual time while it waits for an answer
+/// (up to ~4 s of real time on a loaded machine), then the 0.5 s silence timeout must pass.
 fn silence_schedule(quick: bool, frames: usize) -> (Booth, FramePlan, RigSchedule) {
     let (booth, plan, mut schedule) = scan(quick, frames);
     schedule.header.host_silence_timeout_us = 500_000;
@@ -369,7 +421,7 @@ fn disconnect_mid_run_pauses_and_the_host_resumes() {
         late_ack_frames: vec![],
         disconnect: Some(Disconnect {
             at_frame: 12,
-            duration: Duration::from_secs(3),
+            duration: Duration::from_secs(8),
             then: ReconnectAction::Resume,
         }),
     };
@@ -420,7 +472,7 @@ fn a_host_too_slow_to_answer_resumes_the_paused_run() {
             shown: vec![],
         },
         frame: 2,
-        stall: Duration::from_secs(2),
+        stall: Duration::from_secs(8),
         stalled: false,
     };
     let log = session
@@ -448,7 +500,7 @@ fn disconnect_then_abort_keeps_every_frame_already_captured() {
         late_ack_frames: vec![],
         disconnect: Some(Disconnect {
             at_frame: 8,
-            duration: Duration::from_secs(3),
+            duration: Duration::from_secs(8),
             then: ReconnectAction::Abort,
         }),
     };

@@ -195,6 +195,7 @@ pub fn booth_header(frame_count: u16) -> ScheduleHeader {
             max_retries: 3,
             when_exhausted: ExhaustedAction::Abort,
         },
+        projector_exposure: Default::default(),
     }
 }
 

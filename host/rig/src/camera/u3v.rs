@@ -16,7 +16,7 @@ use cameleon::{Camera, DeviceControl, PayloadStream, StreamError};
 use image::Rgb32FImage;
 use serde::Serialize;
 
-use super::matching::{PayloadSource, RawPayload, SourceError, TriggerMatcher};
+use super::matching::{PayloadError, PayloadSource, RawPayload, SourceError, TriggerMatcher};
 use super::pixels::PixelLayout;
 use crate::RigError;
 use crate::backend::{CameraBackend, Exposure};
@@ -67,6 +67,23 @@ fn camera_error(context: &str, e: impl std::fmt::Display) -> RigError {
     RigError::Backend {
         backend: "u3v camera",
         message: format!("{context}: {e}"),
+    }
+}
+
+/// A payload that is missing, incomplete or of the wrong size can be had again by re-triggering
+/// the frame ([`RigError::PayloadLost`]); an unplugged camera, a stream error or a pixel format
+/// the backend cannot decode cannot.
+fn payload_error(serial: &str, frame: u32, e: PayloadError) -> RigError {
+    match e {
+        PayloadError::NoPayload { .. }
+        | PayloadError::Dropped { .. }
+        | PayloadError::Incomplete { .. }
+        | PayloadError::WrongSize { .. } => RigError::PayloadLost {
+            backend: "u3v camera",
+            frame,
+            message: format!("{serial}: {e}"),
+        },
+        other => camera_error(serial, other),
     }
 }
 
@@ -177,7 +194,7 @@ where
     fn capture(&mut self, exposure: &Exposure) -> Result<Rgb32FImage, RigError> {
         self.matcher
             .next_image(exposure.frame)
-            .map_err(|e| camera_error(&self.summary.serial, e))
+            .map_err(|e| payload_error(&self.summary.serial, exposure.frame, e))
     }
 }
 
