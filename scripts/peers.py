@@ -14,7 +14,7 @@
 
 Run through `scripts/peers.sh` (builds the binaries, makes the venv). Times are the best of
 --repeats runs, ours and the peer alternated; the load average is printed beside them.
-Needs numpy, scipy, scikit-learn, opencv-contrib-python-headless; never a dependency of mlsss.
+Needs numpy, scipy, scikit-learn, opencv-contrib-python-headless, OpenEXR; never a dependency of mlsss.
 """
 import argparse
 import glob
@@ -24,9 +24,9 @@ import subprocess
 import sys
 import time
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+import OpenEXR  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import em_vs_sklearn  # noqa: E402
@@ -98,14 +98,15 @@ def decode_section(args):
         ours_decode += min(best_dec)
         peer_total += min(best_peer_total)
         peer_decode += min(best_peer_dec)
-        coords = cv2.imread(os.path.join(out, "proj0_coords.exr"), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+        coords = OpenEXR.File(os.path.join(out, "proj0_coords.exr")).channels()["RGB"].pixels
         ours_valid = coords[:, :, 2] > 0.5
         ours_pixels += int(ours_valid.sum())
         peer_pixels += int(valid.sum())
         m = ours_valid & valid
         both += int(m.sum())
-        ux, uy = np.floor(coords[:, :, 0]).astype(int), np.floor(coords[:, :, 1]).astype(int)
-        agree += int((m & (np.abs(ux - x) <= 0) & (np.abs(uy - y) <= 0)).sum())
+        # Our codes have pixel centres at integers (code n covers [n - 0.5, n + 0.5)).
+        ux, uy = np.rint(coords[:, :, 0]).astype(int), np.rint(coords[:, :, 1]).astype(int)
+        agree += int((m & (ux == x) & (uy == y)).sum())
     return [
         {"stage": "decode (load + decode, %d captures)" % len(captures), "ours_s": ours_total, "peer_s": peer_total,
          "peer": "OpenCV GrayCodePattern logic, numpy"},

@@ -13,6 +13,6 @@ cargo build --release -q -p mlsss --bin mlsss --example em_crosscheck --example 
 VENV="${PEERS_VENV:-target/peers-venv}"
 if [ ! -x "$VENV/bin/python" ]; then
     python3 -m venv "$VENV"
-    "$VENV/bin/pip" install -q numpy scipy scikit-learn opencv-contrib-python-headless
+    "$VENV/bin/pip" install -q numpy scipy scikit-learn opencv-contrib-python-headless OpenEXR
 fi
 exec "$VENV/bin/python" scripts/peers.py "$@"
