@@ -357,38 +357,52 @@ fn solve_pixel_with(
         return PixelSolution::flagged(PixelStatus::TooFewLights, set);
     }
     let tolerance = params.noise_floor + params.residual_tolerance * brightest;
-    let (g, set) = match params.method {
+    let (g, set, condition) = match params.method {
         Method::LeastSquares => match least_squares(grey, set, factors) {
-            Some((g, _)) => (g, set),
+            Some((g, condition)) => (g, set, Some(condition)),
             None => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
         },
         Method::Robust => match robust_fit(grey, set, view, tolerance, factors) {
-            Some(found) => found,
+            Some((g, set)) => (g, set, None),
             None => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
         },
     };
-    let solved = Solved { g, set, brightest };
+    let solved = Solved {
+        g,
+        set,
+        brightest,
+        condition,
+    };
     finish(readings, lights, grey, solved, view, params, factors)
 }
 
-/// A pixel's solved `g = albedo * n`, the readings it used and its brightest reading.
+/// A pixel's solved `g = albedo * n`, the readings it used, its brightest reading and, when the
+/// solve already computed it for this `set`, the light matrix's condition number.
 struct Solved {
     g: Vector3<f64>,
     set: u128,
     brightest: f64,
+    condition: Option<f64>,
 }
 
 fn finish(
     readings: &[[f32; 3]],
     lights: &[LightSample],
     grey: &[Option<GreyReading>],
-    Solved { g, set, brightest }: Solved,
+    Solved {
+        g,
+        set,
+        brightest,
+        condition,
+    }: Solved,
     view: &Vector3<f64>,
     params: &PsParams,
     factors: &NormalFactors,
 ) -> PixelSolution {
-    match least_squares(grey, set, factors) {
-        Some((_, condition)) if condition <= params.max_condition => {}
+    // Least squares solved this very set already; the robust fit may have changed it.
+    let condition = condition.or_else(|| least_squares(grey, set, factors).map(|(_, c)| c));
+    match condition {
+        Some(condition) if condition <= params.max_condition => {}
         _ => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
     }
     let length = g.norm();
