@@ -25,7 +25,9 @@
 //! 5. flags a pixel with fewer than 3 good lights, an ill-conditioned light set, no signal, or a
 //!    normal facing away from the camera; flagged pixels get a zero normal and albedo.
 
-use nalgebra::{Matrix3, Vector3};
+use std::cell::RefCell;
+
+use nalgebra::{Cholesky, Matrix3, U3, Vector3};
 
 /// The most lights a pixel can use (the `used` set is a 128-bit mask).
 pub const MAX_LIGHTS: usize = 128;
@@ -164,57 +166,101 @@ struct GreyReading {
     colour_free: Vector3<f64>,
 }
 
-fn grey_readings(readings: &[[f32; 3]], lights: &[LightSample]) -> Vec<Option<GreyReading>> {
-    readings
-        .iter()
-        .zip(lights)
-        .map(|(rgb, light)| {
-            let scale = light.irradiance.iter().sum::<f64>() / 3.0;
-            if !(scale > 0.0 && scale.is_finite()) || light.direction.iter().any(|v| !v.is_finite())
-            {
-                return None;
-            }
-            let mut colour_free = Vector3::zeros();
-            for c in 0..3 {
-                let relative = light.irradiance[c] / scale;
-                colour_free[c] = if relative > 0.0 {
-                    rgb[c] as f64 / relative
-                } else {
-                    0.0
-                };
-            }
-            let grey = colour_free.sum() / 3.0;
-            if !grey.is_finite() {
-                return None;
-            }
-            let norm = colour_free.norm();
-            Some(GreyReading {
-                grey,
-                vector: light.direction * scale,
-                shading: grey / scale,
-                chroma: if norm > 0.0 {
-                    colour_free / norm
-                } else {
-                    Vector3::zeros()
-                },
-                colour_free,
-            })
-        })
-        .collect()
+/// Fills `out` with the grey reading of each light (reusing its allocation across pixels).
+fn grey_readings_into(
+    readings: &[[f32; 3]],
+    lights: &[LightSample],
+    out: &mut Vec<Option<GreyReading>>,
+) {
+    out.clear();
+    out.extend(
+        readings
+            .iter()
+            .zip(lights)
+            .map(|(rgb, light)| grey_reading(rgb, light)),
+    );
 }
 
-/// Least-squares `g = albedo * n` from the readings in `set`, with the condition number of the
-/// light matrix; `None` when the normal matrix cannot be inverted.
-fn least_squares(readings: &[Option<GreyReading>], set: u128) -> Option<(Vector3<f64>, f64)> {
+fn grey_reading(rgb: &[f32; 3], light: &LightSample) -> Option<GreyReading> {
+    let scale = light.irradiance.iter().sum::<f64>() / 3.0;
+    if !(scale > 0.0 && scale.is_finite()) || light.direction.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    let mut colour_free = Vector3::zeros();
+    for c in 0..3 {
+        let relative = light.irradiance[c] / scale;
+        colour_free[c] = if relative > 0.0 {
+            rgb[c] as f64 / relative
+        } else {
+            0.0
+        };
+    }
+    let grey = colour_free.sum() / 3.0;
+    if !grey.is_finite() {
+        return None;
+    }
+    let norm = colour_free.norm();
+    Some(GreyReading {
+        grey,
+        vector: light.direction * scale,
+        shading: grey / scale,
+        chroma: if norm > 0.0 {
+            colour_free / norm
+        } else {
+            Vector3::zeros()
+        },
+        colour_free,
+    })
+}
+
+/// The Cholesky factor of a light set's normal matrix `A^T A` and its condition number; `None`
+/// when the matrix cannot be inverted.
+type NormalFactor = Option<(Cholesky<f64, U3>, f64)>;
+
+/// Normal-matrix factors per light set. With distant lights (the same light vectors at every
+/// pixel) a set's factor is the same for every pixel: it is computed once per thread and set and
+/// reused (the per-pixel eigenvalues and Cholesky were most of the least-squares time). The
+/// arithmetic is the same as per pixel, so the results are bit-identical.
+struct NormalFactors {
+    uniform: bool,
+    cache: RefCell<Vec<(u128, NormalFactor)>>,
+}
+
+impl NormalFactors {
+    /// Bound on the cached sets (many lights can yield many subsets; the rest are computed).
+    const CAPACITY: usize = 256;
+
+    fn new(uniform: bool) -> Self {
+        Self {
+            uniform,
+            cache: RefCell::new(Vec::new()),
+        }
+    }
+
+    fn get(&self, readings: &[Option<GreyReading>], set: u128) -> NormalFactor {
+        if !self.uniform {
+            return normal_factor(readings, set);
+        }
+        if let Some((_, found)) = self.cache.borrow().iter().find(|(s, _)| *s == set) {
+            return *found;
+        }
+        let factor = normal_factor(readings, set);
+        let mut cache = self.cache.borrow_mut();
+        if cache.len() < Self::CAPACITY {
+            cache.push((set, factor));
+        }
+        factor
+    }
+}
+
+fn normal_factor(readings: &[Option<GreyReading>], set: u128) -> NormalFactor {
     let mut ata = Matrix3::zeros();
-    let mut aty = Vector3::zeros();
     for (i, r) in readings.iter().enumerate() {
         if set & (1 << i) == 0 {
             continue;
         }
         let r = r.as_ref()?;
         ata += r.vector * r.vector.transpose();
-        aty += r.vector * r.grey;
     }
     let eig = ata.symmetric_eigenvalues();
     let (lo, hi) = (eig.min(), eig.max());
@@ -222,12 +268,40 @@ fn least_squares(readings: &[Option<GreyReading>], set: u128) -> Option<(Vector3
         return None;
     }
     let condition = (hi / lo).sqrt();
-    let g = ata.cholesky()?.solve(&aty);
+    Some((ata.cholesky()?, condition))
+}
+
+/// Least-squares `g = albedo * n` from the readings in `set`, with the condition number of the
+/// light matrix; `None` when the normal matrix cannot be inverted.
+fn least_squares(
+    readings: &[Option<GreyReading>],
+    set: u128,
+    factors: &NormalFactors,
+) -> Option<(Vector3<f64>, f64)> {
+    let mut aty = Vector3::zeros();
+    for (i, r) in readings.iter().enumerate() {
+        if set & (1 << i) == 0 {
+            continue;
+        }
+        let r = r.as_ref()?;
+        aty += r.vector * r.grey;
+    }
+    let (cholesky, condition) = factors.get(readings, set)?;
+    let g = cholesky.solve(&aty);
     g.iter().all(|v| v.is_finite()).then_some((g, condition))
 }
 
+/// The lights in `set`, ascending. Walks the set bits (not all [`MAX_LIGHTS`] positions: with 4
+/// lights that was 128 tests per call, several calls per pixel).
 fn indices(set: u128) -> impl Iterator<Item = usize> {
-    (0..MAX_LIGHTS).filter(move |i| set & (1 << i) != 0)
+    let mut rest = set;
+    std::iter::from_fn(move || {
+        (rest != 0).then(|| {
+            let i = rest.trailing_zeros() as usize;
+            rest &= rest - 1;
+            i
+        })
+    })
 }
 
 /// Solves one pixel from its readings (one RGB per light), the lights as seen from the pixel, and
@@ -238,8 +312,28 @@ pub fn solve_pixel(
     view: &Vector3<f64>,
     params: &PsParams,
 ) -> PixelSolution {
+    solve_pixel_with(
+        readings,
+        lights,
+        view,
+        params,
+        &mut Vec::new(),
+        &NormalFactors::new(false),
+    )
+}
+
+/// [`solve_pixel`] with a reusable buffer for the grey readings and the normal-matrix factors.
+fn solve_pixel_with(
+    readings: &[[f32; 3]],
+    lights: &[LightSample],
+    view: &Vector3<f64>,
+    params: &PsParams,
+    grey: &mut Vec<Option<GreyReading>>,
+    factors: &NormalFactors,
+) -> PixelSolution {
     let n = readings.len().min(lights.len()).min(MAX_LIGHTS);
-    let grey = grey_readings(&readings[..n], &lights[..n]);
+    grey_readings_into(&readings[..n], &lights[..n], grey);
+    let grey = grey.as_slice();
     let robust = params.method == Method::Robust;
     let mut set: u128 = 0;
     for (i, (r, rgb)) in grey.iter().zip(readings).enumerate() {
@@ -256,39 +350,59 @@ pub fn solve_pixel(
         return PixelSolution::flagged(PixelStatus::NoSignal, 0);
     }
     if robust {
-        set = drop_shadows(&grey, set, params);
-        set = drop_chroma_highlights(&grey, set, params);
+        set = drop_shadows(grey, set, params);
+        set = drop_chroma_highlights(grey, set, params);
     }
     if set.count_ones() < 3 {
         return PixelSolution::flagged(PixelStatus::TooFewLights, set);
     }
     let tolerance = params.noise_floor + params.residual_tolerance * brightest;
-    let (g, set) = match params.method {
-        Method::LeastSquares => match least_squares(&grey, set) {
-            Some((g, _)) => (g, set),
+    let (g, set, condition) = match params.method {
+        Method::LeastSquares => match least_squares(grey, set, factors) {
+            Some((g, condition)) => (g, set, Some(condition)),
             None => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
         },
-        Method::Robust => match robust_fit(&grey, set, view, tolerance) {
-            Some(found) => found,
+        Method::Robust => match robust_fit(grey, set, view, tolerance, factors) {
+            Some((g, set)) => (g, set, None),
             None => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
         },
     };
-    finish(readings, lights, &grey, g, set, view, brightest, params)
+    let solved = Solved {
+        g,
+        set,
+        brightest,
+        condition,
+    };
+    finish(readings, lights, grey, solved, view, params, factors)
 }
 
-#[allow(clippy::too_many_arguments)]
+/// A pixel's solved `g = albedo * n`, the readings it used, its brightest reading and, when the
+/// solve already computed it for this `set`, the light matrix's condition number.
+struct Solved {
+    g: Vector3<f64>,
+    set: u128,
+    brightest: f64,
+    condition: Option<f64>,
+}
+
 fn finish(
     readings: &[[f32; 3]],
     lights: &[LightSample],
     grey: &[Option<GreyReading>],
-    g: Vector3<f64>,
-    set: u128,
+    Solved {
+        g,
+        set,
+        brightest,
+        condition,
+    }: Solved,
     view: &Vector3<f64>,
-    brightest: f64,
     params: &PsParams,
+    factors: &NormalFactors,
 ) -> PixelSolution {
-    match least_squares(grey, set) {
-        Some((_, condition)) if condition <= params.max_condition => {}
+    // Least squares solved this very set already; the robust fit may have changed it.
+    let condition = condition.or_else(|| least_squares(grey, set, factors).map(|(_, c)| c));
+    match condition {
+        Some(condition) if condition <= params.max_condition => {}
         _ => return PixelSolution::flagged(PixelStatus::IllConditioned, set),
     }
     let length = g.norm();
@@ -402,11 +516,12 @@ fn robust_fit(
     mut set: u128,
     view: &Vector3<f64>,
     tolerance: f64,
+    factors: &NormalFactors,
 ) -> Option<(Vector3<f64>, u128)> {
-    let (mut g, _) = least_squares(grey, set)?;
+    let (mut g, _) = least_squares(grey, set, factors)?;
     while set.count_ones() > 3 && !within_tolerance(grey, set, &g, tolerance) {
         let next = if set.count_ones() <= 8 {
-            most_plausible_removal(grey, set, view, tolerance)
+            most_plausible_removal(grey, set, view, tolerance, factors)
         } else {
             None
         };
@@ -415,7 +530,7 @@ fn robust_fit(
             None => {
                 let worst = worst_residual(grey, set, &g)?;
                 let smaller = set & !(1 << worst);
-                (least_squares(grey, smaller)?.0, smaller)
+                (least_squares(grey, smaller, factors)?.0, smaller)
             }
         };
         g = next.0;
@@ -439,11 +554,12 @@ fn most_plausible_removal(
     set: u128,
     view: &Vector3<f64>,
     tolerance: f64,
+    factors: &NormalFactors,
 ) -> Option<(Vector3<f64>, u128)> {
     let mut best: Option<(f64, Vector3<f64>, u128)> = None;
     for out in indices(set) {
         let subset = set & !(1 << out);
-        let Some((g, _)) = least_squares(grey, subset) else {
+        let Some((g, _)) = least_squares(grey, subset, factors) else {
             continue;
         };
         let Some(left_out) = grey[out] else {
@@ -512,6 +628,11 @@ pub trait LightModel: Sync {
     /// Fills `out` (length [`LightModel::count`]) with the lights at pixel `(x, y)`; returns the
     /// unit direction to the camera, or `None` when the pixel has no geometry.
     fn at(&self, x: u32, y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>>;
+    /// Whether every pixel sees the same light vectors (distant lights): lets the solver factor
+    /// each light set's normal matrix once instead of per pixel.
+    fn uniform(&self) -> bool {
+        false
+    }
 }
 
 /// Distant lights: the same direction and irradiance at every pixel, camera along `view`.
@@ -529,6 +650,10 @@ impl LightModel for DirectionalLights {
     fn at(&self, _x: u32, _y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>> {
         out.copy_from_slice(&self.lights);
         Some(self.view)
+    }
+
+    fn uniform(&self) -> bool {
+        true
     }
 }
 
@@ -664,9 +789,14 @@ pub fn solve_images(
                     direction: Vector3::z(),
                     irradiance: [0.0; 3],
                 };
-                (vec![placeholder; count], vec![[0f32; 3]; count])
+                (
+                    vec![placeholder; count],
+                    vec![[0f32; 3]; count],
+                    Vec::with_capacity(count),
+                    NormalFactors::new(lights.uniform()),
+                )
             },
-            |(samples, readings), p| {
+            |(samples, readings, grey, factors), p| {
                 if mask.is_some_and(|m| !m[p]) {
                     return PixelSolution::flagged(PixelStatus::Masked, 0);
                 }
@@ -677,7 +807,7 @@ pub fn solve_images(
                 for (reading, raw) in readings.iter_mut().zip(&raws) {
                     reading.copy_from_slice(&raw[p * 3..p * 3 + 3]);
                 }
-                solve_pixel(readings, samples, &view, params)
+                solve_pixel_with(readings, samples, &view, params, grey, factors)
             },
         )
         .collect();
@@ -964,5 +1094,53 @@ mod tests {
             "least squares {l:?} vs robust {r:?}"
         );
         assert!(r.pixels as f64 > 0.95 * scene.mask.iter().filter(|m| **m).count() as f64);
+    }
+
+    #[test]
+    fn factors_shared_across_pixels_give_the_per_pixel_solutions_exactly() {
+        // Distant lights let `solve_images` factor each light set once per thread; a pixel
+        // solved on its own (`solve_pixel`, factoring per pixel) must come out bit for bit the
+        // same, through shadows, highlights and leave-one-out subsets, for both methods.
+        let scene = super::super::ps_scene::render(&super::super::ps_scene::SceneParams {
+            width: 48,
+            height: 40,
+            lights: 6,
+            seed: 5,
+            ..Default::default()
+        });
+        let lights = DirectionalLights {
+            lights: scene
+                .directions
+                .iter()
+                .zip(&scene.intensities)
+                .map(|(d, i)| LightSample {
+                    direction: *d,
+                    irradiance: *i,
+                })
+                .collect(),
+            view: VIEW,
+        };
+        assert!(lights.uniform());
+        let refs: Vec<_> = scene.images.iter().collect();
+        for params in [robust(), least_squares()] {
+            let map = solve_images(&refs, &lights, Some(&scene.mask), &params).unwrap();
+            let mut solved = 0;
+            for (p, pixel) in map.pixels.iter().enumerate() {
+                if !scene.mask[p] {
+                    continue;
+                }
+                let readings: Vec<[f32; 3]> = refs
+                    .iter()
+                    .map(|im| {
+                        let raw = im.as_raw();
+                        [raw[p * 3], raw[p * 3 + 1], raw[p * 3 + 2]]
+                    })
+                    .collect();
+                let alone = solve_pixel(&readings, &lights.lights, &VIEW, &params);
+                assert_eq!(*pixel, alone, "pixel {p}");
+                solved += usize::from(alone.status == PixelStatus::Ok);
+            }
+            assert!(solved > 500, "{solved} pixels solved");
+        }
     }
 }

@@ -1,0 +1,223 @@
+#!/usr/bin/env python3
+"""Our processing stages against their peers, same machine, same run: prints ours, peer, the ratio
+(peer time / our time: above 1 we are faster) and the accuracy of both.
+
+- decode: `mlsss decode --layout opencv` against OpenCV's GrayCodePattern decoding logic in numpy
+  (pattern vs inverse per bit, |difference| >= 5, white - black > 40, Gray to binary, in range), on
+  the real procam-calibration captures (1280x1024, 40 code frames + white + black each).
+- separation: Nayar's max/min separation (6 shifted 3-px stripe frames, full size 1379x1029)
+  against numpy's max/min over the same array; error against the known direct and global.
+- ps: 4-light least-squares photometric stereo (full size, masked spheres) against numpy's
+  pseudo-inverse; angular error against the true normals.
+- em: our free-means EM against scikit-learn's GaussianMixture (scripts/em_vs_sklearn.py), 3 and 20
+  components.
+
+Run through `scripts/peers.sh` (builds the binaries, makes the venv). Times are the best of
+--repeats runs, ours and the peer alternated; the load average is printed beside them.
+Needs numpy, scipy, scikit-learn, opencv-contrib-python-headless, OpenEXR; never a dependency of mlsss.
+"""
+import argparse
+import glob
+import json
+import os
+import subprocess
+import sys
+import time
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import OpenEXR  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import em_vs_sklearn  # noqa: E402
+
+PROJECTOR = (1024, 768)
+WHITE_THRESHOLD, BLACK_THRESHOLD = 5, 40  # OpenCV GrayCodePattern defaults
+
+
+def best_of(repeats, run):
+    times, result = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = run()
+        times.append(time.perf_counter() - t0)
+    return min(times), result
+
+
+def gray_to_binary(bits):
+    """bits: (n, H, W) bool, most significant first -> integer image."""
+    value = np.zeros(bits.shape[1:], np.int32)
+    b = np.zeros(bits.shape[1:], bool)
+    for g in bits:
+        b = b ^ g
+        value = (value << 1) | b
+    return value
+
+
+def opencv_decode(frames):
+    """OpenCV GrayCodePattern::decode / getProjPixel, vectorised: (x, y, valid) per camera pixel."""
+    frames = frames.astype(np.int16)
+    black, white = frames[-1], frames[-2]
+    code = frames[:-2]
+    pattern, inverse = code[0::2], code[1::2]
+    diff = pattern - inverse
+    reliable = np.all(np.abs(diff) >= WHITE_THRESHOLD, axis=0)
+    bits = diff > 0
+    ncol = int(np.ceil(np.log2(PROJECTOR[0])))
+    x = gray_to_binary(bits[:ncol])
+    y = gray_to_binary(bits[ncol:])
+    valid = ((white - black) > BLACK_THRESHOLD) & reliable & (x < PROJECTOR[0]) & (y < PROJECTOR[1])
+    return x, y, valid
+
+
+def read_pngs(folder):
+    return np.stack([cv2.imread(f, cv2.IMREAD_GRAYSCALE) for f in sorted(glob.glob(folder + "/graycode_*.png"))])
+
+
+def decode_section(args):
+    captures = sorted(glob.glob(os.path.join(args.procam, "capture_*")))
+    ours_total = ours_decode = peer_total = peer_decode = 0.0
+    ours_pixels = peer_pixels = both = agree = 0
+    for c in captures:
+        out = os.path.join(args.work, "decode", os.path.basename(c))
+        cmd = [args.mlsss, "decode", c, "--layout", "opencv", "--projector", "%dx%d" % PROJECTOR, "--out", out, "--json"]
+        best_total, best_dec, best_peer_total, best_peer_dec = [], [], [], []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            report = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
+            best_total.append(time.perf_counter() - t0)
+            best_dec.append(report["timing_s"]["decode"])
+            t0 = time.perf_counter()
+            frames = read_pngs(c)
+            t1 = time.perf_counter()
+            x, y, valid = opencv_decode(frames)
+            t2 = time.perf_counter()
+            best_peer_total.append(t2 - t0)
+            best_peer_dec.append(t2 - t1)
+        ours_total += min(best_total)
+        ours_decode += min(best_dec)
+        peer_total += min(best_peer_total)
+        peer_decode += min(best_peer_dec)
+        coords = OpenEXR.File(os.path.join(out, "proj0_coords.exr")).channels()["RGB"].pixels
+        ours_valid = coords[:, :, 2] > 0.5
+        ours_pixels += int(ours_valid.sum())
+        peer_pixels += int(valid.sum())
+        m = ours_valid & valid
+        both += int(m.sum())
+        # Our codes have pixel centres at integers (code n covers [n - 0.5, n + 0.5)).
+        ux, uy = np.rint(coords[:, :, 0]).astype(int), np.rint(coords[:, :, 1]).astype(int)
+        agree += int((m & (ux == x) & (uy == y)).sum())
+    return [
+        {"stage": "decode (load + decode, %d captures)" % len(captures), "ours_s": ours_total, "peer_s": peer_total,
+         "peer": "OpenCV GrayCodePattern logic, numpy"},
+        {"stage": "decode (decoding alone)", "ours_s": ours_decode, "peer_s": peer_decode,
+         "peer": "OpenCV GrayCodePattern logic, numpy",
+         "accuracy": {"ours_pixels": ours_pixels, "peer_pixels": peer_pixels,
+                      "agree_on_both_decoded": agree / max(both, 1)}},
+    ]
+
+
+def run_example(args, kind):
+    out = os.path.join(args.work, kind)
+    cmd = [os.path.join(args.examples, "peer_images"), kind, out, str(args.repeats)]
+    return out, json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
+
+
+def separation_section(args):
+    out, ours = run_example(args, "separation")
+    frames = np.load(os.path.join(out, "frames.npy"))
+    saturation = 1.0 - 1.0 / 4095.0
+
+    def nayar():
+        lmax, lmin = frames.max(axis=0), frames.min(axis=0)
+        direct = lmax - lmin
+        glob_ = 2.0 * lmin
+        bad = np.any(lmax >= saturation, axis=-1, keepdims=True)
+        return np.where(bad, 0, np.maximum(direct, 0)), np.where(bad, 0, np.maximum(glob_, 0))
+
+    peer_s, (d_peer, g_peer) = best_of(args.repeats, nayar)
+    d_true, g_true = np.load(os.path.join(out, "direct_truth.npy")), np.load(os.path.join(out, "global_truth.npy"))
+    d_ours, g_ours = np.load(os.path.join(out, "direct_ours.npy")), np.load(os.path.join(out, "global_ours.npy"))
+    mae = lambda a, b: float(np.mean(np.abs(a - b)))  # noqa: E731
+    return [{"stage": "separation (Nayar, 6 frames 1379x1029)", "ours_s": ours["best_s"], "peer_s": peer_s,
+             "peer": "numpy max/min",
+             "accuracy": {"direct_mae_ours": mae(d_ours, d_true), "direct_mae_peer": mae(d_peer, d_true),
+                          "global_mae_ours": mae(g_ours, g_true), "global_mae_peer": mae(g_peer, g_true)}}]
+
+
+def ps_section(args):
+    out, ours = run_example(args, "ps")
+    images = np.load(os.path.join(out, "images.npy"))
+    lights = np.load(os.path.join(out, "lights.npy")).astype(np.float64)
+    mask = np.load(os.path.join(out, "mask.npy")) > 0.5
+    truth = np.load(os.path.join(out, "normals_truth.npy"))
+    normals_ours = np.load(os.path.join(out, "normals_ours.npy"))
+
+    def least_squares():
+        scale = lights[:, 3:].mean(axis=1)
+        relative = lights[:, 3:] / scale[:, None]
+        grey = (images[:, mask, :] / relative[:, None, :].astype(np.float32)).mean(axis=-1)  # (lights, pixels)
+        g = np.linalg.pinv(lights[:, :3] * scale[:, None]).astype(np.float32) @ grey  # (3, pixels)
+        norm = np.linalg.norm(g, axis=0)
+        n = np.zeros(truth.shape, np.float32)
+        n[mask] = (g / np.maximum(norm, 1e-12)).T
+        return n
+
+    peer_s, normals_peer = best_of(args.repeats, least_squares)
+
+    def angular(n):
+        solved = mask & (np.linalg.norm(n, axis=-1) > 0)
+        cos = np.clip(np.sum(n[solved] * truth[solved], axis=-1), -1, 1)
+        deg = np.degrees(np.arccos(cos))
+        return {"mean_deg": float(deg.mean()), "median_deg": float(np.median(deg)), "solved": int(solved.sum())}
+
+    return [{"stage": "photometric stereo (4 lights, least squares, 1379x1029)", "ours_s": ours["best_s"],
+             "peer_s": peer_s, "peer": "numpy pinv",
+             "accuracy": {"ours": angular(normals_ours), "peer": angular(normals_peer), "mask": int(mask.sum())}}]
+
+
+def em_section(args):
+    rows = []
+    for k in (3, 20):
+        r = em_vs_sklearn.compare(args.em_profiles, k, [os.path.join(args.examples, "em_crosscheck")])
+        rows.append({"stage": "EM (%d components, %d profiles)" % (k, args.em_profiles),
+                     "ours_s": r["seconds_per_profile"]["ours"] * args.em_profiles,
+                     "peer_s": r["seconds_per_profile"]["sklearn"] * args.em_profiles,
+                     "peer": "scikit-learn GaussianMixture",
+                     "accuracy": {"ours_minus_sklearn_ll_mean": r["ours_minus_sklearn_ll"]["mean"],
+                                  "ours_at_least_as_good_fraction": r["ours_at_least_as_good_fraction"]}})
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--mlsss", default="target/release/mlsss")
+    ap.add_argument("--examples", default="target/release/examples")
+    ap.add_argument("--procam", default="../shared/data/procam-calibration/sample_data")
+    ap.add_argument("--work", default="target/peers")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--em-profiles", type=int, default=40)
+    ap.add_argument("--only", choices=["decode", "separation", "ps", "em"], action="append")
+    ap.add_argument("--json", action="store_true", help="one JSON object instead of the table")
+    args = ap.parse_args()
+    sections = {"decode": decode_section, "separation": separation_section, "ps": ps_section, "em": em_section}
+    rows = []
+    for name in args.only or list(sections):
+        rows += sections[name](args)
+    for r in rows:
+        r["ratio_peer_over_ours"] = r["peer_s"] / r["ours_s"] if r["ours_s"] > 0 else float("inf")
+    meta = {"loadavg": os.getloadavg(), "cpus": os.cpu_count(), "numpy": np.__version__, "opencv": cv2.__version__}
+    if args.json:
+        print(json.dumps({"meta": meta, "rows": rows}, indent=1))
+        return
+    print("load average %.2f %.2f %.2f, %d CPUs" % (*meta["loadavg"], meta["cpus"]))
+    print("%-58s %10s %10s %8s  %s" % ("stage", "ours s", "peer s", "ratio", "peer"))
+    for r in rows:
+        print("%-58s %10.4f %10.4f %7.2fx  %s" % (r["stage"], r["ours_s"], r["peer_s"], r["ratio_peer_over_ours"], r["peer"]))
+        if "accuracy" in r:
+            print("    accuracy: " + json.dumps(r["accuracy"]))
+    print("ratio = peer time / our time (above 1: ours is faster); target >= 5")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
