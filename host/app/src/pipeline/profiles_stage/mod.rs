@@ -167,7 +167,8 @@ pub fn auto_direct_weight(d: [f32; 3], g: [f32; 3], range: (f32, f32)) -> f32 {
         return 0.0;
     };
     let span = range.1 - range.0;
-    if !(span > 0.0) {
+    if span.is_nan() || span <= 0.0 {
+        // A step at the range's end (or no direct part for a nonsense range).
         return if f >= range.1 { 1.0 } else { 0.0 };
     }
     ((f - range.0) / span).clamp(0.0, 1.0)
