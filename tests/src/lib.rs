@@ -206,6 +206,10 @@ pub fn estimated_calibration() -> &'static (PathBuf, serde_json::Value) {
 
 /// The shared quick head capture processed up to the fit with projector 3 held out (once per
 /// test binary run; few components, 8x8 tiles); returns the output folder and the report.
+/// `--direct none` (the default before `auto`): on this tiny light-skin scene `auto` removes
+/// some separated direct light and the per-pixel model then ties the homogeneous one under
+/// white light (0.1431 against 0.1427, i18b 6aacf72), which the fit tests' margin does not
+/// allow; the tiny type-VI demo test runs the `auto` default end to end.
 pub fn fitted_head() -> &'static (PathBuf, serde_json::Value) {
     static FITTED: OnceLock<(PathBuf, serde_json::Value)> = OnceLock::new();
     FITTED.get_or_init(|| {
@@ -218,6 +222,7 @@ pub fn fitted_head() -> &'static (PathBuf, serde_json::Value) {
                 .args(["--calib", "truth", "--until", "fit", "--json"])
                 .args(["--components", "4", "--block", "8"])
                 .args(["--holdout", "3", "--compare-slit-variants"])
+                .args(["--direct", "none"])
                 .arg("--out")
                 .arg(&out),
         );

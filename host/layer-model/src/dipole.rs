@@ -140,7 +140,16 @@ fn least_squares(a: &[Vec<f64>], b: &[f64], idx: &[usize]) -> Vec<f64> {
 /// Weights of the Gaussians (2-D, unit mass each, widths [`WIDTHS`]) summing to the unit-scale
 /// dipole profile, fitted on log-spaced radii with relative weighting (tails matter for skin).
 pub fn gaussian_representation(albedo: f64, eta: f64) -> Vec<f64> {
-    let radii: Vec<f64> = (0..60).map(|i| 0.01 * 1.15f64.powi(i)).collect();
+    // Radii out to where the profile has fallen to `PROFILE_FLOOR` of its value at the first:
+    // beyond, the relative rows' scales (1/target) reach 1e20 and more for a low albedo (dark
+    // skin: the profile falls fast) and the least squares returned all-zero weights, an empty
+    // dipole for every pixel-channel below reflectance ~0.14.
+    const PROFILE_FLOOR: f64 = 1e-9;
+    let peak = profile_unit(0.01, albedo, eta);
+    let radii: Vec<f64> = (0..60)
+        .map(|i| 0.01 * 1.15f64.powi(i))
+        .filter(|&r| profile_unit(r, albedo, eta) >= PROFILE_FLOOR * peak)
+        .collect();
     let g2 = |r: f64, s: f64| (-0.5 * (r / s).powi(2)).exp() / (2.0 * PI * s * s);
     // Relative least squares: rows scaled by 1/target; each row also weighted by r (area).
     let rows: Vec<(Vec<f64>, f64)> = radii
@@ -601,10 +610,47 @@ mod tests {
     fn gaussian_sum_follows_the_dipole_within_ten_percent_over_the_range_that_matters() {
         let albedo = 0.95;
         let w = gaussian_representation(albedo, 1.4);
-        for &r in &[0.05, 0.2, 0.5, 1.0, 2.0, 4.0, 8.0] {
+        assert_follows_the_dipole(albedo, &w, &[0.05, 0.2, 0.5, 1.0, 2.0, 4.0, 8.0]);
+    }
+
+    #[test]
+    fn every_row_of_the_table_represents_its_dipole_down_to_the_lowest_albedo() {
+        // Dark skin's low reflectance picks the lowest albedos; their rows were all zero
+        // (an empty dipole baseline on types IV-VI). Radii out to 2 mean free paths: the
+        // profile of albedo 0.4 has fallen to 1e-3 of its peak there.
+        let table = DipoleTable::new(1.4);
+        for (albedo, w) in table.albedos.iter().zip(&table.weights) {
+            assert!(w.iter().sum::<f64>() > 0.0, "albedo {albedo}: {w:?}");
+            assert_follows_the_dipole(*albedo, w, &[0.05, 0.2, 0.5, 1.0, 2.0]);
+        }
+        // A narrow profile of a dark pixel-channel (reflectance 0.01) now gets a dipole of
+        // that reflectance.
+        let (w, t) = (0.25, 7.5);
+        let samples: Vec<Sample> = (0..30)
+            .map(|i| {
+                let s = -t / 2.0 + (i as f64 + 0.5) * w;
+                Sample {
+                    s,
+                    y: (-(s * s) / 0.02).exp() + 0.001,
+                }
+            })
+            .collect();
+        let profile = Profile {
+            samples,
+            slit_width: w,
+            period: Some(t),
+            shift_per_depth: 0.0,
+        };
+        let fit = table.fit(std::slice::from_ref(&profile), 0.01, None);
+        let sum: f32 = fit.map_or(0.0, |f| f.layers.iter().map(|l| l.weight).sum());
+        assert!((sum - 0.01).abs() < 1e-6, "{sum}");
+    }
+
+    fn assert_follows_the_dipole(albedo: f64, w: &[f64], radii: &[f64]) {
+        for &r in radii {
             let approx: f64 = WIDTHS
                 .iter()
-                .zip(&w)
+                .zip(w)
                 .map(|(&s, &w)| w * (-0.5 * (r / s).powi(2)).exp() / (2.0 * PI * s * s))
                 .sum();
             let exact = profile_unit(r, albedo, 1.4);

@@ -192,4 +192,8 @@ fn demo_on_a_tiny_type_vi_head_meters_decodes_and_relights() {
         let psnr = number(&report, &format!("relight.psnr_db.{r}"));
         assert!(psnr > 15.0 && psnr < 80.0, "{r}: {psnr}");
     }
+    // An empty render scores exactly 1 against the truth: the dipole baseline renders light on
+    // this darkest skin (it was empty below reflectance ~0.14).
+    let dipole = number(&report, "relight.global_rel_rmse.dipole");
+    assert!(dipole < 0.99, "{dipole}");
 }

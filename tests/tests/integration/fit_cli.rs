@@ -21,13 +21,18 @@ fn slit_global_matches_the_simulator_truth() {
     eprintln!("slit global relative RMSE {err:.3} ({p})");
     assert!(err < 0.25, "global part of the slit frames: {err}");
     // `--compare-slit-variants` decodes every slit frame again and extracts it by each rule;
-    // the default rule (`--direct none`) must reproduce the stage's own extraction.
+    // the fixture's rule (`--direct none`) must reproduce the stage's own extraction.
     let again = number(p, "slit_global_rel_rmse_direct_none");
     assert!(
         (again - err).abs() <= 1e-9 * err,
         "re-extracted {again} against {err}"
     );
-    for rule in ["hard_mask", "direct_separation", "direct_colourless"] {
+    for rule in [
+        "hard_mask",
+        "direct_separation",
+        "direct_colourless",
+        "direct_auto",
+    ] {
         let key = format!("slit_global_rel_rmse_{rule}");
         assert!(number(p, &key).is_finite(), "{key}");
     }

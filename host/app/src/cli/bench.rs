@@ -102,8 +102,15 @@ fn run_skin_types(args: &Args) -> anyhow::Result<()> {
     let csv = args.out.join("skin_types.csv");
     mlsss_core::atomic_file::write_bytes_atomically(&csv, skin_types::to_csv(&table))
         .with_context(|| format!("writing {}", csv.display()))?;
+    let html = args.out.join("skin_types.html");
+    skin_types::to_html(&table)
+        .save(&html)
+        .with_context(|| format!("writing {}", html.display()))?;
     if args.json {
-        println!("{}", serde_json::json!({ "skin_types": table, "csv": csv }));
+        println!(
+            "{}",
+            serde_json::json!({ "skin_types": table, "csv": csv, "html": html })
+        );
     } else {
         eprint!("{}", skin_types::to_csv(&table));
         eprintln!("wrote {}", csv.display());

@@ -37,9 +37,16 @@ pub struct Args {
     /// Profiles stage: direct reflection removed from the slit frames, `separation` (the
     /// separate stage's direct image), `colourless` (its smallest channel: skin's surface
     /// reflection is colourless, the subsurface light that leaks into a coarse separation is
-    /// not) or `none` (all slit light counts as subsurface light).
-    #[arg(long, value_enum, default_value_t = DirectArg::None)]
+    /// not), `none` (all slit light counts as subsurface light) or `auto` (per pixel: the
+    /// separation's direct image weighted by the share of the pixel's light it holds, 0 below
+    /// `--direct-fraction-range`'s low end, 1 above its high end; none on light skin,
+    /// separation on very dark skin).
+    #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
+    /// Profiles stage, `--direct auto`: the direct fractions (low, high) between which the
+    /// separated direct light goes from ignored to removed, e.g. `0.25,0.45`.
+    #[arg(long, value_delimiter = ',')]
+    direct_fraction_range: Option<Vec<f32>>,
     /// Fit stage: fit one pixel per BLOCK x BLOCK tile (1 = every pixel; larger is faster and
     /// coarser).
     #[arg(long, default_value_t = 1)]
@@ -155,6 +162,7 @@ enum DirectArg {
     Separation,
     Colourless,
     None,
+    Auto,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -187,6 +195,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             DirectArg::Separation => DirectPart::Separation,
             DirectArg::Colourless => DirectPart::Colourless,
             DirectArg::None => DirectPart::None,
+            DirectArg::Auto => DirectPart::Auto,
+        },
+        direct_fraction_range: match args.direct_fraction_range.as_deref() {
+            None => mlsss::pipeline::profiles_stage::DEFAULT_DIRECT_FRACTION_RANGE,
+            Some([lo, hi]) if lo <= hi => (*lo, *hi),
+            Some(other) => anyhow::bail!("--direct-fraction-range wants LOW,HIGH, got {other:?}"),
         },
         view_ray: match args.view_ray {
             None => ProfilesParams::default().view_ray,

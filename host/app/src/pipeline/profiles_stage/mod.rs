@@ -22,7 +22,7 @@
 //! `black_level`; `scanline_row`; with ground truth `slit_global_rel_rmse` (relative RMS error of
 //! the extracted global part against the simulator's, over the subject, for every slit frame with
 //! truth) and, with [`ProfilesParams::compare_variants`], `slit_global_rel_rmse_hard_mask`
-//! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless}` (each
+//! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless,auto}` (each
 //! rule of [`DirectPart`]).
 
 use std::path::{Path, PathBuf};
@@ -75,6 +75,9 @@ pub struct ProfilesParams {
     pub scanline_projector: usize,
     /// Where the direct reflection on a lit slit comes from (see [`DirectPart`]).
     pub direct: DirectPart,
+    /// [`DirectPart::Auto`]: direct fractions of a pixel's light over which the separated
+    /// direct light goes from ignored to removed (see [`auto_direct_weight`]).
+    pub direct_fraction_range: (f32, f32),
     /// Which projector coordinates place the slits on the surface (see [`SlitCoordinates`]).
     pub coordinates: SlitCoordinates,
     /// With ground truth, also extract every slit frame by the other rules ([`VARIANTS`]) and
@@ -101,6 +104,10 @@ pub enum SlitCoordinates {
     Decoded,
 }
 
+/// Default of [`ProfilesParams::direct_fraction_range`], chosen by the held-out relighting error
+/// over skin types I-VI (README, "Skin types and exposure").
+pub const DEFAULT_DIRECT_FRACTION_RANGE: (f32, f32) = (0.2, 0.3);
+
 /// The direct (surface) reflection removed from a slit frame where the slit lands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -112,12 +119,11 @@ pub enum DirectPart {
     /// light skin (README).
     Separation,
     /// None: all light of a slit frame counts as subsurface light, and renders get no direct
-    /// part. For booths whose stripes are too coarse for the separation (short-range subsurface
-    /// light then lands in the "direct" image and would be cut out of every profile's peak).
-    /// Default: on the quick booth the extracted slit light is 10x closer to the truth this way
-    /// (relative RMSE 0.105 against 0.95 with the separation, 0.71 colourless), and skin's
-    /// surface reflection is a few percent of its light.
-    #[default]
+    /// part. Right where the surface reflection is a small part of the light (light skin away
+    /// from highlights: relative RMSE of the extracted slit light 0.105 against 0.95 with the
+    /// Nayar separation, 0.71 colourless, on the quick booth), wrong where it is not: on very
+    /// dark skin the surface reflection is as bright as the subsurface light and lands in every
+    /// profile's peak.
     None,
     /// The separation's direct image made colourless: its smallest channel in every channel.
     /// Skin's surface reflection is a dielectric's, colourless under white light, while the
@@ -125,24 +131,72 @@ pub enum DirectPart {
     /// is coloured and weakest in blue; the smallest channel bounds the surface reflection from
     /// above and the rest goes back to the subsurface part.
     Colourless,
+    /// Default. Per pixel from the data: the separation's direct image times a weight that
+    /// grows with the share of the pixel's light the separation calls direct
+    /// ([`auto_direct_weight`]). Where the surface reflection is small beside the subsurface
+    /// light (light skin) this is [`DirectPart::None`], where it is large (dark skin,
+    /// highlights) [`DirectPart::Separation`]: no skin type is needed, only the pixel's own
+    /// light.
+    #[default]
+    Auto,
+}
+
+/// Share of a pixel's white light that the separation calls direct, `mean(d) / mean(d + g)`
+/// over the channels; `None` without light or with non-finite input.
+pub fn direct_fraction(d: [f32; 3], g: [f32; 3]) -> Option<f32> {
+    let direct = (d[0] + d[1] + d[2]) / 3.0;
+    let total = direct + (g[0] + g[1] + g[2]) / 3.0;
+    let f = direct / total;
+    (total > 0.0 && f.is_finite()).then_some(f.clamp(0.0, 1.0))
+}
+
+/// [`DirectPart::Auto`]'s weight of the separated direct light of one pixel: 0 where the
+/// separation calls at most `range.0` of the pixel's light direct, 1 from `range.1` on, linear
+/// between; 0 without a finite [`direct_fraction`] (all light stays subsurface light).
+///
+/// Why a weight on the direct fraction: a separation leaves some short-range subsurface light
+/// in its direct image, about a fifth of the subsurface light on light skin's quick heads
+/// (`slit_global_rel_rmse_direct_separation`), while skin's surface reflection is a few percent
+/// of its light there; so on a pixel whose direct fraction is about that leak, removing the
+/// separated direct light costs more than leaving the surface reflection in the profiles. Where
+/// melanin absorbs most of the subsurface light (type VI: the surface reflection is about as
+/// bright as the subsurface light) the direct fraction is large and the separation's direct
+/// image is mostly surface reflection; so are specular highlights on any skin.
+pub fn auto_direct_weight(d: [f32; 3], g: [f32; 3], range: (f32, f32)) -> f32 {
+    let Some(f) = direct_fraction(d, g) else {
+        return 0.0;
+    };
+    let span = range.1 - range.0;
+    if span.is_nan() || span <= 0.0 {
+        // A step at the range's end (or no direct part for a nonsense range).
+        return if f >= range.1 { 1.0 } else { 0.0 };
+    }
+    ((f - range.0) / span).clamp(0.0, 1.0)
 }
 
 impl DirectPart {
-    /// Splits a white frame's separation `(direct, global)` by this rule.
-    pub fn split(self, direct: &[[f32; 3]], global: &[[f32; 3]]) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
+    /// Splits a white frame's separation `(direct, global)` by this rule (`fraction_range`:
+    /// [`ProfilesParams::direct_fraction_range`], read by [`DirectPart::Auto`] only).
+    pub fn split(
+        self,
+        fraction_range: (f32, f32),
+        direct: &[[f32; 3]],
+        global: &[[f32; 3]],
+    ) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
         direct
             .iter()
             .zip(global)
             .map(|(d, g)| {
                 let keep = match self {
                     DirectPart::Separation => return (*d, *g),
-                    DirectPart::None => 0.0,
-                    DirectPart::Colourless => d[0].min(d[1]).min(d[2]).max(0.0),
+                    DirectPart::None => [0.0; 3],
+                    DirectPart::Colourless => [d[0].min(d[1]).min(d[2]).max(0.0); 3],
+                    DirectPart::Auto => {
+                        let w = auto_direct_weight(*d, *g, fraction_range);
+                        d.map(|v| (w * v).max(0.0))
+                    }
                 };
-                (
-                    [keep; 3],
-                    [d[0] + g[0] - keep, d[1] + g[1] - keep, d[2] + g[2] - keep],
-                )
+                (keep, [0, 1, 2].map(|c| d[c] + g[c] - keep[c]))
             })
             .unzip()
     }
@@ -155,7 +209,8 @@ impl Default for ProfilesParams {
             view_ray: ViewRay::ExitPoint,
             blur_edges: true,
             scanline_projector: 0,
-            direct: DirectPart::None,
+            direct: DirectPart::Auto,
+            direct_fraction_range: DEFAULT_DIRECT_FRACTION_RANGE,
             coordinates: SlitCoordinates::Projected,
             compare_variants: false,
         }
@@ -226,6 +281,8 @@ pub struct ProfilesReport {
     pub slit_global_rel_rmse_direct_none: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slit_global_rel_rmse_direct_colourless: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slit_global_rel_rmse_direct_auto: Option<f64>,
 }
 
 /// One projector's entry of [`ProfilesReport`].
@@ -236,6 +293,42 @@ pub struct ProjectorProfilesReport {
     pub slit_frames: usize,
     pub blur_px: f64,
     pub black_level: f64,
+    /// Over the subject: median share of a pixel's white light that the separation calls
+    /// direct ([`direct_fraction`]), and the mean weight [`DirectPart::Auto`] gives the
+    /// separated direct light (0: none removed, 1: all).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direct_fraction_median: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direct_weight_mean: Option<f64>,
+}
+
+/// Median [`direct_fraction`] and mean [`auto_direct_weight`] of projector `p` over `mask`.
+fn direct_share(
+    p: &ProjectorInputs,
+    mask: &[bool],
+    range: (f32, f32),
+) -> (Option<f64>, Option<f64>) {
+    let pairs = || {
+        p.separation_direct
+            .iter()
+            .zip(&p.separation_global)
+            .zip(mask)
+            .filter(|(_, m)| **m)
+            .map(|(dg, _)| dg)
+    };
+    let mut fractions: Vec<f32> = pairs()
+        .filter_map(|(d, g)| direct_fraction(*d, *g))
+        .collect();
+    if fractions.is_empty() {
+        return (None, None);
+    }
+    let mid = fractions.len() / 2;
+    let median = *fractions.select_nth_unstable_by(mid, f32::total_cmp).1;
+    let weights: Vec<f64> = pairs()
+        .map(|(d, g)| f64::from(auto_direct_weight(*d, *g, range)))
+        .collect();
+    let mean = weights.iter().sum::<f64>() / weights.len() as f64;
+    (Some(f64::from(median)), Some(mean))
 }
 
 /// What the stage stores about the profiles it built (read back by the fit stage).
@@ -504,8 +597,11 @@ impl ProfileInputs {
             let geometry = pixel_geometry(&surface, &view, params.eta, params.view_ray)?;
             let separation_direct = read_rgb(&direct_path(&sep, k), size)?;
             let separation_global = read_rgb(&global_path(&sep, k), size)?;
-            let (direct_white, global_white) =
-                params.direct.split(&separation_direct, &separation_global);
+            let (direct_white, global_white) = params.direct.split(
+                params.direct_fraction_range,
+                &separation_direct,
+                &separation_global,
+            );
             let mut inputs = ProjectorInputs {
                 k,
                 centre,
@@ -734,12 +830,16 @@ fn run_profiles(
     let mut per_projector = Vec::new();
     for p in &inputs.projectors {
         p.sweep()?; // checks the frames: slits only, camera-sized
+        let (direct_fraction_median, direct_weight_mean) =
+            direct_share(p, &inputs.surface.mask, params.direct_fraction_range);
         per_projector.push(ProjectorProfilesReport {
             projector: p.k,
             pixels_with_profiles: p.geometry.iter().filter(|g| g.is_some()).count(),
             slit_frames: p.slits.len(),
             blur_px: f64::from(p.blur_px),
             black_level: f64::from(p.black_level),
+            direct_fraction_median,
+            direct_weight_mean,
         });
     }
     let mut report = ProfilesReport {
@@ -753,6 +853,7 @@ fn run_profiles(
         slit_global_rel_rmse_direct_separation: None,
         slit_global_rel_rmse_direct_none: None,
         slit_global_rel_rmse_direct_colourless: None,
+        slit_global_rel_rmse_direct_auto: None,
     };
     let truth_dir = ctx.truth_dir();
     if let Some(t) = &truth_dir {
@@ -763,6 +864,7 @@ fn run_profiles(
         report.slit_global_rel_rmse_direct_separation = variant(1);
         report.slit_global_rel_rmse_direct_none = variant(2);
         report.slit_global_rel_rmse_direct_colourless = variant(3);
+        report.slit_global_rel_rmse_direct_auto = variant(4);
     }
     let record = ProfilesRecord {
         params: params.clone(),
@@ -791,11 +893,12 @@ fn run_profiles(
 /// The truth check's variants besides the configured one: hard slit edges, and each rule for
 /// the direct part (report key suffixes: the fields `slit_global_rel_rmse_<suffix>` of
 /// [`ProfilesReport`], in this order).
-const VARIANTS: [(&str, Option<DirectPart>); 4] = [
+const VARIANTS: [(&str, Option<DirectPart>); 5] = [
     ("hard_mask", None),
     ("direct_separation", Some(DirectPart::Separation)),
     ("direct_none", Some(DirectPart::None)),
     ("direct_colourless", Some(DirectPart::Colourless)),
+    ("direct_auto", Some(DirectPart::Auto)),
 ];
 
 /// Relative RMS errors of the extracted slit globals against the truth: as configured, then
@@ -821,7 +924,11 @@ fn truth_check(
             .map(|(_, rule)| match rule {
                 None => (p.direct_white.clone(), p.global_white.clone(), 0.0),
                 Some(r) => {
-                    let (d, g) = r.split(&p.separation_direct, &p.separation_global);
+                    let (d, g) = r.split(
+                        inputs.params.direct_fraction_range,
+                        &p.separation_direct,
+                        &p.separation_global,
+                    );
                     (d, g, p.blur_px)
                 }
             })

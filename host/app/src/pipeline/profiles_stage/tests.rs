@@ -5,18 +5,24 @@ fn direct_part_rules_split_a_white_frame() {
     let direct = [[0.2f32, 0.3, 0.1]];
     let global = [[1.0f32, 1.0, 1.0]];
     let close = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
-    let (d, g) = DirectPart::Separation.split(&direct, &global);
+    let (d, g) = DirectPart::Separation.split((0.25, 0.45), &direct, &global);
     assert_eq!((d[0], g[0]), (direct[0], global[0]));
     // None: all light is subsurface light.
-    let (d, g) = DirectPart::None.split(&direct, &global);
+    let (d, g) = DirectPart::None.split((0.25, 0.45), &direct, &global);
     assert!(
         close(d[0], [0.0; 3]) && close(g[0], [1.2, 1.3, 1.1]),
         "{d:?} {g:?}"
     );
     // Colourless: the smallest channel in every channel, the rest back to the global part.
-    let (d, g) = DirectPart::Colourless.split(&direct, &global);
+    let (d, g) = DirectPart::Colourless.split((0.25, 0.45), &direct, &global);
     assert!(
         close(d[0], [0.1; 3]) && close(g[0], [1.1, 1.2, 1.0]),
+        "{d:?} {g:?}"
+    );
+    // Auto: the separation calls 0.2 of 1.2 direct (below the range): none removed.
+    let (d, g) = DirectPart::Auto.split((0.25, 0.45), &direct, &global);
+    assert!(
+        close(d[0], [0.0; 3]) && close(g[0], [1.2, 1.3, 1.1]),
         "{d:?} {g:?}"
     );
     // Whatever the rule, direct + global is the white frame.
@@ -24,11 +30,30 @@ fn direct_part_rules_split_a_white_frame() {
         DirectPart::Separation,
         DirectPart::None,
         DirectPart::Colourless,
+        DirectPart::Auto,
     ] {
-        let (d, g) = rule.split(&direct, &global);
+        let (d, g) = rule.split((0.25, 0.45), &direct, &global);
         let total = [0, 1, 2].map(|c| d[0][c] + g[0][c]);
         assert!(close(total, [1.2, 1.3, 1.1]), "{rule:?}");
     }
+}
+
+#[test]
+fn auto_direct_removes_a_dark_pixels_direct_light_and_keeps_a_light_ones() {
+    let range = (0.25, 0.45);
+    // Dark skin: the separation calls 0.05 of 0.08 direct (fraction 0.625): all removed.
+    let (d, g) = ([0.05f32; 3], [0.06f32, 0.025, 0.005]);
+    assert_eq!(direct_fraction(d, g), Some(0.625));
+    assert_eq!(auto_direct_weight(d, g, range), 1.0);
+    // Light skin: 0.1 of 0.6 (fraction 1/6, about the separation's leak): none removed.
+    let (d, g) = ([0.1f32; 3], [0.7f32, 0.5, 0.3]);
+    assert_eq!(auto_direct_weight(d, g, range), 0.0);
+    // Half way through the range: half.
+    let (d, g) = ([0.35f32; 3], [0.65f32; 3]);
+    assert!((auto_direct_weight(d, g, range) - 0.5).abs() < 1e-5);
+    // No light or non-finite input: no direct part (all light stays subsurface light).
+    assert_eq!(direct_fraction([0.0; 3], [0.0; 3]), None);
+    assert_eq!(auto_direct_weight([f32::NAN; 3], g, range), 0.0);
 }
 
 #[test]
