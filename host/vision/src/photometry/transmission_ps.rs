@@ -242,8 +242,8 @@ mod tests {
             iterations: 0,
             ..TransmissionParams::default()
         };
-        let map = solve_transmitted(&refs, &lights, None, &PsParams::default(), &params)
-            .expect("solve");
+        let map =
+            solve_transmitted(&refs, &lights, None, &PsParams::default(), &params).expect("solve");
         let error = angular_errors(&map.normal_image(), &truth_image(&normals, size), None)
             .expect("errors")
             .mean_deg;
