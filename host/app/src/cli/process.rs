@@ -6,7 +6,7 @@ use anyhow::Context;
 use mlsss::layer_model::fit::EmVariant;
 use mlsss::layer_model::surface::ViewRay;
 use mlsss::pipeline::fit_stage::FitParams;
-use mlsss::pipeline::normals_stage::{NormalsParams, PsInput};
+use mlsss::pipeline::normals_stage::{NormalsParams, PsInput, ShadingModel};
 use mlsss::pipeline::profiles_stage::{DirectPart, ProfilesParams, SlitCoordinates};
 use mlsss::pipeline::separate_stage::{SeparateParams, SeparationMethod};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
@@ -108,8 +108,12 @@ pub struct Args {
     /// direct part, whatever `--separation` says), `white` (the stray-free white frames),
     /// `direct` (the separation's direct part) or `global` (the separation's global part: white
     /// less the direct part).
-    #[arg(long, value_enum, default_value_t = PsInputArg::NayarDirect)]
+    #[arg(long, value_enum, default_value_t = PsInputArg::White)]
     ps_input: PsInputArg,
+    /// Normals stage: solve with the Lambertian model instead of the default one with skin's
+    /// Fresnel transmittance (`photometry::transmission_ps`).
+    #[arg(long)]
+    lambertian_ps: bool,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -231,6 +235,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             PsInputArg::White => PsInput::White,
             PsInputArg::Direct => PsInput::Direct,
             PsInputArg::Global => PsInput::Global,
+        },
+        model: if args.lambertian_ps {
+            ShadingModel::Lambertian
+        } else {
+            ShadingModel::Transmission
         },
         ..NormalsParams::default()
     };

@@ -9,3 +9,4 @@ pub mod ps_scene;
 pub mod response;
 pub mod separation;
 pub mod slit_leak;
+pub mod transmission_ps;
