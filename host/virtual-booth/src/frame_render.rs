@@ -139,6 +139,8 @@ impl<'a> ProjectorTransport<'a> {
                 }
             });
         let exitance = self.operator.as_ref().map(|op| op.apply(&flux, frames));
+        // Not needed past the operator: freed before the frames are built (batch peak memory).
+        drop(flux);
         (0..frames)
             .into_par_iter()
             .map(|f| {

@@ -486,13 +486,16 @@ pub fn simulate_calibration(
     })
 }
 
-/// Budget for the buffers of one render batch (flux, direct, exitance and the frames built from
-/// them: about [`BATCH_BYTES_PER_PIXEL_FRAME`] per pixel and frame). Every batch gathers the
-/// subsurface pairs once, so larger batches are faster; 1 GB keeps a full-size capture (1379 x
-/// 1029) at ~22 frames per batch on a machine shared by several jobs.
-const BATCH_BUDGET_BYTES: usize = 1 << 30;
-/// Peak bytes per pixel and frame of a render batch: flux 4, direct 4 and exitance 12 while the
-/// operator runs, then the frames (direct 4 + global 12) built from them.
+/// Largest budget for the buffers of one render batch (flux, direct, exitance and the frames
+/// built from them: about [`BATCH_BYTES_PER_PIXEL_FRAME`] per pixel and frame). Every batch
+/// gathers the subsurface pairs once (the bulk of a frame's cost), so a projector's frames are
+/// best rendered in one batch: 3 GiB holds the 67 frames of one projector of a full-size capture
+/// (1379 x 1029). Never more than half the memory the system reports available.
+const BATCH_BUDGET_BYTES: usize = 3 << 30;
+/// Smallest batch budget, whatever the system reports.
+const MIN_BATCH_BUDGET_BYTES: usize = 256 << 20;
+/// Peak bytes per pixel and frame of a render batch: direct 4 and exitance 12 while the frames
+/// (direct 4 + global 12) are built from them (flux, 4, is dropped after the operator ran).
 const BATCH_BYTES_PER_PIXEL_FRAME: usize = 32;
 /// Budget for noise-free frames held until every projector's white is known (12 bytes per
 /// pixel and frame). Holding frames lets each projector's white come from its own frame batch
@@ -500,9 +503,31 @@ const BATCH_BYTES_PER_PIXEL_FRAME: usize = 32;
 /// three projectors' frames in ~340 MB, a full-size one holds none and pre-renders the whites.
 const HOLD_BUDGET_BYTES: usize = 1 << 30;
 
-/// Frames rendered per batch: bounded so the per-batch buffers stay under the budget.
-fn batch_size(pixels: usize, frames: usize) -> usize {
-    (BATCH_BUDGET_BYTES / (pixels * BATCH_BYTES_PER_PIXEL_FRAME).max(1)).clamp(1, frames.max(1))
+/// Frames rendered per batch: as few batches as keep the per-batch buffers under `budget`
+/// bytes, of balanced sizes (67 frames in two batches of 34 and 33, not 60 and 7).
+fn batch_size(pixels: usize, frames: usize, budget: usize) -> usize {
+    let fits = (budget / (pixels * BATCH_BYTES_PER_PIXEL_FRAME).max(1)).max(1);
+    let frames = frames.max(1);
+    frames.div_ceil(frames.div_ceil(fits))
+}
+
+/// The batch budget on this machine: [`BATCH_BUDGET_BYTES`], or half the memory the system
+/// reports available when that is less (Linux `MemAvailable`; the full budget elsewhere).
+/// Only speed depends on it: frames do not depend on how they are batched.
+fn batch_budget() -> usize {
+    let available = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| mem_available_bytes(&text));
+    available.map_or(BATCH_BUDGET_BYTES, |bytes| {
+        (bytes / 2).clamp(MIN_BATCH_BUDGET_BYTES, BATCH_BUDGET_BYTES)
+    })
+}
+
+/// `MemAvailable` of a `/proc/meminfo` text, bytes.
+fn mem_available_bytes(meminfo: &str) -> Option<usize> {
+    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
 }
 
 /// How many leading projectors' frames are held (their stray light needs the whites of
@@ -674,6 +699,7 @@ fn render_frames(
         sheet: Mutex::new(Vec::new()),
     };
     let no_stray = vec![[0.0f32; 3]; n];
+    let budget = batch_budget();
     let mut strays: Vec<Option<Vec<[f32; 3]>>> = vec![None; count];
     let mut held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)> = Vec::new();
     for (k, specs) in specs.iter().enumerate() {
@@ -684,7 +710,7 @@ fn render_frames(
         if opts.stray_black && !hold {
             strays[k] = Some(stray_light(scene, &whites, k, n)?);
         }
-        for batch in specs.chunks(batch_size(n, specs.len())) {
+        for batch in specs.chunks(batch_size(n, specs.len(), budget)) {
             let totals = render_batch(scene, &view, batch, truth_dir, &truth_for)?;
             if whites[k].is_none()
                 && let Some(i) = batch.iter().position(|f| f.pattern == Pattern::White)
@@ -875,6 +901,23 @@ fn write_optics(
 mod tests {
     use super::*;
     use mlsss_core::capture::Capture;
+
+    #[test]
+    fn batches_fit_the_budget_in_balanced_sizes() {
+        let frame = 1000 * BATCH_BYTES_PER_PIXEL_FRAME;
+        assert_eq!(batch_size(1000, 67, 100 * frame), 67);
+        assert_eq!(batch_size(1000, 67, 60 * frame), 34);
+        assert_eq!(batch_size(1000, 67, 22 * frame), 17);
+        assert_eq!(batch_size(1000, 67, 0), 1);
+        assert_eq!(batch_size(1000, 0, frame), 1);
+    }
+
+    #[test]
+    fn mem_available_is_read_from_meminfo() {
+        let text = "MemTotal:       24000000 kB\nMemFree:  100 kB\nMemAvailable:   12000000 kB\n";
+        assert_eq!(mem_available_bytes(text), Some(12_000_000 * 1024));
+        assert_eq!(mem_available_bytes("MemTotal: 5 kB\n"), None);
+    }
 
     #[test]
     fn held_projectors_fit_the_budget_and_never_include_the_last() {
