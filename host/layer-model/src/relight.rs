@@ -114,27 +114,36 @@ pub fn shifts(
         .collect()
 }
 
-/// Direct albedo per pixel and channel: the median over the training projectors of the direct
-/// component under white divided by that projector's irradiance.
+/// Albedo per pixel and channel of a light component `l` (the direct part, or all light) under
+/// white: the least-squares `a` of `l_k = a e_k` over the training projectors `k`, with `e_k` the
+/// projector's irradiance, i.e. `sum(l e) / sum(e^2)`; 0 where no projector lights the pixel.
+///
+/// Why least squares and not the median of the ratios `l_k / e_k` (before): a projector that
+/// grazes the surface has an irradiance near zero while its separated direct light (mostly
+/// leaked subsurface light) is not, so its ratio is huge; relit under a projector that lights
+/// the pixel head-on, such ratios made direct renders several times brighter than the frame
+/// (PSNR -11.5 dB on the quick light head, seed 41, with `--direct auto`; 40 dB without a
+/// direct part). Least squares weights each projector by its irradiance.
 pub fn direct_albedo(white_irradiance: &[Vec<f32>], direct_white: &[&[[f32; 3]]]) -> Vec<[f32; 3]> {
     let n = white_irradiance.first().map_or(0, Vec::len);
     (0..n)
         .map(|i| {
-            let mut out = [0.0f32; 3];
-            for (c, o) in out.iter_mut().enumerate() {
-                let mut ratios: Vec<f32> = white_irradiance
-                    .iter()
-                    .zip(direct_white)
-                    .filter(|(e, _)| e[i] > 1e-6)
-                    .map(|(e, d)| d[i][c] / e[i])
-                    .collect();
-                if ratios.is_empty() {
+            let mut light_times_irradiance = [0.0f64; 3];
+            let mut irradiance_squared = 0.0f64;
+            for (e, l) in white_irradiance.iter().zip(direct_white) {
+                let e = f64::from(e[i]);
+                if !(e > 0.0 && l[i].iter().all(|v| v.is_finite())) {
                     continue;
                 }
-                ratios.sort_by(f32::total_cmp);
-                *o = ratios[ratios.len() / 2];
+                irradiance_squared += e * e;
+                for (sum, v) in light_times_irradiance.iter_mut().zip(l[i]) {
+                    *sum += f64::from(v) * e;
+                }
             }
-            out
+            if irradiance_squared < 1e-12 {
+                return [0.0; 3];
+            }
+            light_times_irradiance.map(|s| (s / irradiance_squared) as f32)
         })
         .collect()
 }
@@ -143,6 +152,30 @@ pub fn direct_albedo(white_irradiance: &[Vec<f32>], direct_white: &[&[[f32; 3]]]
 mod tests {
     use super::*;
     use mlsss_core::capture::Axis;
+
+    #[test]
+    fn albedo_is_the_least_squares_slope_and_a_grazing_projector_does_not_blow_it_up() {
+        // Pixel 0: light 0.2 e exactly. Pixel 1: projector 1 grazes (e = 1e-4) but its
+        // separated light is 0.01 (leaked subsurface light): the ratio would be 100.
+        let irradiance = vec![vec![1.0, 1.0], vec![0.5, 1e-4], vec![0.25, 0.8]];
+        let light: Vec<Vec<[f32; 3]>> = vec![
+            vec![[0.2; 3], [0.1; 3]],
+            vec![[0.1; 3], [0.01; 3]],
+            vec![[0.05; 3], [0.08; 3]],
+        ];
+        let refs: Vec<&[[f32; 3]]> = light.iter().map(Vec::as_slice).collect();
+        let albedo = direct_albedo(&irradiance, &refs);
+        assert!((albedo[0][0] - 0.2).abs() < 1e-6, "{:?}", albedo[0]);
+        // (0.1 * 1 + 0.01 * 1e-4 + 0.08 * 0.8) / (1 + 1e-8 + 0.64), by hand.
+        let expected = (0.1 + 0.01 * 1e-4 + 0.08 * 0.8) / (1.0 + 1e-8 + 0.64);
+        assert!(
+            (f64::from(albedo[1][2]) - expected).abs() < 1e-6,
+            "{:?}",
+            albedo[1]
+        );
+        let unlit = direct_albedo(&[vec![0.0]], &[&[[1.0; 3]]]);
+        assert_eq!(unlit, vec![[0.0; 3]]);
+    }
 
     #[test]
     fn blurred_pattern_level_is_the_box_against_a_gaussian() {

@@ -69,7 +69,7 @@ use figures::write_figures;
 /// The fit stage.
 pub const STAGE: Stage = Stage {
     name: "fit",
-    version: 1,
+    version: 2,
     inputs: &["profiles"],
     uses_calibration: true,
     run,
