@@ -1062,15 +1062,9 @@ mod tests {
         assert_eq!(sol.status, PixelStatus::NoSignal);
     }
 
-    #[test]
-    fn robust_beats_least_squares_clearly_on_a_scene_with_shadows_and_highlights() {
-        let scene = super::super::ps_scene::render(&super::super::ps_scene::SceneParams {
-            width: 64,
-            height: 64,
-            lights: 8,
-            ..Default::default()
-        });
-        let lights = DirectionalLights {
+    /// The distant lights a `ps_scene` was rendered under.
+    fn scene_lights(scene: &super::super::ps_scene::Scene) -> DirectionalLights {
+        DirectionalLights {
             lights: scene
                 .directions
                 .iter()
@@ -1081,7 +1075,18 @@ mod tests {
                 })
                 .collect(),
             view: VIEW,
-        };
+        }
+    }
+
+    #[test]
+    fn robust_beats_least_squares_clearly_on_a_scene_with_shadows_and_highlights() {
+        let scene = super::super::ps_scene::render(&super::super::ps_scene::SceneParams {
+            width: 64,
+            height: 64,
+            lights: 8,
+            ..Default::default()
+        });
+        let lights = scene_lights(&scene);
         let refs: Vec<_> = scene.images.iter().collect();
         let errors = |params: &PsParams| {
             let map = solve_images(&refs, &lights, Some(&scene.mask), params).unwrap();
@@ -1108,18 +1113,7 @@ mod tests {
             seed: 5,
             ..Default::default()
         });
-        let lights = DirectionalLights {
-            lights: scene
-                .directions
-                .iter()
-                .zip(&scene.intensities)
-                .map(|(d, i)| LightSample {
-                    direction: *d,
-                    irradiance: *i,
-                })
-                .collect(),
-            view: VIEW,
-        };
+        let lights = scene_lights(&scene);
         assert!(lights.uniform());
         let refs: Vec<_> = scene.images.iter().collect();
         for params in [robust(), least_squares()] {
