@@ -64,8 +64,8 @@ step "host tests (unit, integration, hardware-in-the-loop)"
 cargo build --workspace --bins --tests
 cargo test --workspace -- --skip rig_hil
 step "hardware-in-the-loop tests, alone"
-# With `-icount sleep=off` the emulated controller's clock runs ahead whenever the host is slow, so
-# a host starved by the heavy tests running beside it answers "late"; these run on a quiet machine.
+# The emulated booth's clock waits (up to 1 s of virtual time) for the host's answers, so a loaded
+# host no longer makes frames late (hardware/timing.md); they still run apart from the heavy tests.
 # One at a time: two of them side by side (each a QEMU guest plus the host, and one an Xvfb) were
 # enough to starve a host on a 2-core machine and fail the nominal run with one late frame.
 # `--workspace` keeps the feature set of the run above, so nothing is compiled again.

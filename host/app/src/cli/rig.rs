@@ -113,8 +113,8 @@ struct ShowArgs {
     /// gray-y-bN[-inv], slit-x-oN, slit-y-oN, hf-sN.
     #[arg(long)]
     pattern: String,
-    /// Seconds to show it (default: until a key is pressed in the window).
-    #[arg(long, value_parser = super::number_arg::positive_finite)]
+    /// Seconds to show it (default: until a key is pressed in the window; 0: present and leave).
+    #[arg(long, value_parser = super::number_arg::non_negative_finite)]
     hold: Option<f64>,
     /// Print one JSON object on stdout once the pattern is on screen.
     #[arg(long)]
