@@ -625,25 +625,30 @@ mod tests {
         }
         // A narrow profile of a dark pixel-channel (reflectance 0.01) now gets a dipole of
         // that reflectance.
-        let (w, t) = (0.25, 7.5);
-        let samples: Vec<Sample> = (0..30)
-            .map(|i| {
-                let s = -t / 2.0 + (i as f64 + 0.5) * w;
-                Sample {
-                    s,
-                    y: (-(s * s) / 0.02).exp() + 0.001,
-                }
-            })
-            .collect();
-        let profile = Profile {
-            samples,
-            slit_width: w,
-            period: Some(t),
-            shift_per_depth: 0.0,
-        };
+        let profile = slit_profile(|s| (-(s * s) / 0.02).exp() + 0.001);
         let fit = table.fit(std::slice::from_ref(&profile), 0.01, None);
         let sum: f32 = fit.map_or(0.0, |f| f.layers.iter().map(|l| l.weight).sum());
         assert!((sum - 0.01).abs() < 1e-6, "{sum}");
+    }
+
+    const SLIT_WIDTH: f64 = 0.25;
+    const SLIT_PERIOD: f64 = 7.5;
+
+    /// A slit profile of 30 samples across one period, of the slit width and period above, with
+    /// `y(s)` at each sample.
+    fn slit_profile(y: impl Fn(f64) -> f64) -> Profile {
+        let samples = (0..30)
+            .map(|i| {
+                let s = -SLIT_PERIOD / 2.0 + (i as f64 + 0.5) * SLIT_WIDTH;
+                Sample { s, y: y(s) }
+            })
+            .collect();
+        Profile {
+            samples,
+            slit_width: SLIT_WIDTH,
+            period: Some(SLIT_PERIOD),
+            shift_per_depth: 0.0,
+        }
     }
 
     fn assert_follows_the_dipole(albedo: f64, w: &[f64], radii: &[f64]) {
@@ -702,34 +707,24 @@ mod tests {
                 sigma: s / ext,
             })
             .collect();
-        let (w, t) = (0.25, 7.5);
-        let samples = (0..30)
-            .map(|i| {
-                let s = -t / 2.0 + (i as f64 + 0.5) * w;
-                let y = comps
-                    .iter()
-                    .map(|c| {
-                        let g = crate::boxed_gaussian::BoxedGaussian {
-                            mean: 0.0,
-                            sigma: c.sigma,
-                            width: w,
-                        };
-                        c.weight
-                            * [-t, 0.0, t]
-                                .iter()
-                                .map(|o| g.ln_density(s - o).exp())
-                                .sum::<f64>()
-                    })
-                    .sum();
-                Sample { s, y }
-            })
-            .collect();
-        let profile = Profile {
-            samples,
-            slit_width: w,
-            period: Some(t),
-            shift_per_depth: 0.0,
-        };
+        let (w, t) = (SLIT_WIDTH, SLIT_PERIOD);
+        let profile = slit_profile(|s| {
+            comps
+                .iter()
+                .map(|c| {
+                    let g = crate::boxed_gaussian::BoxedGaussian {
+                        mean: 0.0,
+                        sigma: c.sigma,
+                        width: w,
+                    };
+                    c.weight
+                        * [-t, 0.0, t]
+                            .iter()
+                            .map(|o| g.ln_density(s - o).exp())
+                            .sum::<f64>()
+                })
+                .sum()
+        });
         let reflectance = total_reflectance(albedo, eta);
         let fit = table
             .fit(std::slice::from_ref(&profile), reflectance, None)
