@@ -8,7 +8,8 @@ use anyhow::Context;
 use mlsss::booth::Booth;
 use mlsss::demo::{CalibrationMode, DemoOptions, DemoProgress, run_demo};
 use mlsss::evaluate::skin_types::{self, row_from_demo};
-use mlsss::pipeline::CalibrationSource;
+use mlsss::evaluate::stripe_sweep;
+use mlsss::pipeline::{CalibrationSource, Pipeline};
 use mlsss::quality_sweep::{SweepInputs, plan, run_sweep, summary, write_outputs};
 use mlsss::virtual_booth::{
     NoProgress, Progress, SimulationOptions, SkinPreset, SubjectKind, scaled_booth, simulate_scan,
@@ -42,6 +43,16 @@ pub struct Args {
     /// OUT/skin_types.csv and prints `skin_types` in the JSON.
     #[arg(long)]
     skin_types: bool,
+    /// Instead of the quality sweep: separation error against the ratio of the stripe period to
+    /// the subsurface kernel's width. One capture per skin type (all six; I and VI with
+    /// --minimal) and stripe width (--stripes) under OUT/stripe-sweep, separated by the
+    /// kernel-aware method and by Nayar et al.'s against the truth; writes OUT/stripe_sweep.csv
+    /// and OUT/stripe_sweep.html (both plots and the table).
+    #[arg(long, conflicts_with = "skin_types")]
+    stripe_sweep: bool,
+    /// Stripe widths of --stripe-sweep, projector px (the booth's own is 3).
+    #[arg(long, value_delimiter = ',', default_value = "2,3,4,6,8", value_parser = clap::value_parser!(u32).range(1..=64))]
+    stripes: Vec<u32>,
     #[command(flatten)]
     monte_carlo: MonteCarloArgs,
     /// Output folder: captures (simulated once, reused on later runs), pipeline outputs,
@@ -118,6 +129,83 @@ fn run_skin_types(args: &Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The separation-versus-kernel-width sweep (`evaluate::stripe_sweep`): a capture per skin type
+/// and stripe width, separated against the truth.
+fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
+    let skins: Vec<SkinPreset> = if args.minimal {
+        vec![SkinPreset::TypeI, SkinPreset::TypeVI]
+    } else {
+        SkinPreset::ALL.to_vec()
+    };
+    let mut base = Booth::builtin(args.quick);
+    if args.scale_down > 1 {
+        base = scaled_booth(&base, args.scale_down);
+    }
+    let total = skins.len() * args.stripes.len();
+    let mut rows = Vec::with_capacity(total);
+    for skin in &skins {
+        for &stripe in &args.stripes {
+            eprintln!(
+                "[{}/{total}] skin type {}, stripes {stripe} px ...",
+                rows.len() + 1,
+                skin.label()
+            );
+            let mut booth = base.clone();
+            booth.patterns.hf_stripe_px = stripe;
+            mlsss::booth::validate_patterns(&booth.patterns)
+                .with_context(|| format!("--stripes {stripe}"))?;
+            let name = format!("{}-stripe{stripe}", skin.label());
+            let dir = args.out.join("stripe-sweep").join(&name);
+            let mut opts =
+                SimulationOptions::for_booth(&booth, SubjectKind::Head, *skin, args.seed);
+            args.monte_carlo.apply(&mut opts);
+            if !dir.join("capture.json").is_file() {
+                simulate_scan(&booth, &opts, &dir, &NoProgress)
+                    .with_context(|| format!("simulating {}", dir.display()))?;
+            }
+            let processed = args.out.join("stripe-sweep").join(format!("{name}-out"));
+            let report = Pipeline::new(&dir, &processed, &CalibrationSource::Truth)?
+                .run_until("separate")
+                .with_context(|| format!("separating {}", dir.display()))?;
+            let separate = report
+                .separate
+                .context("the separate stage gave no report")?;
+            let (responses, _) = opts
+                .cache
+                .response_set(&skin.materials()[..1], &opts.mc, &|_| {})
+                .context("reading the Monte Carlo responses")?;
+            let grid = responses
+                .grids
+                .first()
+                .and_then(|g| g.first())
+                .context("no Monte Carlo response at normal incidence")?;
+            let width = stripe_sweep::line_spread_width_mm(grid);
+            let period = stripe_sweep::stripe_period_mm(&booth, stripe);
+            rows.push(
+                stripe_sweep::row(skin.label(), stripe, period, width, &separate)
+                    .context("the capture has no truth to score the separation against")?,
+            );
+        }
+    }
+    let csv = args.out.join("stripe_sweep.csv");
+    mlsss_core::atomic_file::write_bytes_atomically(&csv, stripe_sweep::to_csv(&rows))
+        .with_context(|| format!("writing {}", csv.display()))?;
+    let html = args.out.join("stripe_sweep.html");
+    stripe_sweep::to_html(&rows)?
+        .save(&html)
+        .with_context(|| format!("writing {}", html.display()))?;
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({ "stripe_sweep": rows, "csv": csv, "html": html })
+        );
+    } else {
+        eprint!("{}", stripe_sweep::to_csv(&rows));
+        eprintln!("wrote {} and {}", csv.display(), html.display());
+    }
+    Ok(())
+}
+
 /// Demo progress that prints nothing (the table run reports per type).
 struct QuietDemo;
 
@@ -135,6 +223,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     ensure_dir(&args.out)?;
     if args.skin_types {
         return run_skin_types(&args);
+    }
+    if args.stripe_sweep {
+        return run_stripe_sweep(&args);
     }
     let factors = if args.minimal {
         vec![args.scale_down]

@@ -7,3 +7,4 @@ pub mod calibration_error;
 pub mod holdout;
 pub mod metrics;
 pub mod skin_types;
+pub mod stripe_sweep;
