@@ -16,7 +16,7 @@ use mlsss_vision::photometry::photometric_stereo::{
     DirectionalLights, LightSample, Method, PsParams, solve_images,
 };
 use mlsss_vision::photometry::separation::{SeparationParams, separate};
-use mlsss_vision::photometry::slit_leak::{SweepGeometry, leak_from_slits};
+use mlsss_vision::photometry::slit_leak::{LeakReading, SweepGeometry, leak_from_slits};
 use nalgebra::Vector3;
 
 const WIDTH: u32 = 1379;
@@ -120,7 +120,7 @@ fn bench(c: &mut Criterion) {
     };
     group.bench_function("separation_kernel_aware", |b| {
         b.iter(|| {
-            let (leak, _) = leak_from_slits(&slit_refs, &white, &geometry);
+            let (leak, _) = leak_from_slits(&slit_refs, &white, &geometry, LeakReading::Cosine);
             separate_with_leak(&refs, &leak, &leak_params).map(|mut s| {
                 colourless_smoothed_direct(&mut s, 1.0);
                 s.stats

@@ -50,6 +50,9 @@ pub struct Args {
     /// and OUT/stripe_sweep.html (both plots and the table).
     #[arg(long, conflicts_with = "skin_types")]
     stripe_sweep: bool,
+    /// Skin types of --stripe-sweep (default: all six; I and VI with --minimal).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    skins: Vec<SkinPreset>,
     /// Stripe widths of --stripe-sweep, projector px (the booth's own is 3).
     #[arg(long, value_delimiter = ',', default_value = "2,3,4,6,8", value_parser = clap::value_parser!(u32).range(1..=64))]
     stripes: Vec<u32>,
@@ -132,7 +135,9 @@ fn run_skin_types(args: &Args) -> anyhow::Result<()> {
 /// The separation-versus-kernel-width sweep (`evaluate::stripe_sweep`): a capture per skin type
 /// and stripe width, separated against the truth.
 fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
-    let skins: Vec<SkinPreset> = if args.minimal {
+    let skins: Vec<SkinPreset> = if !args.skins.is_empty() {
+        args.skins.clone()
+    } else if args.minimal {
         vec![SkinPreset::TypeI, SkinPreset::TypeVI]
     } else {
         SkinPreset::ALL.to_vec()

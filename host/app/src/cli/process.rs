@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use mlsss::layer_model::fit::EmVariant;
 use mlsss::layer_model::surface::ViewRay;
+use mlsss::photometry::slit_leak::LeakReading;
 use mlsss::pipeline::fit_stage::FitParams;
 use mlsss::pipeline::normals_stage::{NormalsParams, PsInput, ShadingModel};
 use mlsss::pipeline::profiles_stage::{DirectPart, ProfilesParams, SlitCoordinates};
@@ -104,6 +105,12 @@ pub struct Args {
     #[arg(long, default_value_t = SeparateParams::default().direct_smoothing_px,
           value_parser = super::number_arg::non_negative_finite)]
     direct_smoothing: f64,
+    /// Separate stage, `kernel`: how each pixel's kernel leak is read from its slit profile,
+    /// `cosine` (a cosine at the stripe frequency about the brightest slit) or `harmonics` (the
+    /// sweep's harmonics around it: exact for the profile, better on light skin, worse on dark
+    /// skin, whose direct reflection in the slits it counts as kernel).
+    #[arg(long, value_enum, default_value_t = LeakReadingArg::Cosine)]
+    leak_reading: LeakReadingArg,
     /// Normals stage: the images photometric stereo reads, `nayar-direct` (the Nayar baseline's
     /// direct part, whatever `--separation` says), `white` (the stray-free white frames),
     /// `direct` (the separation's direct part) or `global` (the separation's global part: white
@@ -120,6 +127,13 @@ pub struct Args {
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
+}
+
+/// `--leak-reading` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum LeakReadingArg {
+    Cosine,
+    Harmonics,
 }
 
 /// EM variants (DESIGN section 5).
@@ -226,6 +240,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             SeparationArg::Nayar => SeparationMethod::Nayar,
         },
         direct_smoothing_px: args.direct_smoothing,
+        leak_reading: match args.leak_reading {
+            LeakReadingArg::Cosine => LeakReading::Cosine,
+            LeakReadingArg::Harmonics => LeakReading::Harmonics,
+        },
         ..SeparateParams::default()
     };
     pipeline.set_params("separate", serde_json::to_value(&separate)?);

@@ -40,12 +40,12 @@ use mlsss_vision::photometry::response::stray_light;
 use mlsss_vision::photometry::separation::{
     SeparationError, SeparationFlag, SeparationParams, separate,
 };
-use mlsss_vision::photometry::slit_leak::{SweepGeometry, leak_from_slits};
+use mlsss_vision::photometry::slit_leak::{LeakReading, SweepGeometry, leak_from_slits};
 
 /// The separation stage.
 pub const STAGE: Stage = Stage {
     name: "separate",
-    version: 3,
+    version: 4,
     inputs: &[],
     uses_calibration: true,
     run,
@@ -65,6 +65,8 @@ pub struct SeparateParams {
     /// `kernel` method: Gaussian sigma (camera px) over which the colourless direct part is
     /// averaged (0: per pixel).
     pub direct_smoothing_px: f64,
+    /// `kernel` method: how each pixel's leak is read from its slit profile.
+    pub leak_reading: LeakReading,
 }
 
 impl Default for SeparateParams {
@@ -77,6 +79,11 @@ impl Default for SeparateParams {
             // of the per-pixel split by 14 % (light skin, 2.20 to 1.88) and 20 % (dark, 0.395
             // to 0.317); sigma 3 gains about 1 % more.
             direct_smoothing_px: 1.0,
+            // Harmonics read light skin's leak right (quick heads seed 81: global 0.13 -> 0.07,
+            // direct 1.9 -> 1.0) but count the dark skin's direct reflection in the slits as
+            // kernel (types V/VI: direct 0.26/0.19 -> 0.44/0.34): the cosine stays the default
+            // until the slit profile's direct part is removed.
+            leak_reading: LeakReading::Cosine,
         }
     }
 }
@@ -492,6 +499,7 @@ fn kernel_separation(
             black_level: black,
             blur_px: setup.blur_px,
         },
+        params.leak_reading,
     );
     let refs: Vec<&Rgb32FImage> = frames.stripes.iter().collect();
     let leak_params = LeakParams {
