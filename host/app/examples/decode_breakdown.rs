@@ -9,7 +9,8 @@
 //!
 //! `decode_breakdown time DIR WIDTHxHEIGHT [REPEATS]`: decodes an OpenCV-ordered PNG sequence
 //! REPEATS times and prints the best wall and the mean CPU seconds (all threads) of `decode`
-//! alone, frames already loaded.
+//! alone, frames already loaded (and, with `DECODE_OUT=DIR`, writes the decode there as the decode
+//! stage does).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -45,7 +46,7 @@ fn missed(dir: &Path) -> anyhow::Result<()> {
     let mut out = Vec::new();
     for (k, proj) in booth.projectors.iter().enumerate() {
         let frames = code_frames::from_capture(&capture, k)?;
-        let params = DecodeParams::default().with_camera_noise(
+        let params = base_params()?.with_camera_noise(
             booth.camera.full_well_e,
             booth.camera.read_noise_dn,
             capture.manifest.bit_depth,
@@ -125,6 +126,21 @@ fn breakdown(d: &ProjectorDecode, lit: &[Option<(f64, f64)>], signal: &[f32]) ->
     json!(fractions)
 }
 
+/// The decoder's defaults, with the fields of the JSON object in `DECODE_PARAMS` (if set) replaced.
+fn base_params() -> anyhow::Result<DecodeParams> {
+    let mut value = serde_json::to_value(DecodeParams::default())?;
+    if let Ok(text) = std::env::var("DECODE_PARAMS") {
+        let extra: serde_json::Value = serde_json::from_str(&text)?;
+        for (k, v) in extra
+            .as_object()
+            .context("DECODE_PARAMS is a JSON object")?
+        {
+            value[k] = v.clone();
+        }
+    }
+    Ok(serde_json::from_value(value)?)
+}
+
 fn time(dir: &Path, size: (u32, u32), repeats: usize) -> anyhow::Result<()> {
     let frames = code_frames::from_opencv_dir(dir, size)?;
     let params = DecodeParams::for_8_bit();
@@ -136,6 +152,9 @@ fn time(dir: &Path, size: (u32, u32), repeats: usize) -> anyhow::Result<()> {
         let decoded = decode(&frames, size, &params)?;
         best = best.min(start.elapsed().as_secs_f64());
         valid = decoded.summary().valid;
+        if let Ok(out) = std::env::var("DECODE_OUT") {
+            mlsss::pipeline::decode_stage::write_decode(Path::new(&out), 0, &decoded)?;
+        }
     }
     let cpu = (cpu_seconds().unwrap_or(f64::NAN) - cpu_start) / repeats.max(1) as f64;
     println!(

@@ -2,7 +2,7 @@
 
 use rayon::prelude::*;
 
-use super::lit_test::{Lighting, pair_variance};
+use super::lit_test::{BLOCK, Lighting, pair_variance};
 use super::{BitPair, DecodeParams};
 
 /// Bits of one axis at one pixel: the raw Gray code and which bits are reliable.
@@ -21,37 +21,81 @@ pub(super) fn decide_bits(
     lighting: &[Lighting],
     params: &DecodeParams,
 ) -> (Vec<PixelBits>, Vec<f32>) {
-    let nbits = pairs.len();
-    amplitude
-        .par_iter()
-        .zip(lighting.par_iter())
+    let n = amplitude.len().min(lighting.len());
+    let mut bits = vec![PixelBits::default(); n];
+    let mut contrast = vec![0.0f32; n];
+    bits.par_chunks_mut(BLOCK)
+        .zip(contrast.par_chunks_mut(BLOCK))
         .enumerate()
-        .map(|(i, (&amp, &lighting))| {
-            let mut bits = PixelBits {
-                lighting,
+        .for_each(|(block, (bits, contrast))| {
+            let start = block * BLOCK;
+            let range = start..start + bits.len();
+            decide_block(
+                pairs,
+                &amplitude[range.clone()],
+                &lighting[range.clone()],
+                range.start,
+                params,
+                bits,
+                contrast,
+            );
+        });
+    (bits, contrast)
+}
+
+/// [`decide_bits`] for the pixels `start..start + bits.len()`, one frame pair at a time.
+fn decide_block(
+    pairs: &[BitPair],
+    amplitude: &[f32],
+    lighting: &[Lighting],
+    start: usize,
+    params: &DecodeParams,
+    bits: &mut [PixelBits],
+    contrast: &mut [f32],
+) {
+    let nbits = pairs.len();
+    // The contrast reference: the pixel's modulation, never below its noise.
+    let mut amp = [0.0f32; BLOCK];
+    let amp = &mut amp[..bits.len()];
+    for (a, &m) in amp.iter_mut().zip(amplitude) {
+        *a = m.max(f32::MIN_POSITIVE);
+    }
+    for (j, pair) in pairs.iter().enumerate() {
+        let bit = nbits - 1 - j;
+        let range = start..start + bits.len();
+        let (pattern, inverse) = (
+            pair.pattern.get(range.clone()).unwrap_or_default(),
+            pair.inverse.get(range).unwrap_or_default(),
+        );
+        for ((((b, c), &a), &p), &q) in bits
+            .iter_mut()
+            .zip(contrast.iter_mut())
+            .zip(amp.iter())
+            .zip(pattern)
+            .zip(inverse)
+        {
+            let d = p - q;
+            let sigma = pair_variance(p, q, params).sqrt() as f32;
+            let relative = d.abs() / a;
+            if d > 0.0 {
+                b.gray |= 1 << bit;
+            }
+            if d.abs() >= params.min_bit_snr * sigma && relative >= params.min_bit_contrast {
+                b.reliable |= 1 << bit;
+            }
+            *c += relative.min(1.0);
+        }
+    }
+    // Pixels that are not clearly lit have no bits (and no contrast).
+    for ((b, c), &l) in bits.iter_mut().zip(contrast.iter_mut()).zip(lighting) {
+        if l == Lighting::Lit {
+            b.lighting = l;
+        } else {
+            *b = PixelBits {
+                lighting: l,
                 ..PixelBits::default()
             };
-            let mut contrast = 0.0;
-            if lighting != Lighting::Lit {
-                return (bits, contrast);
-            }
-            // The contrast reference: the pixel's modulation, never below its noise.
-            let amp = amp.max(f32::MIN_POSITIVE);
-            for (j, pair) in pairs.iter().enumerate() {
-                let bit = nbits - 1 - j;
-                let (p, q) = (pair.pattern[i], pair.inverse[i]);
-                let d = p - q;
-                let sigma = pair_variance(p, q, params).sqrt() as f32;
-                let relative = d.abs() / amp;
-                if d > 0.0 {
-                    bits.gray |= 1 << bit;
-                }
-                if d.abs() >= params.min_bit_snr * sigma && relative >= params.min_bit_contrast {
-                    bits.reliable |= 1 << bit;
-                }
-                contrast += relative.min(1.0);
-            }
-            (bits, contrast)
-        })
-        .unzip()
+            *c = 0.0;
+        }
+    }
 }
