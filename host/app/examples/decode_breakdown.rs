@@ -19,7 +19,9 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use mlsss::capture::{Capture, truth};
 use mlsss::geometry::code_frames;
-use mlsss::geometry::gray_code::{DecodeParams, PixelStatus, ProjectorDecode, decode};
+use mlsss::geometry::gray_code::{
+    DecodeParams, PixelStatus, ProjectorDecode, TruthComparison, decode,
+};
 use mlsss::imageio;
 use mlsss::pipeline::decode_stage::load_coords;
 use mlsss::resources::cpu_seconds;
@@ -60,6 +62,7 @@ fn missed(dir: &Path) -> anyhow::Result<()> {
         out.push(json!({
             "projector": k,
             "breakdown": breakdown(&decoded, &lit, &signal),
+            "truth": TruthComparison::new(&decoded, &lit),
         }));
     }
     println!("{}", serde_json::to_string_pretty(&out)?);

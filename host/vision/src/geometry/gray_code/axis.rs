@@ -366,3 +366,95 @@ impl WindowStats {
         self.size == full && self.count == full && self.max - self.min <= 2 * radius as i32 + 2
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The straightforward pass 2: every round tries every pixel still waiting for repair.
+    fn repair_rounds_every_pixel(
+        grid: Grid,
+        bits: &[PixelBits],
+        nbits: u32,
+        first: Vec<(i32, PixelStatus)>,
+        size: u32,
+        params: &DecodeParams,
+    ) -> Vec<(i32, PixelStatus)> {
+        let mut codes = first;
+        let mut scratch = Scratch::default();
+        for _ in 0..REPAIR_ROUNDS {
+            let previous = codes;
+            codes = (0..grid.len())
+                .map(|i| match previous[i].1 {
+                    PixelStatus::RepairFailed => repair(
+                        grid,
+                        i,
+                        &bits[i],
+                        nbits,
+                        &previous,
+                        size,
+                        params,
+                        &mut scratch,
+                    ),
+                    _ => previous[i],
+                })
+                .collect();
+        }
+        codes
+    }
+
+    /// Bits of a tilted ramp of codes with `unreliable_share` of the pixels missing up to three
+    /// low bits (some of them wrong), a few pixels unlit, from `seed`.
+    fn ramp_bits(seed: u64, grid: Grid, nbits: u32, unreliable_share: f64) -> Vec<PixelBits> {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let slope = rng.gen_range(0.3..1.8);
+        let tilt = rng.gen_range(-0.5..0.5);
+        (0..grid.len())
+            .map(|i| {
+                let (x, y) = ((i % grid.width) as f64, (i / grid.width) as f64);
+                let code = (3.0 + slope * x + tilt * y).round().max(0.0) as u32;
+                let mut b = PixelBits {
+                    gray: (code ^ (code >> 1)) as u16,
+                    reliable: bit_mask(nbits),
+                    lighting: Lighting::Lit,
+                };
+                if rng.gen_bool(0.03) {
+                    b.lighting = Lighting::Unlit;
+                } else if rng.gen_bool(unreliable_share) {
+                    let lost = rng.gen_range(1..=3);
+                    b.reliable &= !((1u16 << lost) - 1);
+                    b.gray ^= rng.gen_range(0..1u16 << lost);
+                }
+                b
+            })
+            .collect()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// Retrying only the pixels whose window changed gives exactly the codes of retrying
+        /// every waiting pixel every round.
+        #[test]
+        fn frontier_repair_equals_repairing_every_pixel_every_round(
+            seed in 0u64..1_000_000,
+            width in 6usize..30,
+            height in 6usize..24,
+            unreliable_share in 0.1f64..0.9,
+            window_radius in 1u32..3,
+        ) {
+            let grid = Grid { width, height };
+            let nbits = 7;
+            let size = 128;
+            let params = DecodeParams { window_radius, min_neighbours: 3, ..DecodeParams::default() };
+            let bits = ramp_bits(seed, grid, nbits, unreliable_share);
+            let first: Vec<(i32, PixelStatus)> =
+                bits.iter().map(|b| initial_code(b, nbits, size, &params)).collect();
+            let fast = repair_rounds(grid, &bits, nbits, first.clone(), size, &params);
+            let plain = repair_rounds_every_pixel(grid, &bits, nbits, first, size, &params);
+            prop_assert_eq!(fast, plain);
+        }
+    }
+}
