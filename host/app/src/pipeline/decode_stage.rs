@@ -29,7 +29,7 @@ use mlsss_vision::geometry::gray_code::{
 /// The decode stage.
 pub const STAGE: Stage = Stage {
     name: "decode",
-    version: 1,
+    version: 2,
     inputs: &[],
     uses_calibration: false,
     run,

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 
 use super::bits::PixelBits;
 use super::lit_test::Lighting;
-use super::plane::{jump_limit, robust_plane_at_centre};
+use super::plane::{FitScratch, jump_limit, robust_plane_at_centre};
 use super::{AxisDecode, DecodeParams, PixelStatus};
 use mlsss_core::capture::patterns::gray_decode;
 
@@ -20,18 +20,50 @@ impl Grid {
         self.width * self.height
     }
 
-    /// Indices and offsets of the pixels in the window around `i`, excluding `i`.
-    fn window(&self, i: usize, radius: usize) -> impl Iterator<Item = (usize, f64, f64)> + '_ {
-        let (x, y) = ((i % self.width) as isize, (i / self.width) as isize);
-        let r = radius as isize;
-        let (w, h) = (self.width as isize, self.height as isize);
-        (-r..=r)
-            .flat_map(move |dy| (-r..=r).map(move |dx| (dx, dy)))
-            .filter(move |&(dx, dy)| {
-                (dx, dy) != (0, 0) && (0..w).contains(&(x + dx)) && (0..h).contains(&(y + dy))
-            })
-            .map(move |(dx, dy)| (((y + dy) * w + x + dx) as usize, dx as f64, dy as f64))
+    /// Replaces `samples` with `(dx, dy, code)` of the valid pixels in the window of `radius`
+    /// around `i`, excluding `i`, rows top to bottom and each row left to right.
+    fn gather_valid(
+        &self,
+        i: usize,
+        radius: usize,
+        codes: &[(i32, PixelStatus)],
+        samples: &mut Vec<(f64, f64, f64)>,
+    ) {
+        samples.clear();
+        let (x, y) = (i % self.width, i / self.width);
+        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(self.width - 1));
+        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(self.height - 1));
+        for row in y0..=y1 {
+            let dy = row as f64 - y as f64;
+            let start = row * self.width;
+            for (col, &(code, status)) in codes[start + x0..=start + x1].iter().enumerate() {
+                let col = x0 + col;
+                if status.is_valid() && (col, row) != (x, y) {
+                    samples.push((col as f64 - x as f64, dy, code as f64));
+                }
+            }
+        }
     }
+
+    /// True when some pixel within `radius` of `i` (itself included) is set in `mask`.
+    fn any_within(&self, i: usize, radius: usize, mask: &[bool]) -> bool {
+        let (x, y) = (i % self.width, i / self.width);
+        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(self.width - 1));
+        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(self.height - 1));
+        (y0..=y1).any(|row| {
+            mask[row * self.width + x0..=row * self.width + x1]
+                .iter()
+                .any(|&m| m)
+        })
+    }
+}
+
+/// Reusable buffers of one worker: the window's samples and the plane fits.
+#[derive(Debug, Default)]
+struct Scratch {
+    samples: Vec<(f64, f64, f64)>,
+    with_self: Vec<(f64, f64, f64)>,
+    fit: FitScratch,
 }
 
 /// Integer codes of one axis: direct decode, repair of low bits, consistency and sub-pixel fit.
@@ -49,23 +81,13 @@ pub(super) fn decode_axis(
         .collect();
     // Pass 2: repair from the neighbours, growing into regions where most pixels need it: each
     // round uses the codes decoded or repaired by the previous one.
-    let mut repaired = first;
-    for _ in 0..REPAIR_ROUNDS {
-        let previous = repaired;
-        repaired = (0..grid.len())
-            .into_par_iter()
-            .map(|i| match previous[i].1 {
-                PixelStatus::RepairFailed => {
-                    repair(grid, i, &bits[i], nbits, &previous, size, params)
-                }
-                _ => previous[i],
-            })
-            .collect();
-    }
+    let repaired = repair_rounds(grid, bits, nbits, first, size, params);
     // Pass 3: consistency with the neighbours, and sub-pixel coordinate.
     let checked: Vec<(i32, f32, PixelStatus)> = (0..grid.len())
         .into_par_iter()
-        .map(|i| check_and_refine(grid, i, &repaired, params))
+        .map_init(Scratch::default, |scratch, i| {
+            check_and_refine(grid, i, &repaired, params, scratch)
+        })
         .collect();
     let mut out = AxisDecode {
         code: Vec::with_capacity(grid.len()),
@@ -82,6 +104,59 @@ pub(super) fn decode_axis(
 
 /// Rounds of neighbour repair (each can reach `2 * window_radius` further into a blurred region).
 const REPAIR_ROUNDS: usize = 3;
+
+/// Pass 2: [`REPAIR_ROUNDS`] rounds of [`repair`] over the pixels still waiting for it. A pixel's
+/// repair depends only on the codes within the repair window, so from the second round on only
+/// pixels with a code changed in their window by the previous round are tried again: the others
+/// would give the same answer.
+fn repair_rounds(
+    grid: Grid,
+    bits: &[PixelBits],
+    nbits: u32,
+    first: Vec<(i32, PixelStatus)>,
+    size: u32,
+    params: &DecodeParams,
+) -> Vec<(i32, PixelStatus)> {
+    let radius = repair_radius(params);
+    let mut codes = first;
+    let mut changed: Option<Vec<bool>> = None;
+    for _ in 0..REPAIR_ROUNDS {
+        let previous = &codes;
+        let due = |i: usize| {
+            previous[i].1 == PixelStatus::RepairFailed
+                && changed
+                    .as_ref()
+                    .is_none_or(|c| grid.any_within(i, radius, c))
+        };
+        let next: Vec<(i32, PixelStatus)> = (0..grid.len())
+            .into_par_iter()
+            .map_init(Scratch::default, |scratch, i| {
+                if due(i) {
+                    repair(grid, i, &bits[i], nbits, previous, size, params, scratch)
+                } else {
+                    previous[i]
+                }
+            })
+            .collect();
+        let now_changed: Vec<bool> = next
+            .par_iter()
+            .zip(previous.par_iter())
+            .map(|(a, b)| a != b)
+            .collect();
+        codes = next;
+        if !now_changed.contains(&true) {
+            break;
+        }
+        changed = Some(now_changed);
+    }
+    codes
+}
+
+/// Half-size of the repair window: wider than for the checks, as in blurred regions the
+/// reliable pixels are sparse.
+fn repair_radius(params: &DecodeParams) -> usize {
+    2 * params.window_radius as usize
+}
 
 /// Pass 1 for one pixel. Pixels that need repair are marked `RepairFailed` until pass 2 succeeds.
 fn initial_code(b: &PixelBits, nbits: u32, size: u32, params: &DecodeParams) -> (i32, PixelStatus) {
@@ -117,6 +192,7 @@ fn bit_mask(bits: u32) -> u16 {
 }
 
 /// Pass 2 for one pixel: the candidate code closest to the neighbours' plane, if close enough.
+#[allow(clippy::too_many_arguments)]
 fn repair(
     grid: Grid,
     i: usize,
@@ -125,10 +201,10 @@ fn repair(
     first: &[(i32, PixelStatus)],
     size: u32,
     params: &DecodeParams,
+    scratch: &mut Scratch,
 ) -> (i32, PixelStatus) {
-    // A wider window than for the checks: in blurred regions the reliable pixels are sparse.
-    let radius = 2 * params.window_radius as usize;
-    let Some(predicted) = neighbour_prediction(grid, i, radius, first, params) else {
+    let radius = repair_radius(params);
+    let Some(predicted) = neighbour_prediction(grid, i, radius, first, params, scratch) else {
         return (-1, PixelStatus::RepairFailed);
     };
     let unreliable = !b.reliable & bit_mask(nbits);
@@ -162,6 +238,7 @@ fn check_and_refine(
     i: usize,
     codes: &[(i32, PixelStatus)],
     params: &DecodeParams,
+    scratch: &mut Scratch,
 ) -> (i32, f32, PixelStatus) {
     let (code, status) = codes[i];
     if !status.is_valid() {
@@ -180,29 +257,32 @@ fn check_and_refine(
             .clamp(code as f64 - 0.5, code as f64 + 0.5);
         return (code, refined as f32, status);
     }
-    let samples: Vec<(f64, f64, f64)> = grid
-        .window(i, radius)
-        .filter(|&(j, _, _)| codes[j].1.is_valid())
-        .map(|(j, dx, dy)| (dx, dy, codes[j].0 as f64))
-        .collect();
+    let Scratch {
+        samples,
+        with_self,
+        fit,
+    } = scratch;
+    grid.gather_valid(i, radius, codes, samples);
     if samples.len() < params.min_neighbours as usize {
         return (-1, f32::NAN, PixelStatus::Inconsistent);
     }
-    let Some(predicted) = robust_plane_at_centre(&samples, params) else {
+    let Some(predicted) = robust_plane_at_centre(samples, params, fit) else {
         return (-1, f32::NAN, PixelStatus::Inconsistent);
     };
     if (code as f64 - predicted).abs() > params.outlier_px as f64 {
         return (-1, f32::NAN, PixelStatus::Inconsistent);
     }
     // The fit with the pixel itself, restricted to the same inliers, gives the sub-pixel value.
-    let mut with_self: Vec<(f64, f64, f64)> = samples
-        .iter()
-        .copied()
-        .filter(|&(_, _, c)| (c - code as f64).abs() <= jump_limit(params))
-        .collect();
+    with_self.clear();
+    with_self.extend(
+        samples
+            .iter()
+            .copied()
+            .filter(|&(_, _, c)| (c - code as f64).abs() <= jump_limit(params)),
+    );
     with_self.push((0.0, 0.0, code as f64));
     // The code says which projector pixel is seen: keep the refined value inside it.
-    let refined = robust_plane_at_centre(&with_self, params)
+    let refined = robust_plane_at_centre(with_self, params, fit)
         .map(|p| p.clamp(code as f64 - 0.5, code as f64 + 0.5))
         .unwrap_or(code as f64);
     (code, refined as f32, status)
@@ -216,6 +296,7 @@ fn neighbour_prediction(
     radius: usize,
     codes: &[(i32, PixelStatus)],
     params: &DecodeParams,
+    scratch: &mut Scratch,
 ) -> Option<f64> {
     let stats = WindowStats::new(grid, i, radius, codes);
     if stats.is_full_and_smooth(radius) {
@@ -224,11 +305,8 @@ fn neighbour_prediction(
     if stats.count < params.min_neighbours as usize {
         return None;
     }
-    let samples: Vec<(f64, f64, f64)> = grid
-        .window(i, radius)
-        .filter(|&(j, _, _)| codes[j].1.is_valid())
-        .map(|(j, dx, dy)| (dx, dy, codes[j].0 as f64))
-        .collect();
+    let samples = &mut scratch.samples;
+    grid.gather_valid(i, radius, codes, samples);
     // Interpolate, never extrapolate: a plane through integer codes on one side only (image
     // border, shadow edge) is biased by the staircase of the codes.
     let has = |side: fn(f64, f64) -> bool| samples.iter().any(|s| side(s.0, s.1));
@@ -239,7 +317,7 @@ fn neighbour_prediction(
     if !surrounded {
         return None;
     }
-    robust_plane_at_centre(&samples, params)
+    robust_plane_at_centre(samples, params, &mut scratch.fit)
 }
 
 /// Count, sum and range of the valid codes around a pixel (itself excluded), without allocating.
@@ -286,5 +364,97 @@ impl WindowStats {
     fn is_full_and_smooth(&self, radius: usize) -> bool {
         let full = (2 * radius + 1).pow(2) - 1;
         self.size == full && self.count == full && self.max - self.min <= 2 * radius as i32 + 2
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The straightforward pass 2: every round tries every pixel still waiting for repair.
+    fn repair_rounds_every_pixel(
+        grid: Grid,
+        bits: &[PixelBits],
+        nbits: u32,
+        first: Vec<(i32, PixelStatus)>,
+        size: u32,
+        params: &DecodeParams,
+    ) -> Vec<(i32, PixelStatus)> {
+        let mut codes = first;
+        let mut scratch = Scratch::default();
+        for _ in 0..REPAIR_ROUNDS {
+            let previous = codes;
+            codes = (0..grid.len())
+                .map(|i| match previous[i].1 {
+                    PixelStatus::RepairFailed => repair(
+                        grid,
+                        i,
+                        &bits[i],
+                        nbits,
+                        &previous,
+                        size,
+                        params,
+                        &mut scratch,
+                    ),
+                    _ => previous[i],
+                })
+                .collect();
+        }
+        codes
+    }
+
+    /// Bits of a tilted ramp of codes with `unreliable_share` of the pixels missing up to three
+    /// low bits (some of them wrong), a few pixels unlit, from `seed`.
+    fn ramp_bits(seed: u64, grid: Grid, nbits: u32, unreliable_share: f64) -> Vec<PixelBits> {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let slope = rng.gen_range(0.3..1.8);
+        let tilt = rng.gen_range(-0.5..0.5);
+        (0..grid.len())
+            .map(|i| {
+                let (x, y) = ((i % grid.width) as f64, (i / grid.width) as f64);
+                let code = (3.0 + slope * x + tilt * y).round().max(0.0) as u32;
+                let mut b = PixelBits {
+                    gray: (code ^ (code >> 1)) as u16,
+                    reliable: bit_mask(nbits),
+                    lighting: Lighting::Lit,
+                };
+                if rng.gen_bool(0.03) {
+                    b.lighting = Lighting::Unlit;
+                } else if rng.gen_bool(unreliable_share) {
+                    let lost = rng.gen_range(1..=3);
+                    b.reliable &= !((1u16 << lost) - 1);
+                    b.gray ^= rng.gen_range(0..1u16 << lost);
+                }
+                b
+            })
+            .collect()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// Retrying only the pixels whose window changed gives exactly the codes of retrying
+        /// every waiting pixel every round.
+        #[test]
+        fn frontier_repair_equals_repairing_every_pixel_every_round(
+            seed in 0u64..1_000_000,
+            width in 6usize..30,
+            height in 6usize..24,
+            unreliable_share in 0.1f64..0.9,
+            window_radius in 1u32..3,
+        ) {
+            let grid = Grid { width, height };
+            let nbits = 7;
+            let size = 128;
+            let params = DecodeParams { window_radius, min_neighbours: 3, ..DecodeParams::default() };
+            let bits = ramp_bits(seed, grid, nbits, unreliable_share);
+            let first: Vec<(i32, PixelStatus)> =
+                bits.iter().map(|b| initial_code(b, nbits, size, &params)).collect();
+            let fast = repair_rounds(grid, &bits, nbits, first.clone(), size, &params);
+            let plain = repair_rounds_every_pixel(grid, &bits, nbits, first, size, &params);
+            prop_assert_eq!(fast, plain);
+        }
     }
 }

@@ -2,7 +2,7 @@
 
 use rayon::prelude::*;
 
-use super::lit_test::{Lighting, pair_variance};
+use super::lit_test::{BLOCK, Lighting, pair_variance};
 use super::{BitPair, DecodeParams};
 
 /// Bits of one axis at one pixel: the raw Gray code and which bits are reliable.
@@ -21,37 +21,227 @@ pub(super) fn decide_bits(
     lighting: &[Lighting],
     params: &DecodeParams,
 ) -> (Vec<PixelBits>, Vec<f32>) {
-    let nbits = pairs.len();
-    amplitude
-        .par_iter()
-        .zip(lighting.par_iter())
+    let n = amplitude.len().min(lighting.len());
+    let mut bits = vec![PixelBits::default(); n];
+    let mut contrast = vec![0.0f32; n];
+    bits.par_chunks_mut(BLOCK)
+        .zip(contrast.par_chunks_mut(BLOCK))
         .enumerate()
-        .map(|(i, (&amp, &lighting))| {
-            let mut bits = PixelBits {
-                lighting,
+        .for_each(|(block, (bits, contrast))| {
+            let start = block * BLOCK;
+            let range = start..start + bits.len();
+            decide_block(
+                pairs,
+                &amplitude[range.clone()],
+                &lighting[range.clone()],
+                range.start,
+                params,
+                bits,
+                contrast,
+            );
+        });
+    (bits, contrast)
+}
+
+/// [`decide_bits`] for the pixels `start..start + bits.len()`, one frame pair at a time.
+fn decide_block(
+    pairs: &[BitPair],
+    amplitude: &[f32],
+    lighting: &[Lighting],
+    start: usize,
+    params: &DecodeParams,
+    bits: &mut [PixelBits],
+    contrast: &mut [f32],
+) {
+    let nbits = pairs.len();
+    // The contrast reference: the pixel's modulation, never below its noise.
+    let mut amp = [0.0f32; BLOCK];
+    let amp = &mut amp[..bits.len()];
+    for (a, &m) in amp.iter_mut().zip(amplitude) {
+        *a = m.max(f32::MIN_POSITIVE);
+    }
+    for (j, pair) in pairs.iter().enumerate() {
+        let bit = nbits - 1 - j;
+        let range = start..start + bits.len();
+        let (pattern, inverse) = (
+            pair.pattern.get(range.clone()).unwrap_or_default(),
+            pair.inverse.get(range).unwrap_or_default(),
+        );
+        for ((((b, c), &a), &p), &q) in bits
+            .iter_mut()
+            .zip(contrast.iter_mut())
+            .zip(amp.iter())
+            .zip(pattern)
+            .zip(inverse)
+        {
+            let d = p - q;
+            let sigma = pair_variance(p, q, params).sqrt() as f32;
+            let relative = d.abs() / a;
+            if d > 0.0 {
+                b.gray |= 1 << bit;
+            }
+            if d.abs() >= params.min_bit_snr * sigma && relative >= params.min_bit_contrast {
+                b.reliable |= 1 << bit;
+            }
+            *c += relative.min(1.0);
+        }
+    }
+    // Pixels that are not clearly lit have no bits (and no contrast).
+    for ((b, c), &l) in bits.iter_mut().zip(contrast.iter_mut()).zip(lighting) {
+        if l == Lighting::Lit {
+            b.lighting = l;
+        } else {
+            *b = PixelBits {
+                lighting: l,
                 ..PixelBits::default()
             };
-            let mut contrast = 0.0;
-            if lighting != Lighting::Lit {
-                return (bits, contrast);
+            *c = 0.0;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::gray_code::lit_test::{classify_lighting, demote_partly_lit};
+    use proptest::prelude::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The straightforward bit decisions: one pixel at a time, every pair in turn.
+    fn decide_pixel(
+        pairs: &[BitPair],
+        i: usize,
+        amp: f32,
+        lighting: Lighting,
+        params: &DecodeParams,
+    ) -> (PixelBits, f32) {
+        let mut bits = PixelBits {
+            lighting,
+            ..PixelBits::default()
+        };
+        let mut contrast = 0.0;
+        if lighting != Lighting::Lit {
+            return (bits, contrast);
+        }
+        let amp = amp.max(f32::MIN_POSITIVE);
+        for (j, pair) in pairs.iter().enumerate() {
+            let bit = pairs.len() - 1 - j;
+            let (p, q) = (pair.pattern[i], pair.inverse[i]);
+            let d = p - q;
+            let sigma = pair_variance(p, q, params).sqrt() as f32;
+            if d > 0.0 {
+                bits.gray |= 1 << bit;
             }
-            // The contrast reference: the pixel's modulation, never below its noise.
-            let amp = amp.max(f32::MIN_POSITIVE);
-            for (j, pair) in pairs.iter().enumerate() {
-                let bit = nbits - 1 - j;
-                let (p, q) = (pair.pattern[i], pair.inverse[i]);
-                let d = p - q;
-                let sigma = pair_variance(p, q, params).sqrt() as f32;
-                let relative = d.abs() / amp;
-                if d > 0.0 {
-                    bits.gray |= 1 << bit;
-                }
-                if d.abs() >= params.min_bit_snr * sigma && relative >= params.min_bit_contrast {
-                    bits.reliable |= 1 << bit;
-                }
-                contrast += relative.min(1.0);
+            if d.abs() >= params.min_bit_snr * sigma && d.abs() / amp >= params.min_bit_contrast {
+                bits.reliable |= 1 << bit;
             }
-            (bits, contrast)
-        })
-        .unzip()
+            contrast += (d.abs() / amp).min(1.0);
+        }
+        (bits, contrast)
+    }
+
+    /// The straightforward lit test: the chi-square sum of one pixel, pair after pair.
+    fn lighting_of_pixel(
+        pairs: &[&BitPair],
+        wb: (&[f32], &[f32]),
+        i: usize,
+        params: &DecodeParams,
+    ) -> Lighting {
+        let terms = pairs.len() + 1;
+        let lit = crate::geometry::gray_code::lit_test::chi_square_quantile(
+            terms,
+            params.lit_false_alarm as f64,
+        );
+        let dim = crate::geometry::gray_code::lit_test::chi_square_quantile(
+            terms,
+            params.dim_false_alarm as f64,
+        );
+        let chi = |a: f32, b: f32| {
+            let d = (a - b) as f64;
+            d * d / crate::geometry::gray_code::lit_test::pair_variance(a, b, params)
+        };
+        let mut s: f64 = pairs.iter().map(|p| chi(p.pattern[i], p.inverse[i])).sum();
+        s += chi(wb.0[i], wb.1[i]);
+        if s >= lit {
+            Lighting::Lit
+        } else if s >= dim {
+            Lighting::Dim
+        } else {
+            Lighting::Unlit
+        }
+    }
+
+    /// Frames of `n` pixels at levels spread from noise to full scale.
+    fn random_pairs(seed: u64, n: usize, count: usize) -> (Vec<BitPair>, Vec<f32>, Vec<f32>) {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let level: Vec<f32> = (0..n)
+            .map(|_| 10f32.powf(rng.gen_range(-4.0..0.0)))
+            .collect();
+        let frame = |rng: &mut rand_pcg::Pcg64| -> Vec<f32> {
+            level
+                .iter()
+                .map(|&l| l * rng.gen_range(0.0..1.0f32))
+                .collect()
+        };
+        let pairs = (0..count)
+            .map(|_| BitPair {
+                pattern: frame(&mut rng),
+                inverse: frame(&mut rng),
+            })
+            .collect();
+        let white = level.clone();
+        let black = frame(&mut rng).iter().map(|v| 0.05 * v).collect();
+        (pairs, white, black)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(24))]
+
+        /// The blocked lit test, partly-lit check and bit decisions give exactly the
+        /// per-pixel results, across block boundaries.
+        #[test]
+        fn blocked_loops_equal_the_per_pixel_decisions(
+            seed in 0u64..1_000_000,
+            width in 1usize..90,
+            height in 1usize..70,
+            count in 1usize..9,
+            snr in 0.5f32..4.0,
+        ) {
+            let n = width * height;
+            let params = DecodeParams { min_bit_snr: snr, dim_false_alarm: 0.01, lit_false_alarm: 1e-4, ..DecodeParams::default() };
+            let (pairs, white, black) = random_pairs(seed, n, count);
+            let refs: Vec<&BitPair> = pairs.iter().collect();
+            let lighting = classify_lighting(&refs, Some((&white, &black)), &params);
+            for (i, &l) in lighting.iter().enumerate() {
+                prop_assert_eq!(l, lighting_of_pixel(&refs, (&white, &black), i, &params));
+            }
+            let amplitude: Vec<f32> = white.iter().zip(&black).map(|(w, b)| w - b).collect();
+            let mut demoted = lighting.clone();
+            demote_partly_lit(&mut demoted, &amplitude, width, 2, 0.5);
+            for (i, &l) in demoted.iter().enumerate() {
+                let (x, y) = ((i % width) as isize, (i / width) as isize);
+                let mut brightest = 0.0f32;
+                for ny in (y - 2).max(0)..(y + 3).min(height as isize) {
+                    for nx in (x - 2).max(0)..(x + 3).min(width as isize) {
+                        let j = ny as usize * width + nx as usize;
+                        if lighting[j] == Lighting::Lit {
+                            brightest = brightest.max(amplitude[j]);
+                        }
+                    }
+                }
+                let expected = if lighting[i] == Lighting::Lit && amplitude[i] < 0.5 * brightest {
+                    Lighting::Dim
+                } else {
+                    lighting[i]
+                };
+                prop_assert_eq!(l, expected);
+            }
+            let (bits, contrast) = decide_bits(&pairs, &amplitude, &demoted, &params);
+            for i in 0..n {
+                let (b, c) = decide_pixel(&pairs, i, amplitude[i], demoted[i], &params);
+                prop_assert_eq!(bits[i], b);
+                prop_assert_eq!(contrast[i].to_bits(), c.to_bits());
+            }
+        }
+    }
 }

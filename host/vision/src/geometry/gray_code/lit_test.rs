@@ -29,6 +29,10 @@ pub(super) enum Lighting {
     Lit,
 }
 
+/// Pixels per block of the blocked loops: the block's sums stay in the L1 cache while every
+/// frame is streamed through them in turn.
+pub(super) const BLOCK: usize = 2048;
+
 /// The lighting of every pixel from the code pairs of both axes (and white/black if present).
 pub(super) fn classify_lighting(
     pairs: &[&BitPair],
@@ -43,25 +47,49 @@ pub(super) fn classify_lighting(
         .map(|p| p.pattern.len())
         .or(white_black.map(|(w, _)| w.len()))
         .unwrap_or(0);
-    (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let mut s: f64 = pairs
-                .iter()
-                .map(|p| pair_chi_square(p.pattern[i], p.inverse[i], params))
-                .sum();
+    let mut lighting = vec![Lighting::Unlit; n];
+    lighting
+        .par_chunks_mut(BLOCK)
+        .enumerate()
+        .for_each(|(block, out)| {
+            let range = block * BLOCK..block * BLOCK + out.len();
+            // Frame after frame over the block, in the same order per pixel as a per-pixel sum.
+            let mut sum = [0.0f64; BLOCK];
+            let sum = &mut sum[..out.len()];
+            for p in pairs {
+                add_chi_square(sum, &p.pattern, &p.inverse, range.clone(), params);
+            }
             if let Some((white, black)) = white_black {
-                s += pair_chi_square(white[i], black[i], params);
+                add_chi_square(sum, white, black, range, params);
             }
-            if s >= lit_level {
-                Lighting::Lit
-            } else if s >= dim_level {
-                Lighting::Dim
-            } else {
-                Lighting::Unlit
+            for (l, &s) in out.iter_mut().zip(sum.iter()) {
+                *l = if s >= lit_level {
+                    Lighting::Lit
+                } else if s >= dim_level {
+                    Lighting::Dim
+                } else {
+                    Lighting::Unlit
+                };
             }
-        })
-        .collect()
+        });
+    lighting
+}
+
+/// Adds `pair_chi_square(a[i], b[i])` for `i` in `range` to `sum[i - range.start]`.
+fn add_chi_square(
+    sum: &mut [f64],
+    a: &[f32],
+    b: &[f32],
+    range: std::ops::Range<usize>,
+    params: &DecodeParams,
+) {
+    let (a, b) = (
+        a.get(range.clone()).unwrap_or_default(),
+        b.get(range).unwrap_or_default(),
+    );
+    for ((s, &a), &b) in sum.iter_mut().zip(a).zip(b) {
+        *s += pair_chi_square(a, b, params);
+    }
 }
 
 /// Lit pixels much dimmer than the brightest lit pixel around them (within `radius`) become dim:
@@ -80,31 +108,42 @@ pub(super) fn demote_partly_lit(
         return;
     }
     let height = lighting.len() / width;
-    let lit: Vec<bool> = lighting.iter().map(|&l| l == Lighting::Lit).collect();
-    let demote: Vec<bool> = (0..lighting.len())
-        .into_par_iter()
-        .map(|i| {
-            if !lit[i] {
-                return false;
-            }
-            let (x, y) = (i % width, i / width);
-            let rows = y.saturating_sub(radius)..(y + radius + 1).min(height);
-            let brightest = rows
-                .flat_map(|ny| {
-                    let cols = x.saturating_sub(radius)..(x + radius + 1).min(width);
-                    cols.map(move |nx| ny * width + nx)
-                })
-                .filter(|&j| lit[j])
-                .map(|j| amplitude[j])
-                .fold(0.0f32, f32::max);
-            amplitude[i] < ratio * brightest
-        })
+    // The brightest lit amplitude in the (2 radius + 1)^2 window, clipped at the image's border,
+    // as a separable maximum: along each row, then along each column. Unlit pixels count as 0,
+    // the floor of the maximum.
+    let lit_amplitude: Vec<f32> = amplitude
+        .iter()
+        .zip(lighting.iter())
+        .map(|(&a, &l)| if l == Lighting::Lit { a } else { 0.0 })
         .collect();
-    for (l, d) in lighting.iter_mut().zip(demote) {
-        if d {
-            *l = Lighting::Dim;
-        }
-    }
+    let mut row_max = vec![0.0f32; lit_amplitude.len()];
+    row_max
+        .par_chunks_mut(width)
+        .zip(lit_amplitude.par_chunks(width))
+        .for_each(|(out, row)| {
+            for (x, o) in out.iter_mut().enumerate() {
+                let cols = x.saturating_sub(radius)..(x + radius + 1).min(width);
+                *o = row[cols].iter().copied().fold(0.0f32, f32::max);
+            }
+        });
+    lighting
+        .par_chunks_mut(width)
+        .enumerate()
+        .for_each(|(y, out)| {
+            let rows = y.saturating_sub(radius)..(y + radius + 1).min(height);
+            for (x, l) in out.iter_mut().enumerate() {
+                if *l != Lighting::Lit {
+                    continue;
+                }
+                let brightest = rows
+                    .clone()
+                    .map(|ny| row_max[ny * width + x])
+                    .fold(0.0f32, f32::max);
+                if amplitude[y * width + x] < ratio * brightest {
+                    *l = Lighting::Dim;
+                }
+            }
+        });
 }
 
 /// `(a - b)^2 / var(a - b)` under the sensor noise model.

@@ -20,7 +20,11 @@
 //! 2. Each bit is decided by the sign of `pattern - inverse`. The bit is *reliable* when the
 //!    difference exceeds both `min_bit_snr` standard deviations of the sensor noise and
 //!    `min_bit_contrast` of the pixel's amplitude. Subsurface scattering washes out the finest
-//!    stripes, so low bits are the ones that fail.
+//!    stripes, so low bits are the ones that fail. The noise threshold is low (1 standard
+//!    deviation) on purpose: on dark skin most bits of a lit pixel sit a few standard deviations
+//!    above the noise, and a stricter rule left whole regions without reliable pixels to repair
+//!    from (issue 18); a wrong sign that passes it is caught by steps 3 and 4, and blurred bits
+//!    by the contrast rule.
 //! 3. Pixels with at most `max_repaired_bits` unreliable bits are repaired: among the codes the
 //!    unreliable bits allow, the one closest to a plane fitted to the decoded neighbours is kept if
 //!    it is within `repair_tolerance_px`; otherwise the pixel is flagged. This covers both the
@@ -165,7 +169,7 @@ impl Default for DecodeParams {
             dim_false_alarm: default_dim_false_alarm(),
             min_neighbour_ratio: 0.5,
             min_bit_contrast: 0.03,
-            min_bit_snr: 3.0,
+            min_bit_snr: 1.0,
             shot_noise_gain: 1.0 / 12_000.0,
             read_noise: 2.0 / 4095.0,
             max_repaired_bits: 4,

@@ -2,14 +2,24 @@
 
 use super::DecodeParams;
 
+/// Reusable buffers of [`robust_plane_at_centre`], so that a pixel's fit allocates nothing.
+#[derive(Debug, Default)]
+pub(super) struct FitScratch {
+    values: Vec<f64>,
+    inliers: Vec<(f64, f64, f64)>,
+}
+
 /// Value at (0, 0) of a plane `c = a + b dx + e dy` fitted to `samples` (dx, dy, c), robustly:
 /// samples far from the median are dropped, then the plane is refitted without its worst outliers.
 /// Falls back to the inliers' mean when they do not span a plane.
 pub(super) fn robust_plane_at_centre(
     samples: &[(f64, f64, f64)],
     params: &DecodeParams,
+    scratch: &mut FitScratch,
 ) -> Option<f64> {
-    let mut values: Vec<f64> = samples.iter().map(|s| s.2).collect();
+    let values = &mut scratch.values;
+    values.clear();
+    values.extend(samples.iter().map(|s| s.2));
     if values.is_empty() {
         return None;
     }
@@ -17,13 +27,16 @@ pub(super) fn robust_plane_at_centre(
     let middle = values.len() / 2;
     let median = *values.select_nth_unstable_by(middle, f64::total_cmp).1;
     let limit = jump_limit(params);
-    let mut inliers: Vec<(f64, f64, f64)> = samples
-        .iter()
-        .copied()
-        .filter(|s| (s.2 - median).abs() <= limit)
-        .collect();
+    let inliers = &mut scratch.inliers;
+    inliers.clear();
+    inliers.extend(
+        samples
+            .iter()
+            .copied()
+            .filter(|s| (s.2 - median).abs() <= limit),
+    );
     for _ in 0..2 {
-        let plane = fit_plane(&inliers)?;
+        let plane = fit_plane(inliers)?;
         let before = inliers.len();
         inliers.retain(|s| (plane.eval(s.0, s.1) - s.2).abs() <= 1.5);
         if inliers.len() == before {
@@ -33,7 +46,7 @@ pub(super) fn robust_plane_at_centre(
             return None;
         }
     }
-    fit_plane(&inliers).map(|p| p.a)
+    fit_plane(inliers).map(|p| p.a)
 }
 
 #[derive(Debug, Clone, Copy)]
