@@ -206,12 +206,6 @@ pub enum NormalsStageError {
         got: (u32, u32),
         expected: (u32, u32),
     },
-    /// The preview could not be written.
-    #[error("{path}: {source}")]
-    Preview {
-        path: PathBuf,
-        source: image::ImageError,
-    },
 }
 
 /// Projectors as near point lights over a map of surface points.
@@ -451,8 +445,6 @@ fn write_preview(path: &Path, normals: &Rgb32FImage) -> Result<(), NormalsStageE
             image::Rgb(n.map(|v| ((0.5 * v + 0.5).clamp(0.0, 1.0) * 255.0).round() as u8))
         }
     });
-    img.save(path).map_err(|source| NormalsStageError::Preview {
-        path: path.to_owned(),
-        source,
-    })
+    // Atomic: a reader (the HTML report, a viewer) never sees a half-written preview.
+    Ok(imageio::write_png(path, &img)?)
 }
