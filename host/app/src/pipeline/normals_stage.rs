@@ -65,7 +65,7 @@ pub enum PsInput {
     Direct,
     /// The white frames without stray light (direct + global: subsurface light blurs the shading
     /// and follows the cosine law times skin's Fresnel transmittance). Default, with
-    /// [`ShadingModel::Transmission`].
+    /// [`ShadingModel::Specular`].
     White,
     /// The global components of the separation (white less the direct part): Lambertian where
     /// the separation is right, but every error of the direct part lands in the shading.
