@@ -42,6 +42,12 @@ pub struct SpecularParams {
     pub max_step_deg: f64,
     /// The refinement stops once a step moves the normal by less than this (radians).
     pub tolerance: f64,
+    /// A pixel whose RMS residual exceeds this fraction of its brightest reading is refined
+    /// again from 4 starts tilted by `restart_tilt_deg` around the first, keeping the best fit.
+    /// Quick type V head, seed 61: 4.91 deg without restarts, 4.33 with (4.49 restarting every
+    /// pixel, at 4x the time; 0.006: 4.32 at 1.2x), light skin unchanged (2.00 and 2.02).
+    pub restart_residual: f64,
+    pub restart_tilt_deg: f64,
     /// Weight of each colour channel's squared residuals. Green leads: red light spreads
     /// millimetres under the skin, which blurs its shading away from the cosine law, and blue
     /// is weak on skin (melanin and blood absorb it), so noise dominates it; both still carry
@@ -64,6 +70,8 @@ impl Default for SpecularParams {
             iterations: 12,
             max_step_deg: 30.0,
             tolerance: 1e-4,
+            restart_residual: 0.01,
+            restart_tilt_deg: 15.0,
             channel_weights: [0.05, 1.0, 0.1],
         }
     }
@@ -312,14 +320,30 @@ fn refine_pixel(
         f64::from(start.normal[1]),
         f64::from(start.normal[2]),
     );
-    let (n, fit) = refine(&data, n0, params, normal_incidence)?;
+    let (mut n, mut fit) = refine(&data, n0, params, normal_incidence)?;
+    let brightest = indices(set)
+        .flat_map(|k| readings[k].iter().map(|v| f64::from(*v)))
+        .fold(0.0, f64::max);
+    let relative_residual =
+        |fit: &LinearFit| (fit.cost / (3 * set.count_ones()) as f64).sqrt() / brightest.max(1e-12);
+    if relative_residual(&fit) > params.restart_residual {
+        // A poor fit is often a local minimum near a start that is far off (dark pixels with a
+        // light at the noise floor): restart from 4 normals tilted around the start.
+        let (t1, t2) = tangents(&n0);
+        let tilt = params.restart_tilt_deg.to_radians().tan();
+        for t in [t1, -t1, t2, -t2] {
+            let restart = (n0 + t * tilt).normalize();
+            if let Some((m, f)) = refine(&data, restart, params, normal_incidence)
+                && f.cost < fit.cost
+            {
+                (n, fit) = (m, f);
+            }
+        }
+    }
     let moved = n.dot(&n0).clamp(-1.0, 1.0).acos().to_degrees();
     if moved > params.max_step_deg || n.dot(&view) <= 0.0 || n.iter().any(|v| !v.is_finite()) {
         return None;
     }
-    let brightest = indices(set)
-        .flat_map(|k| readings[k].iter().map(|v| f64::from(*v)))
-        .fold(0.0, f64::max);
     Some((
         PixelSolution {
             normal: [n.x as f32, n.y as f32, n.z as f32],
