@@ -40,7 +40,7 @@ use mlsss_vision::photometry::transmission_ps::{TransmissionParams, solve_transm
 /// The photometric-stereo stage.
 pub const STAGE: Stage = Stage {
     name: "normals",
-    version: 4,
+    version: 5,
     inputs: &["separate", "geometry"],
     uses_calibration: true,
     run,
