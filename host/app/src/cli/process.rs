@@ -117,9 +117,13 @@ pub struct Args {
     /// less the direct part).
     #[arg(long, value_enum, default_value_t = PsInputArg::White)]
     ps_input: PsInputArg,
-    /// Normals stage: solve with the Lambertian model instead of the default one with skin's
-    /// Fresnel transmittance (`photometry::transmission_ps`).
-    #[arg(long)]
+    /// Normals stage: the shading model, `specular` (skin's Fresnel transmittance plus the
+    /// surface's specular lobe, `photometry::specular_ps`), `transmission` (the transmittance
+    /// alone, `photometry::transmission_ps`) or `lambertian`.
+    #[arg(long, value_enum, default_value_t = PsModelArg::Specular)]
+    ps_model: PsModelArg,
+    /// Normals stage: the Lambertian model (short for `--ps-model lambertian`).
+    #[arg(long, conflicts_with = "ps_model")]
     lambertian_ps: bool,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
@@ -163,6 +167,14 @@ enum CoordinatesArg {
 enum SeparationArg {
     Kernel,
     Nayar,
+}
+
+/// Photometric-stereo shading models (`pipeline::normals_stage::ShadingModel`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum PsModelArg {
+    Specular,
+    Transmission,
+    Lambertian,
 }
 
 /// Photometric-stereo inputs (`pipeline::normals_stage::PsInput`).
@@ -254,10 +266,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             PsInputArg::Direct => PsInput::Direct,
             PsInputArg::Global => PsInput::Global,
         },
-        model: if args.lambertian_ps {
-            ShadingModel::Lambertian
-        } else {
-            ShadingModel::Transmission
+        model: match (args.lambertian_ps, args.ps_model) {
+            (true, _) | (false, PsModelArg::Lambertian) => ShadingModel::Lambertian,
+            (false, PsModelArg::Transmission) => ShadingModel::Transmission,
+            (false, PsModelArg::Specular) => ShadingModel::Specular,
         },
         ..NormalsParams::default()
     };

@@ -182,12 +182,6 @@ pub enum SeparateStageError {
     /// The calibration has fewer projectors than the capture.
     #[error("the calibration has {calibrated} projectors, the capture {captured}")]
     ProjectorCount { calibrated: usize, captured: usize },
-    /// The preview could not be written.
-    #[error("{path}: {source}")]
-    Preview {
-        path: PathBuf,
-        source: image::ImageError,
-    },
 }
 
 /// Path of projector `k`'s direct image in the stage folder.
@@ -717,10 +711,6 @@ fn write_preview(
             }
         }
     }
-    canvas
-        .save(path)
-        .map_err(|source| SeparateStageError::Preview {
-            path: path.to_owned(),
-            source,
-        })
+    // Atomic: a reader (the HTML report, a viewer) never sees a half-written preview.
+    Ok(imageio::write_png(path, &canvas)?)
 }

@@ -9,4 +9,5 @@ pub mod ps_scene;
 pub mod response;
 pub mod separation;
 pub mod slit_leak;
+pub mod specular_ps;
 pub mod transmission_ps;
