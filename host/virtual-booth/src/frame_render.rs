@@ -9,10 +9,12 @@
 //! - A sub-sample is lit when it faces the projector, projects inside its image and the segment to
 //!   the projector centre is free (shadow rays are traced per sub-sample only near shadow edges).
 
+use mlsss_core::capture::Pattern;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::camera::{CameraModel, GAIN};
+use super::complement_frames::{self, Recipe};
 use super::projector::{EmissionField, Illumination, ProjectorModel};
 use super::scene::{GeometryBuffer, SurfaceSample};
 use super::skin_optics::SKIN_INDEX;
@@ -154,6 +156,42 @@ impl<'a> ProjectorTransport<'a> {
                 }
                 frame
             })
+            .collect()
+    }
+
+    /// Renders a batch of patterns, deriving each complement frame from the batch's white and
+    /// its rendered partner instead of rendering it (`complement_frames`): the Gray-code
+    /// inverses and half the high-frequency shifts cost no subsurface sums.
+    pub fn render_patterns(&self, patterns: &[Pattern]) -> Vec<FrameRadiance> {
+        let proj = self.projector();
+        let recipes = complement_frames::recipes(patterns);
+        let emissions: Vec<EmissionField> = patterns
+            .iter()
+            .zip(&recipes)
+            .filter(|(_, r)| **r == Recipe::Render)
+            .map(|(p, _)| proj.emission(p))
+            .collect();
+        let mut rendered = self.render(&emissions).into_iter();
+        let white_plus_black = (1.0 + proj.response(0.0) / proj.response(1.0)) as f32;
+        let mut frames: Vec<Option<FrameRadiance>> = recipes
+            .iter()
+            .map(|r| match r {
+                Recipe::Render => rendered.next(),
+                Recipe::Complement { .. } => None,
+            })
+            .collect();
+        for (i, r) in recipes.iter().enumerate() {
+            if let Recipe::Complement { of, white } = *r {
+                frames[i] = match (&frames[white], &frames[of]) {
+                    (Some(w), Some(f)) => Some(complement_frames::derive(w, f, white_plus_black)),
+                    _ => None,
+                };
+            }
+        }
+        let pixels = self.scene.geometry.pixels();
+        frames
+            .into_iter()
+            .map(|f| f.unwrap_or_else(|| FrameRadiance::zeros(pixels)))
             .collect()
     }
 

@@ -12,6 +12,7 @@
 //!   and 12-bit codes (`camera`).
 
 pub mod camera;
+pub mod complement_frames;
 pub mod frame_render;
 pub mod head;
 pub mod material_maps;

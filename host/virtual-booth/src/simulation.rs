@@ -22,7 +22,7 @@ use super::VirtualBoothError;
 use super::camera::CameraModel;
 use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::material_maps::MaterialMaps;
-use super::metering::meter_projectors;
+use super::metering::meter_projector;
 use super::projector::ProjectorModel;
 use super::response_cache::{CacheStats, McSettings, ResponseCache};
 use super::scene::GeometryBuffer;
@@ -31,7 +31,7 @@ use super::subjects::{Chessboard, Subject, SubjectKind};
 use super::subsurface_transport::{ResponseSet, SubsurfaceKernel};
 use super::surface_reflection::SKIN_ROUGHNESS;
 use super::truth_writer;
-use mlsss_core::booth::Booth;
+use mlsss_core::booth::{Booth, TimingSpec};
 use mlsss_core::capture::folder::CaptureKind;
 use mlsss_core::capture::{
     CaptureManifest, CaptureWriter, FramePlan, FrameSpec, Pattern, ProjectorExposure, TriggerRecord,
@@ -274,21 +274,13 @@ fn simulate_scan_holding(
     let kernel = scan_kernel(&scene, &responses);
 
     let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
-    let mut manifest = scan_manifest(booth, opts, &plan);
-    let mut known_whites = vec![None; booth.projectors.len()];
-    if opts.metering {
-        progress.stage("metering", 1);
-        let metering = meter_projectors(&scene, Some(&kernel), &booth.timing, opts.seed);
-        manifest.exposure = metering.exposure;
-        known_whites = metering.whites.into_iter().map(Some).collect();
-        progress.advance(1);
-    }
-    let writer = CaptureWriter::create(out, manifest)?;
+    let manifest = scan_manifest(booth, opts, &plan);
+    let mut writer = CaptureWriter::create(out, manifest)?;
     let truth_dir = create_truth_dir(&writer)?;
     truth_writer::write_geometry(&truth_dir, booth, &scene)?;
     write_optics(&truth_dir, opts, &materials)?;
 
-    let frames = render_frames(
+    let rendered = render_frames(
         &scene,
         Some(&kernel),
         &plan,
@@ -297,10 +289,13 @@ fn simulate_scan_holding(
         &truth_dir,
         progress,
         hold_budget,
-        known_whites,
+        opts.metering.then_some(&booth.timing),
         scan_truth_pattern,
     )?;
-    let contact: Vec<Rgb32FImage> = frames;
+    if opts.metering {
+        writer.manifest_mut().exposure = rendered.exposure;
+    }
+    let contact: Vec<Rgb32FImage> = rendered.sheet;
     truth_writer::write_contact_sheet(
         &writer.staging_dir().join("contact_sheet.png"),
         &contact,
@@ -458,7 +453,7 @@ pub fn simulate_calibration(
             seed: opts.seed.wrapping_add(1000 * pose as u64),
             ..opts.clone()
         };
-        let frames = render_frames(
+        let rendered = render_frames(
             &scene,
             None,
             &plan,
@@ -467,10 +462,10 @@ pub fn simulate_calibration(
             &truth_dir,
             progress,
             HOLD_BUDGET_BYTES,
-            vec![None; booth.projectors.len()],
+            None,
             |p| matches!(p, Pattern::White),
         )?;
-        if let Some(first) = frames.into_iter().next() {
+        if let Some(first) = rendered.sheet.into_iter().next() {
             sheet.push(first);
         }
         captures.push(writer.finish()?);
@@ -581,8 +576,6 @@ fn stray_light(
 /// Adds stray light and camera noise to a frame's noise-free values and writes it.
 struct FrameFinisher<'a> {
     scene: &'a Scene,
-    /// Each projector's exposure (from the manifest: nominal where not metered).
-    exposure: Vec<ProjectorExposure>,
     seed: u64,
     writer: &'a CaptureWriter,
     progress: &'a dyn Progress,
@@ -591,17 +584,15 @@ struct FrameFinisher<'a> {
 }
 
 impl FrameFinisher<'_> {
+    /// Finishes frame `spec` at `exposure` (its projector's; nominal units when `None`).
     fn finish(
         &self,
         spec: &FrameSpec,
         totals: &[[f32; 3]],
         stray: &[[f32; 3]],
+        exposure: Option<ProjectorExposure>,
     ) -> Result<(), VirtualBoothError> {
         let geo = &self.scene.geometry;
-        let exposure = spec
-            .projector
-            .and_then(|k| self.exposure.get(k as usize))
-            .copied();
         let (scale, gain) = exposure.map_or((1.0, 1.0), |e| (e.scale as f32, e.analog_gain));
         // The exposure scales all the light the camera collects, stray light included.
         let mut values: Vec<f32> = totals
@@ -639,16 +630,81 @@ impl FrameFinisher<'_> {
     }
 }
 
-/// Renders every frame of `plan`, writes it (with noise, at each projector's exposure from the
-/// writer's manifest) and the truth of the patterns selected by `truth_for`; returns a few frames
-/// for the contact sheet. `known_whites[k]` is projector `k`'s noise-free white when already
-/// rendered (metering).
+/// What [`render_frames`] hands back: a few frames for the contact sheet and each projector's
+/// exposure (metered, or the manifest's).
+struct RenderedFrames {
+    sheet: Vec<Rgb32FImage>,
+    exposure: Vec<ProjectorExposure>,
+}
+
+/// Each projector's exposure, settled before any of its frames is finished: the manifest's
+/// when not metering, else metered from its noise-free white once that is known.
+struct Exposures<'a> {
+    scene: &'a Scene,
+    metering: Option<&'a TimingSpec>,
+    seed: u64,
+    settled: Vec<Option<ProjectorExposure>>,
+}
+
+impl<'a> Exposures<'a> {
+    fn new(
+        scene: &'a Scene,
+        manifest: &CaptureManifest,
+        metering: Option<&'a TimingSpec>,
+        seed: u64,
+    ) -> Self {
+        let count = scene.projectors.len();
+        let settled = match metering {
+            Some(_) => vec![None; count],
+            None => (0..count).map(|k| Some(manifest.exposure_of(k))).collect(),
+        };
+        Self {
+            scene,
+            metering,
+            seed,
+            settled,
+        }
+    }
+
+    /// Projector `k`'s exposure, metering it from `whites[k]` the first time.
+    fn of(
+        &mut self,
+        k: usize,
+        whites: &[Option<Vec<[f32; 3]>>],
+    ) -> Result<ProjectorExposure, VirtualBoothError> {
+        if let Some(e) = self.settled[k] {
+            return Ok(e);
+        }
+        let timing = self.metering.ok_or(VirtualBoothError::Internal(
+            "an exposure is neither nominal nor metered",
+        ))?;
+        let white = whites[k].as_deref().ok_or(VirtualBoothError::Internal(
+            "a projector's white is needed for metering before it was rendered",
+        ))?;
+        let e = meter_projector(self.scene, k, white, timing, self.seed);
+        self.settled[k] = Some(e);
+        Ok(e)
+    }
+
+    fn into_settled(self) -> Result<Vec<ProjectorExposure>, VirtualBoothError> {
+        self.settled
+            .into_iter()
+            .map(|e| e.ok_or(VirtualBoothError::Internal("a projector was never metered")))
+            .collect()
+    }
+}
+
+/// Renders every frame of `plan`, writes it (with noise, at each projector's exposure) and the
+/// truth of the patterns selected by `truth_for`; returns a few frames for the contact sheet and
+/// the exposures. With `metering` (the booth's timing), each projector's exposure is metered from
+/// its noise-free white (`metering`), else taken from the writer's manifest.
 ///
 /// Every frame of projector `k` carries the stray light of the other projectors' black level,
 /// i.e. their whites. Projectors are rendered in order, each in batches of frames; each white is
 /// taken from its projector's own batch, so the frames of the first projectors are held
 /// (noise-free) until the last white is known. Whites of projectors whose frames cannot be held
-/// (memory budget) are rendered alone beforehand.
+/// (memory budget) are rendered alone beforehand. Each projector's white thus is rendered once,
+/// for its frame, the stray light and the metering.
 #[allow(clippy::too_many_arguments)]
 fn render_frames(
     scene: &Scene,
@@ -659,9 +715,9 @@ fn render_frames(
     truth_dir: &Path,
     progress: &dyn Progress,
     hold_budget: usize,
-    known_whites: Vec<Option<Vec<[f32; 3]>>>,
+    metering: Option<&TimingSpec>,
     truth_for: impl Fn(&Pattern) -> bool + Sync,
-) -> Result<Vec<Rgb32FImage>, VirtualBoothError> {
+) -> Result<RenderedFrames, VirtualBoothError> {
     let geo = &scene.geometry;
     let dims = (geo.width, geo.height);
     let n = geo.pixels();
@@ -669,8 +725,9 @@ fn render_frames(
     let specs: Vec<Vec<FrameSpec>> = (0..count)
         .map(|k| plan.for_projector(k as u8).copied().collect())
         .collect();
-    let all_whites_known = known_whites.len() == count && known_whites.iter().all(Option::is_some);
-    let held = if opts.stray_black && !all_whites_known {
+    // Metering needs every projector's white, as stray light does.
+    let needs_whites = opts.stray_black || metering.is_some();
+    let held = if needs_whites {
         held_projectors(
             &specs.iter().map(Vec::len).collect::<Vec<_>>(),
             n,
@@ -679,19 +736,16 @@ fn render_frames(
     } else {
         0
     };
-    let mut whites: Vec<Option<Vec<[f32; 3]>>> = if all_whites_known {
-        known_whites
-    } else if opts.stray_black {
+    let mut whites: Vec<Option<Vec<[f32; 3]>>> = if needs_whites {
         whites_rendered_alone(scene, kernel, &specs, held, progress)
     } else {
         vec![None; count]
     };
+    let mut exposures = Exposures::new(scene, writer.manifest(), metering, opts.seed);
 
     progress.stage("frames", plan.len() as u64);
-    let manifest = writer.manifest();
     let finisher = FrameFinisher {
         scene,
-        exposure: (0..count).map(|k| manifest.exposure_of(k)).collect(),
         seed: opts.seed,
         writer,
         progress,
@@ -721,44 +775,60 @@ fn render_frames(
                 held_frames.extend(batch.iter().zip(totals).map(|(s, t)| (k, *s, t)));
                 continue;
             }
+            let exposure = exposures.of(k, &whites)?;
             let stray = strays[k].as_deref().unwrap_or(&no_stray);
             batch
                 .par_iter()
                 .zip(totals.par_iter())
-                .try_for_each(|(spec, t)| finisher.finish(spec, t, stray))?;
+                .try_for_each(|(spec, t)| finisher.finish(spec, t, stray, Some(exposure)))?;
         }
     }
+    let held_exposures = (0..held)
+        .map(|k| exposures.of(k, &whites))
+        .collect::<Result<Vec<_>, _>>()?;
     finish_held_frames(
         &finisher,
         held_frames,
-        held,
+        &held_exposures,
         &whites,
         &mut strays,
         &no_stray,
+        opts.stray_black,
     )?;
     for (k, stray) in strays.iter().enumerate() {
         truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
     }
-    finisher.into_sheet()
+    Ok(RenderedFrames {
+        sheet: finisher.into_sheet()?,
+        exposure: exposures.into_settled()?,
+    })
 }
 
-/// Finishes the frames of the first `held` projectors, held noise-free until every white was
-/// known: their stray light first (kept in `strays` for the truth), then the frames.
+/// Finishes the frames of the first projectors, held noise-free until every white was known
+/// (`exposures[k]`: projector `k`'s): their stray light first (kept in `strays` for the truth;
+/// none without `stray_black`), then the frames.
 fn finish_held_frames(
     finisher: &FrameFinisher,
     held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)>,
-    held: usize,
+    exposures: &[ProjectorExposure],
     whites: &[Option<Vec<[f32; 3]>>],
     strays: &mut [Option<Vec<[f32; 3]>>],
     no_stray: &[[f32; 3]],
+    stray_black: bool,
 ) -> Result<(), VirtualBoothError> {
     let n = no_stray.len();
-    // `held` is 0 without stray light.
-    for (k, stray) in strays.iter_mut().enumerate().take(held) {
-        *stray = Some(stray_light(finisher.scene, whites, k, n)?);
+    if stray_black {
+        for (k, stray) in strays.iter_mut().enumerate().take(exposures.len()) {
+            *stray = Some(stray_light(finisher.scene, whites, k, n)?);
+        }
     }
     held_frames.par_iter().try_for_each(|(k, spec, t)| {
-        finisher.finish(spec, t, strays[*k].as_deref().unwrap_or(no_stray))
+        finisher.finish(
+            spec,
+            t,
+            strays[*k].as_deref().unwrap_or(no_stray),
+            exposures.get(*k).copied(),
+        )
     })
 }
 
@@ -808,11 +878,8 @@ fn render_batch(
 ) -> Result<Vec<Vec<[f32; 3]>>, VirtualBoothError> {
     let k = view.k;
     let dims = (scene.geometry.width, scene.geometry.height);
-    let emissions: Vec<_> = batch
-        .iter()
-        .map(|f| scene.projectors[k].emission(&f.pattern))
-        .collect();
-    let rendered = view.render(&emissions);
+    let patterns: Vec<Pattern> = batch.iter().map(|f| f.pattern).collect();
+    let rendered = view.render_patterns(&patterns);
     batch
         .par_iter()
         .zip(rendered.par_iter())
@@ -956,6 +1023,75 @@ mod tests {
         for i in 0..frames as u32 {
             let (a, b) = (held.read_frame(i).unwrap(), alone.read_frame(i).unwrap());
             assert!(a == b, "frame {i} differs");
+        }
+    }
+
+    /// Property, on every complement frame of a tiny head scan and two projectors: deriving it
+    /// from the white and its partner (`complement_frames`) gives the direct render within float
+    /// rounding (1e-5 of the white's brightest value; camera noise is ~1e-3 of it), and every
+    /// frame rendered directly is bit-identical to the plain render.
+    #[test]
+    fn complement_frames_match_their_direct_render() {
+        use super::super::complement_frames::{Recipe, recipes};
+        let booth = scaled_booth(&Booth::builtin(true), 8);
+        let cache = tempfile::tempdir().unwrap();
+        let mut opts =
+            SimulationOptions::for_booth(&booth, SubjectKind::Head, SkinPreset::LIGHT, 5);
+        opts.mc.photons = 300;
+        opts.mc.angles_deg = vec![0.0, 60.0];
+        opts.cache = ResponseCache::new(cache.path());
+        let scene = trace_skin_scene(&booth, &opts, &NoProgress).unwrap();
+        let (responses, _) = opts
+            .cache
+            .response_set(&opts.skin.materials(), &opts.mc, &|_| {})
+            .unwrap();
+        let kernel = scan_kernel(&scene, &responses);
+        let patterns = mlsss_core::capture::frame_plan::scan_patterns(&booth.patterns);
+        let plan = recipes(&patterns);
+        let derived_count = plan.iter().filter(|r| **r != Recipe::Render).count();
+        let spec = &booth.patterns;
+        assert_eq!(
+            derived_count as u32,
+            spec.gray_bits_x + spec.gray_bits_y + spec.hf_stripe_px
+        );
+        for k in [0, 2] {
+            let view = ProjectorTransport::new(&scene, k, Some(&kernel));
+            let emissions: Vec<_> = patterns
+                .iter()
+                .map(|p| scene.projectors[k].emission(p))
+                .collect();
+            let direct = view.render(&emissions);
+            let shortcut = view.render_patterns(&patterns);
+            let white_max = direct[0]
+                .global
+                .iter()
+                .flatten()
+                .chain(&direct[0].direct)
+                .fold(0.0f32, |m, &v| m.max(v));
+            assert!(white_max > 0.01, "projector {k} lights nothing");
+            for ((a, b), recipe) in direct.iter().zip(&shortcut).zip(&plan) {
+                let values = |f: &FrameRadiance| -> Vec<f32> {
+                    f.direct
+                        .iter()
+                        .chain(f.global.iter().flatten())
+                        .copied()
+                        .collect()
+                };
+                let (va, vb) = (values(a), values(b));
+                let worst = va
+                    .iter()
+                    .zip(&vb)
+                    .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+                match recipe {
+                    Recipe::Render => assert_eq!(va, vb),
+                    Recipe::Complement { .. } => {
+                        assert!(
+                            worst <= 1e-5 * white_max,
+                            "projector {k}: {worst} {white_max}"
+                        )
+                    }
+                }
+            }
         }
     }
 
