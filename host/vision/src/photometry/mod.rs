@@ -10,4 +10,6 @@ pub mod response;
 pub mod separation;
 pub mod slit_leak;
 pub mod specular_ps;
+#[cfg(test)]
+mod test_scenes;
 pub mod transmission_ps;

@@ -440,41 +440,7 @@ fn refine_map(
 mod tests {
     use super::*;
     use crate::photometry::photometric_stereo::{DirectionalLights, angular_errors};
-
-    /// Four lights 45 deg off the view axis, about as the booth's projectors stand.
-    fn lights() -> DirectionalLights {
-        let tilt = 45f64.to_radians();
-        let lights = (0..4)
-            .map(|k| {
-                let phi = std::f64::consts::FRAC_PI_2 * k as f64 + 0.4;
-                LightSample {
-                    direction: Vector3::new(
-                        tilt.sin() * phi.cos(),
-                        tilt.sin() * phi.sin(),
-                        tilt.cos(),
-                    ),
-                    irradiance: [1.0; 3],
-                }
-            })
-            .collect();
-        DirectionalLights {
-            lights,
-            view: Vector3::z(),
-        }
-    }
-
-    /// A cap of a sphere seen from above: normals up to 35 deg from the view axis.
-    fn cap_normals(size: u32) -> Vec<Vector3<f64>> {
-        (0..size * size)
-            .map(|i| {
-                let (x, y) = (i % size, i / size);
-                let r = 35f64.to_radians().sin();
-                let u = ((x as f64 + 0.5) / size as f64 * 2.0 - 1.0) * r;
-                let v = ((y as f64 + 0.5) / size as f64 * 2.0 - 1.0) * r;
-                Vector3::new(u, v, (1.0 - u * u - v * v).sqrt())
-            })
-            .collect()
-    }
+    use crate::photometry::test_scenes::{ring_of_four_lights, sphere_cap_normals};
 
     /// Walter et al. 2007's rough dielectric (GGX, separable Smith, Fresnel) times `cos_l`,
     /// written out here independently of the solver's code.
@@ -538,8 +504,8 @@ mod tests {
     #[test]
     fn lobe_matches_the_independent_reference() {
         let view = Vector3::z();
-        for n in cap_normals(7) {
-            for l in &lights().lights {
+        for n in sphere_cap_normals(7, 35.0) {
+            for l in &ring_of_four_lights(45.0, 0.4).lights {
                 let (got, want) = (
                     specular_shading(&n, &l.direction, &view, 1.4, 0.35),
                     reference_lobe(&n, &l.direction, &view),
@@ -555,11 +521,11 @@ mod tests {
     #[test]
     fn a_white_lobe_on_dark_skin_is_modelled_where_the_transmission_solve_is_biased() {
         let size = 24;
-        let lights = lights();
+        let lights = ring_of_four_lights(45.0, 0.4);
         // The lobe's weight puts it at about a third of the white frames' light, as on the
         // virtual booth's type V skin.
-        let (images, truth) = render(&cap_normals(size), size, &lights, 10.0);
-        let (subsurface, _) = render(&cap_normals(size), size, &lights, 0.0);
+        let (images, truth) = render(&sphere_cap_normals(size, 35.0), size, &lights, 10.0);
+        let (subsurface, _) = render(&sphere_cap_normals(size, 35.0), size, &lights, 0.0);
         let total = |set: &[image::Rgb32FImage]| -> f64 {
             set.iter()
                 .flat_map(|im| im.as_raw().iter().map(|v| f64::from(*v)))
@@ -595,8 +561,8 @@ mod tests {
     #[test]
     fn without_a_lobe_the_transmission_solution_is_kept() {
         let size = 12;
-        let lights = lights();
-        let (images, truth) = render(&cap_normals(size), size, &lights, 0.0);
+        let lights = ring_of_four_lights(45.0, 0.4);
+        let (images, truth) = render(&sphere_cap_normals(size, 35.0), size, &lights, 0.0);
         let refs: Vec<&image::Rgb32FImage> = images.iter().collect();
         let map = solve_specular(
             &refs,
@@ -614,7 +580,7 @@ mod tests {
 
     #[test]
     fn saturated_grazing_and_broken_pixels_are_flagged_or_finite_never_nan() {
-        let lights = lights();
+        let lights = ring_of_four_lights(45.0, 0.4);
         // Pixel 0: a clean reading; 1: two saturated lights; 2: a normal at 88 deg to light 0
         // (grazing) and behind light 2; 3: NaN and infinite readings; 4: black.
         let grazing = {

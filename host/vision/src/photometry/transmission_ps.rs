@@ -120,42 +120,7 @@ pub fn solve_transmitted(
 mod tests {
     use super::*;
     use crate::photometry::photometric_stereo::{DirectionalLights, angular_errors};
-
-    /// Four lights 50 deg off the view axis, as the booth's projectors are roughly placed.
-    fn lights() -> DirectionalLights {
-        let tilt = 50f64.to_radians();
-        let lights = (0..4)
-            .map(|k| {
-                let phi = std::f64::consts::FRAC_PI_2 * k as f64 + 0.3;
-                LightSample {
-                    direction: Vector3::new(
-                        tilt.sin() * phi.cos(),
-                        tilt.sin() * phi.sin(),
-                        tilt.cos(),
-                    ),
-                    irradiance: [1.0; 3],
-                }
-            })
-            .collect();
-        DirectionalLights {
-            lights,
-            view: Vector3::z(),
-        }
-    }
-
-    /// A hemisphere seen from above: normals up to 40 deg from the view axis.
-    fn hemisphere_normals(size: u32) -> Vec<Vector3<f64>> {
-        (0..size * size)
-            .map(|i| {
-                let (x, y) = (i % size, i / size);
-                let u = (x as f64 + 0.5) / size as f64 * 2.0 - 1.0;
-                let v = (y as f64 + 0.5) / size as f64 * 2.0 - 1.0;
-                let r = 40f64.to_radians().sin();
-                let (nx, ny) = (u * r, v * r);
-                Vector3::new(nx, ny, (1.0 - nx * nx - ny * ny).sqrt())
-            })
-            .collect()
-    }
+    use crate::photometry::test_scenes::{ring_of_four_lights, sphere_cap_normals};
 
     /// Images of `normals` under `lights` with shading `shade(cos)` and albedo (0.6, 0.4, 0.3).
     fn render(
@@ -206,8 +171,8 @@ mod tests {
     #[test]
     fn transmitted_shading_is_solved_where_the_lambertian_model_is_biased() {
         let size = 24;
-        let normals = hemisphere_normals(size);
-        let lights = lights();
+        let normals = sphere_cap_normals(size, 40.0);
+        let lights = ring_of_four_lights(50.0, 0.3);
         let t1 = fresnel_transmittance(1.0, 1.4);
         let images = render(&normals, size, &lights, |c| {
             c * fresnel_transmittance(c, 1.4) / t1
@@ -234,8 +199,8 @@ mod tests {
     #[test]
     fn lambertian_shading_is_left_alone_without_iterations() {
         let size = 16;
-        let normals = hemisphere_normals(size);
-        let lights = lights();
+        let normals = sphere_cap_normals(size, 40.0);
+        let lights = ring_of_four_lights(50.0, 0.3);
         let images = render(&normals, size, &lights, |c| c);
         let refs: Vec<&image::Rgb32FImage> = images.iter().collect();
         let params = TransmissionParams {
