@@ -28,7 +28,7 @@ use serde_json::Value;
 use super::separate_stage::{direct_path, global_path, nayar_direct_path, white_path};
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::calibration::Calibration;
-use mlsss_core::capture::truth;
+use mlsss_core::capture::{CaptureManifest, truth};
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::photometry::photometric_stereo::{
     LightModel, LightSample, Method, NormalMap, NormalMapStats, PhotometricStereoError, PsParams,
@@ -40,7 +40,7 @@ use mlsss_vision::photometry::transmission_ps::{TransmissionParams, solve_transm
 /// The photometric-stereo stage.
 pub const STAGE: Stage = Stage {
     name: "normals",
-    version: 5,
+    version: 6,
     inputs: &["separate", "geometry"],
     uses_calibration: true,
     run,
@@ -312,6 +312,7 @@ fn run_normals(
     let lights = ProjectorLights::from_calibration(calib, captured, width, &points);
     let ps_params = PsParams {
         method: params.method,
+        noise_floor: noise_floor(&ctx.capture.manifest, captured),
         ..PsParams::default()
     };
     let refs: Vec<&Rgb32FImage> = images.iter().collect();
@@ -455,4 +456,65 @@ fn write_preview(path: &Path, normals: &Rgb32FImage) -> Result<(), NormalsStageE
     });
     // Atomic: a reader (the HTML report, a viewer) never sees a half-written preview.
     Ok(imageio::write_png(path, &img)?)
+}
+
+/// Readings below this many sigmas of the camera's read noise, at the frames' exposure, are noise
+/// to photometric stereo.
+const NOISE_FLOOR_READ_SIGMAS: f64 = 8.0;
+
+/// The solver's noise floor in frame units (full scale 1 at the nominal exposure): 8 read-noise
+/// sigmas at the lowest metered exposure, never above the former fixed floor
+/// (`PsParams::default`, 2e-3; 8 sigmas give 1.9e-3 on light skin metered at about 2x). Dark skin
+/// is metered at 9-12x, so its frames' noise is that much lower and the fixed floor threw away
+/// real grazing light: quick heads seed 81 (`--calib truth`), type VI 6.77 -> 5.08 deg at
+/// coverage 0.82 -> 0.93, type V 4.33 -> 4.08, type I unchanged (2.08).
+fn noise_floor(manifest: &CaptureManifest, projectors: usize) -> f64 {
+    let fixed = PsParams::default().noise_floor;
+    let camera = &manifest.booth.camera;
+    let full_scale = (2f64.powi(camera.bit_depth.min(32) as i32) - 1.0).max(1.0);
+    let lowest_exposure = (0..projectors)
+        .map(|k| manifest.exposure_of(k).scale)
+        .fold(f64::INFINITY, f64::min);
+    let floor = NOISE_FLOOR_READ_SIGMAS * camera.read_noise_dn / full_scale / lowest_exposure;
+    if floor.is_finite() && floor > 0.0 {
+        floor.min(fixed)
+    } else {
+        fixed
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mlsss_core::booth::Booth;
+    use mlsss_core::capture::folder::CaptureKind;
+    use mlsss_core::capture::{FramePlan, ProjectorExposure};
+
+    /// A scan manifest of the quick booth whose projectors were metered at `scales`.
+    fn metered(scales: &[f64]) -> CaptureManifest {
+        let booth = Booth::builtin(true);
+        let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
+        let mut manifest = CaptureManifest::new(CaptureKind::Scan, booth, plan);
+        manifest.exposure = scales
+            .iter()
+            .enumerate()
+            .map(|(k, &scale)| ProjectorExposure {
+                scale,
+                ..ProjectorExposure::nominal(k as u8, &manifest.booth.timing)
+            })
+            .collect();
+        manifest
+    }
+
+    #[test]
+    fn the_noise_floor_is_eight_read_noise_sigmas_at_the_lowest_exposure_capped_at_the_fixed_one() {
+        // Quick booth: 12-bit camera, read noise 2 DN. Dark skin metered at 9-12x nominal.
+        let dark = noise_floor(&metered(&[12.0, 9.0, 10.0, 11.0]), 4);
+        assert!((dark - 8.0 * 2.0 / 4095.0 / 9.0).abs() < 1e-12, "{dark}");
+        // Light skin (about 2x): close to the fixed floor. Unmetered (nominal, 1x): 8 sigmas
+        // would be 3.9e-3, so the fixed floor.
+        let light = noise_floor(&metered(&[2.1; 4]), 4);
+        assert!((light - 8.0 * 2.0 / 4095.0 / 2.1).abs() < 1e-12, "{light}");
+        assert_eq!(noise_floor(&metered(&[]), 4), 2e-3);
+    }
 }
