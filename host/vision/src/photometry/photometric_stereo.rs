@@ -293,7 +293,7 @@ fn least_squares(
 
 /// The lights in `set`, ascending. Walks the set bits (not all [`MAX_LIGHTS`] positions: with 4
 /// lights that was 128 tests per call, several calls per pixel).
-fn indices(set: u128) -> impl Iterator<Item = usize> {
+pub(crate) fn indices(set: u128) -> impl Iterator<Item = usize> {
     let mut rest = set;
     std::iter::from_fn(move || {
         (rest != 0).then(|| {

@@ -24,7 +24,7 @@ use nalgebra::{Matrix2, Vector2, Vector3};
 
 use super::photometric_stereo::{
     LightModel, LightSample, NormalMap, PhotometricStereoError, PixelSolution, PixelStatus,
-    PsParams,
+    PsParams, indices,
 };
 use super::transmission_ps::{TransmissionParams, fresnel_transmittance, solve_transmitted};
 
@@ -211,18 +211,6 @@ fn residuals(
         albedo,
         specular,
         cost,
-    })
-}
-
-/// The lights in `set`, ascending.
-fn indices(set: u128) -> impl Iterator<Item = usize> {
-    let mut rest = set;
-    std::iter::from_fn(move || {
-        (rest != 0).then(|| {
-            let i = rest.trailing_zeros() as usize;
-            rest &= rest - 1;
-            i
-        })
     })
 }
 
