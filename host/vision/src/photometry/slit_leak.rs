@@ -258,10 +258,16 @@ fn pixel_leak(
     if !finite {
         return ([0.0; 3], Outcome::NoProfile);
     }
-    let sum = |j: usize| slits[j][i].iter().sum::<f32>();
-    let brightest = (0..slits.len())
-        .max_by(|&a, &b| sum(a).total_cmp(&sum(b)))
-        .unwrap_or(0);
+    // Only the cosine is read about the brightest slit; the harmonics do not depend on it.
+    let brightest = match reader {
+        Reader::Cosine(_) => {
+            let sum = |j: usize| slits[j][i].iter().sum::<f32>();
+            (0..slits.len())
+                .max_by(|&a, &b| sum(a).total_cmp(&sum(b)))
+                .unwrap_or(0)
+        }
+        Reader::Harmonics(_) => 0,
+    };
     let b = geometry.black_level;
     let mut leak = [0.0f32; 3];
     let mut any = false;
