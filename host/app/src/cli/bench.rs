@@ -149,6 +149,21 @@ fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
     let total = skins.len() * args.stripes.len();
     let mut rows = Vec::with_capacity(total);
     for skin in &skins {
+        // The kernel depends on the skin alone (the Monte Carlo settings on the camera, not on
+        // the stripes): read once per type, from the cache the simulations share.
+        let mut kernel_opts =
+            SimulationOptions::for_booth(&base, SubjectKind::Head, *skin, args.seed);
+        args.monte_carlo.apply(&mut kernel_opts);
+        let (responses, _) = kernel_opts
+            .cache
+            .response_set(&skin.materials()[..1], &kernel_opts.mc, &|_| {})
+            .context("reading the Monte Carlo responses")?;
+        let grid = responses
+            .grids
+            .first()
+            .and_then(|g| g.first())
+            .context("no Monte Carlo response at normal incidence")?;
+        let width = stripe_sweep::line_spread_width_mm(grid);
         for &stripe in &args.stripes {
             eprintln!(
                 "[{}/{total}] skin type {}, stripes {stripe} px ...",
@@ -175,16 +190,6 @@ fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
             let separate = report
                 .separate
                 .context("the separate stage gave no report")?;
-            let (responses, _) = opts
-                .cache
-                .response_set(&skin.materials()[..1], &opts.mc, &|_| {})
-                .context("reading the Monte Carlo responses")?;
-            let grid = responses
-                .grids
-                .first()
-                .and_then(|g| g.first())
-                .context("no Monte Carlo response at normal incidence")?;
-            let width = stripe_sweep::line_spread_width_mm(grid);
             let period = stripe_sweep::stripe_period_mm(&booth, stripe);
             rows.push(
                 stripe_sweep::row(skin.label(), stripe, period, width, &separate)
