@@ -27,7 +27,11 @@ impl Xvfb {
     /// A server with one screen (one RandR monitor) of `width` x `height` at 24-bit depth.
     fn start(width: u32, height: u32) -> Self {
         let mut child = Command::new("Xvfb")
-            .args(["-displayfd", "1", "-nolisten", "tcp", "-screen", "0"])
+            // -noreset: by default Xvfb resets when its last client leaves (each `rig show` and
+            // each screenshot connection here is one), and a connection that arrives during the
+            // reset is refused; CI once failed on exactly that ("cannot open the X display").
+            .args(["-displayfd", "1", "-nolisten", "tcp", "-noreset"])
+            .args(["-screen", "0"])
             .arg(format!("{width}x{height}x24"))
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
