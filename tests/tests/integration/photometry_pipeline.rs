@@ -66,6 +66,46 @@ fn process_until_normals_reports_separation_and_normal_errors_on_a_head() {
     assert!(out.path().join("normals/normals.exr").is_file());
 }
 
+/// The default normals (the geometry's low frequencies with photometric detail) against
+/// photometric stereo alone on the same head, both against the simulator's normals.
+#[test]
+fn fused_normals_beat_photometric_stereo_alone_and_cover_more_of_the_head() {
+    let capture = quick_capture("head", 1);
+    let out = tempfile::tempdir().unwrap();
+    let normals = |source: &str| {
+        let report = run_json(
+            mlsss()
+                .arg("process")
+                .arg(&capture)
+                .args(["--calib", "truth", "--until", "normals", "--json"])
+                .args(["--normals-source", source, "--out"])
+                .arg(out.path()),
+        );
+        report["normals"].clone()
+    };
+    let fused = normals("fused");
+    assert!(out.path().join("normals/photometric_normals.exr").is_file());
+    let photometric = normals("photometric");
+    let value = |n: &serde_json::Value, key: &str| {
+        n[key].as_f64().unwrap_or_else(|| panic!("{key} in {n}"))
+    };
+    assert_eq!(fused["source"], "fused");
+    assert_eq!(photometric["source"], "photometric");
+    assert!(
+        value(&fused["fusion"], "fused_with_detail") > 0.0,
+        "{fused}"
+    );
+    assert!(
+        value(&fused, "mean_angular_error_deg")
+            < 0.8 * value(&photometric, "mean_angular_error_deg"),
+        "fused {fused}\nphotometric {photometric}"
+    );
+    assert!(
+        value(&fused, "coverage") >= value(&photometric, "coverage"),
+        "fused {fused}\nphotometric {photometric}"
+    );
+}
+
 #[test]
 fn response_recovers_gamma_and_black_level_of_the_virtual_booth() {
     let root = calibration_captures(CALIBRATION_POSES);

@@ -7,7 +7,7 @@ use mlsss::layer_model::fit::EmVariant;
 use mlsss::layer_model::surface::ViewRay;
 use mlsss::photometry::slit_leak::LeakReading;
 use mlsss::pipeline::fit_stage::FitParams;
-use mlsss::pipeline::normals_stage::{NormalsParams, PsInput, ShadingModel};
+use mlsss::pipeline::normals_stage::{NormalSource, NormalsParams, PsInput, ShadingModel};
 use mlsss::pipeline::profiles_stage::{DirectPart, ProfilesParams, SlitCoordinates};
 use mlsss::pipeline::separate_stage::{SeparateParams, SeparationMethod};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
@@ -125,6 +125,10 @@ pub struct Args {
     /// Normals stage: the Lambertian model (short for `--ps-model lambertian`).
     #[arg(long, conflicts_with = "ps_model")]
     lambertian_ps: bool,
+    /// Normals stage: `fused` (the geometry's low spatial frequencies with photometric stereo's
+    /// detail, `photometry::normal_fusion`) or `photometric` (photometric stereo alone).
+    #[arg(long, value_enum, default_value_t = NormalSourceArg::Fused)]
+    normals_source: NormalSourceArg,
     /// Output folder: one sub-folder per stage, plus report.json.
     #[arg(long)]
     out: PathBuf,
@@ -175,6 +179,13 @@ enum PsModelArg {
     Specular,
     Transmission,
     Lambertian,
+}
+
+/// What the normals stage's normals are (`pipeline::normals_stage::NormalSource`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum NormalSourceArg {
+    Fused,
+    Photometric,
 }
 
 /// Photometric-stereo inputs (`pipeline::normals_stage::PsInput`).
@@ -270,6 +281,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             (true, _) | (false, PsModelArg::Lambertian) => ShadingModel::Lambertian,
             (false, PsModelArg::Transmission) => ShadingModel::Transmission,
             (false, PsModelArg::Specular) => ShadingModel::Specular,
+        },
+        source: match args.normals_source {
+            NormalSourceArg::Fused => NormalSource::Fused,
+            NormalSourceArg::Photometric => NormalSource::Photometric,
         },
         ..NormalsParams::default()
     };

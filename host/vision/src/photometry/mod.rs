@@ -4,6 +4,7 @@
 pub mod image_set;
 pub mod kernel_leak;
 pub mod mat_file;
+pub mod normal_fusion;
 pub mod photometric_stereo;
 pub mod ps_scene;
 pub mod response;
