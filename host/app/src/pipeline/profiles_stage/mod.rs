@@ -34,6 +34,7 @@ use serde_json::Value;
 
 use super::decode_stage::{DecodeStageError, coords_path, load_coords};
 use super::line_plot::{LinePlot, LinePlotError, Mark, Series};
+use super::normals_stage::photometric_normals_path;
 use super::separate_stage::{direct_path, global_path, stripe_blur};
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::calibration::DeviceCalibration;
@@ -442,8 +443,10 @@ fn read_rgb(path: &Path, size: (u32, u32)) -> Result<Vec<[f32; 3]>, ProfilesStag
     Ok(pixels(&img))
 }
 
-/// The surface from the geometry stage's points and the normals stage's normals; where
-/// photometric stereo flagged a pixel, the normal of the triangulated surface (facing the camera).
+/// The surface from the geometry stage's points and photometric stereo's normals (the shading
+/// normals the model is fitted and rendered with, `normals_stage::photometric_normals_path`);
+/// where photometric stereo flagged a pixel, the normal of the triangulated surface (facing the
+/// camera).
 pub fn load_surface(
     ctx: &StageContext,
     size: (u32, u32),
@@ -452,7 +455,7 @@ pub fn load_surface(
     let geo = ctx.stage_dir("geometry");
     let points = read_rgb(&geo.join("points.exr"), size)?;
     let depth = imageio::read_exr_gray(&geo.join("depth.exr"))?;
-    let ps_normals = read_rgb(&ctx.stage_dir("normals").join("normals.exr"), size)?;
+    let ps_normals = read_rgb(&photometric_normals_path(&ctx.stage_dir("normals")), size)?;
     let (w, h) = (size.0 as usize, size.1 as usize);
     let mask: Vec<bool> = (0..w * h)
         .map(|i| {
