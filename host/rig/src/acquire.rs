@@ -213,6 +213,9 @@ impl RunHooks for AcquireHooks<'_> {
         let exposure = Exposure {
             frame: u32::from(trigger.frame),
             lit: self.lit,
+            scale: self.lit.map_or(1.0, |(projector, _)| {
+                self.schedule.exposure_scale(projector)
+            }),
         };
         self.frames
             .send((exposure, trigger.attempt))

@@ -8,6 +8,7 @@
 //! - [`camera`]: real cameras: USB3 Vision through cameleon, payload decoding and matching.
 //! - [`display`]: projector output windows on real monitors (winit + softbuffer).
 //! - [`acquire`]: a run that writes a capture folder.
+//! - [`metering`]: the metering step before a scan: one white per projector, the exposure from it.
 //! - [`timing`]: timing statistics of a run (the `rig timing-test` report).
 //! - [`pattern_label`]: patterns by capture label (`rig show`).
 //! - [`qemu`]: the real firmware image under QEMU, as an emulated controller.
@@ -18,6 +19,7 @@ pub mod backend;
 pub mod camera;
 pub mod display;
 pub mod link;
+pub mod metering;
 pub mod pattern_label;
 pub mod ports;
 pub mod qemu;

@@ -81,6 +81,14 @@ impl RigSchedule {
         })
     }
 
+    /// Projector `projector`'s signal relative to the nominal exposure (1 unless metered).
+    pub fn exposure_scale(&self, projector: u8) -> f64 {
+        self.exposure
+            .iter()
+            .find(|e| e.projector == projector)
+            .map_or(1.0, |e| e.scale)
+    }
+
     /// The schedule with each projector's metered exposure (`capture::exposure::meter`): its
     /// frames are exposed for `periods` refresh periods, and the trigger pulse lasts the whole
     /// exposure (the camera in trigger-width exposure mode exposes while the pulse is high, so

@@ -195,10 +195,10 @@ fn rig_hil_lost_camera_payloads_are_retriggered_and_the_capture_has_every_frame(
         assert_eq!(record.retries, u32::from(rerun), "frame {frame}");
         let spec = &plan.frames[frame as usize];
         let expected = camera
-            .capture(&Exposure {
+            .capture(&Exposure::nominal(
                 frame,
-                lit: spec.projector.map(|p| (p, spec.pattern)),
-            })
+                spec.projector.map(|p| (p, spec.pattern)),
+            ))
             .expect("pattern image");
         let image = capture.read_frame(frame).expect("frame written");
         let max_diff = image

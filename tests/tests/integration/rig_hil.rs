@@ -382,13 +382,13 @@ fn late_ack_of_frame_100_is_reported_retried_and_captured_correctly() {
     let record = &capture.manifest.trigger_log[100];
     assert!(record.late && record.retries >= 1 && record.frame_index == 100);
     let expected = PatternCamera::new(&booth)
-        .capture(&Exposure {
-            frame: 100,
-            lit: Some((
+        .capture(&Exposure::nominal(
+            100,
+            Some((
                 plan.frames[100].projector.unwrap(),
                 plan.frames[100].pattern,
             )),
-        })
+        ))
         .unwrap();
     let image = capture.read_frame(100).unwrap();
     let max_diff = image
@@ -559,4 +559,68 @@ fn bad_schedules_are_refused_with_typed_errors() {
     let status = session.status().unwrap();
     assert_eq!(status.schedule_frames, 10);
     assert_eq!(status.state, ControllerState::Ready);
+}
+
+/// `rig run` meters before the scan. A grey screen of reflectance 0.2 seen at the nominal
+/// exposure needs 4x the signal to bring its 99th percentile to 0.8 of full scale
+/// (`MeteringTarget::default`): 6 refresh periods (3x, the longest the slot allows) and analog
+/// gain 4/3. The capture records that exposure and its frames read back in nominal units, as
+/// the pattern on a 0.2 screen; with `--fixed-exposure` the same frames come at the nominal
+/// exposure.
+#[test]
+fn rig_run_meters_a_dim_subject_and_its_frames_read_back_in_nominal_units() {
+    let _one = one_at_a_time();
+    firmware_image();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let booth = Booth::builtin(true);
+    let grey_screen = PatternCamera::new(&booth).with_reflectance(0.2);
+    for fixed in [false, true] {
+        let out = dir.path().join(format!("capture-fixed-{fixed}"));
+        let mut cmd = mlsss_tests::mlsss();
+        cmd.args(["rig", "run", "--emulated", "--quick", "--frames", "6"])
+            .args(["--camera", "virtual:0.2", "--json", "--out"])
+            .arg(&out);
+        if fixed {
+            cmd.arg("--fixed-exposure");
+        }
+        let json = mlsss_tests::run_json(&mut cmd);
+        assert_eq!(json["complete"], true, "{json}");
+        let capture = Capture::open(&out).expect("capture folder");
+        let exposure = &capture.manifest.exposure;
+        if fixed {
+            assert!(exposure.is_empty(), "{exposure:?}");
+        } else {
+            // The first 6 frames of the plan are all projector 0's: only it is metered.
+            assert_eq!(exposure.len(), 1, "{exposure:?}");
+            let e = exposure[0];
+            assert_eq!((e.projector, e.periods), (0, 6), "{e:?}");
+            assert!((e.analog_gain - 4.0 / 3.0).abs() < 1e-3, "{e:?}");
+            assert!((e.scale - 4.0).abs() < 3e-3, "{e:?}");
+            assert_eq!(json["exposure"][0]["periods"], 6);
+        }
+        for spec in &capture.manifest.plan.frames {
+            let lit = spec.projector.map(|p| (p, spec.pattern));
+            let expected = grey_screen
+                .clone()
+                .capture(&Exposure::nominal(spec.index, lit))
+                .expect("pattern image");
+            let got = capture.read_frame(spec.index).expect("frame");
+            let worst = got
+                .iter()
+                .zip(expected.iter())
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            // One 16-bit code of the stored frame, divided by the exposure's scale.
+            assert!(
+                worst < 2.0 / 65535.0,
+                "frame {}: off by {worst}",
+                spec.index
+            );
+        }
+        let name = format!(".capture-fixed-{fixed}.metering");
+        assert!(
+            !dir.path().join(name).exists(),
+            "metering frames left behind"
+        );
+    }
 }

@@ -15,6 +15,7 @@ use mlsss::rig::backend::{
 use mlsss::rig::camera::u3v::{PAYLOAD_TIMEOUT, U3vCamera, U3vSettings, list_cameras};
 use mlsss::rig::display::{self, ProjectorWindows};
 use mlsss::rig::link::{ByteLink, ControllerLink};
+use mlsss::rig::metering::meter_projectors;
 use mlsss::rig::pattern_label::pattern_by_label;
 use mlsss::rig::qemu::{self, QemuGuard};
 use mlsss::rig::schedule::RigSchedule;
@@ -179,13 +180,19 @@ struct RunArgs {
     /// controller once it has been presented.
     #[arg(long, default_value = "virtual")]
     projectors: String,
-    /// Camera backend: `virtual` renders the pattern on screen; `replay:DIR` replays the frames
-    /// of a recorded capture folder; `u3v` or `u3v:SERIAL` streams a USB3 Vision camera in
-    /// hardware-trigger mode (exposure from the booth's camera.exposure_ms).
+    /// Camera backend: `virtual` renders the pattern on screen (`virtual:R`: on a grey screen
+    /// of reflectance R, a dim subject); `replay:DIR` replays the frames of a recorded capture
+    /// folder; `u3v` or `u3v:SERIAL` streams a USB3 Vision camera in hardware-trigger mode
+    /// (exposure from the booth's camera.exposure_ms, lengthened by metering through the
+    /// trigger pulse).
     #[arg(long, default_value = "virtual")]
     camera: String,
     #[command(flatten)]
     camera_settings: CameraSettingsArgs,
+    /// Skip the metering step (one white frame per projector before the scan, from which each
+    /// projector's exposure is chosen): every frame at the booth's nominal exposure.
+    #[arg(long)]
+    fixed_exposure: bool,
     /// Print one JSON object on stdout.
     #[arg(long)]
     json: bool,
@@ -341,17 +348,53 @@ fn open_session<L: ByteLink>(link: ControllerLink<L>) -> anyhow::Result<Session<
     Ok(session)
 }
 
-fn run_capture(args: RunArgs) -> anyhow::Result<()> {
-    let (booth, plan) = load_booth(&args.booth)?;
-    let schedule = RigSchedule::from_plan(&plan, &booth.timing, args.booth.frames)?;
-    let camera: Box<dyn CameraBackend> = match args.camera.strip_prefix("replay:") {
-        Some(dir) => {
-            let capture = Capture::open(std::path::Path::new(dir))
-                .with_context(|| format!("opening the capture to replay, {dir}"))?;
-            Box::new(ReplayCamera::new(capture))
-        }
-        None if args.camera == "virtual" => Box::new(PatternCamera::new(&booth)),
-        None if args.camera == "u3v" || args.camera.starts_with("u3v:") => {
+/// What a camera is opened for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum CameraRole {
+    /// The metering run (white per projector, in an order of its own).
+    Metering,
+    /// The scan.
+    Scan,
+}
+
+/// The camera backend `--camera` names.
+fn open_camera(
+    args: &RunArgs,
+    booth: &Booth,
+    role: CameraRole,
+) -> anyhow::Result<Box<dyn CameraBackend>> {
+    if let Some(dir) = args.camera.strip_prefix("replay:") {
+        let capture = Capture::open(std::path::Path::new(dir))
+            .with_context(|| format!("opening the capture to replay, {dir}"))?;
+        return Ok(Box::new(match role {
+            CameraRole::Metering => ReplayCamera::by_pattern(capture),
+            CameraRole::Scan => ReplayCamera::new(capture),
+        }));
+    }
+    if let Some(rest) = args.camera.strip_prefix("virtual") {
+        let reflectance = match rest.strip_prefix(':') {
+            None if rest.is_empty() => 1.0,
+            Some(r) => r
+                .parse::<f32>()
+                .ok()
+                .filter(|r| r.is_finite() && (0.0..=1.0).contains(r))
+                .with_context(|| {
+                    format!(
+                        "--camera {}: the reflectance must be a number in 0-1",
+                        args.camera
+                    )
+                })?,
+            None => bail!(
+                "unknown --camera '{}': use `virtual`, `virtual:R`, `replay:DIR`, `u3v` or `u3v:SERIAL`",
+                args.camera
+            ),
+        };
+        return Ok(Box::new(
+            PatternCamera::new(booth).with_reflectance(reflectance),
+        ));
+    }
+    match args.camera.as_str() {
+        c if c == "u3v" || c.starts_with("u3v:") => {
             let settings = U3vSettings {
                 serial: args.camera.strip_prefix("u3v:").map(str::to_owned),
                 pixel_format: args.camera_settings.pixel_format.clone(),
@@ -364,18 +407,80 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             };
             let camera = U3vCamera::open(&settings)?;
             let c = camera.summary();
-            eprintln!("camera: {} {} serial {}", c.vendor, c.model, c.serial);
-            Box::new(camera)
+            if role == CameraRole::Scan {
+                eprintln!("camera: {} {} serial {}", c.vendor, c.model, c.serial);
+            }
+            Ok(Box::new(camera))
         }
-        None => bail!(
-            "unknown --camera '{}': use `virtual`, `replay:DIR`, `u3v` or `u3v:SERIAL`",
+        _ => bail!(
+            "unknown --camera '{}': use `virtual`, `virtual:R`, `replay:DIR`, `u3v` or `u3v:SERIAL`",
             args.camera
         ),
+    }
+}
+
+/// The metering step: each projector `schedule` lights shows white once at the nominal
+/// exposure; returns the schedule with the exposures chosen from those frames. `out` is the
+/// scan's capture folder.
+fn metered<L: ByteLink>(
+    session: &mut Session<L>,
+    schedule: RigSchedule,
+    booth: &Booth,
+    projectors: &mut dyn ProjectorBackend,
+    camera: Box<dyn CameraBackend>,
+    out: &std::path::Path,
+) -> anyhow::Result<RigSchedule> {
+    let lit: Vec<u8> = schedule
+        .entries
+        .iter()
+        .map(|e| e.projector)
+        .collect::<BTreeSet<u8>>()
+        .into_iter()
+        .collect();
+    // The metering frames go to a hidden folder beside the capture, removed once read (also
+    // one a killed run left behind).
+    let name = out.file_name().unwrap_or_default().to_string_lossy();
+    let scratch = out.with_file_name(format!(".{name}.metering"));
+    let remove_scratch = || match std::fs::remove_dir_all(&scratch) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
+    };
+    remove_scratch().with_context(|| format!("removing {}", scratch.display()))?;
+    let exposure = meter_projectors(session, booth, &lit, &scratch, projectors, camera)
+        .context("metering (run with --fixed-exposure to skip it)");
+    remove_scratch().with_context(|| format!("removing {}", scratch.display()))?;
+    let exposure = exposure?;
+    for e in &exposure {
+        eprintln!(
+            "projector {}: exposure {} refresh periods, analog gain {:.2} ({:.2}x nominal)",
+            e.projector, e.periods, e.analog_gain, e.scale
+        );
+    }
+    Ok(schedule.with_exposure(&exposure)?)
+}
+
+fn run_capture(args: RunArgs) -> anyhow::Result<()> {
+    let (booth, plan) = load_booth(&args.booth)?;
+    let mut schedule = RigSchedule::from_plan(&plan, &booth.timing, args.booth.frames)?;
+    let metering_camera = match args.fixed_exposure {
+        true => None,
+        false => Some(open_camera(&args, &booth, CameraRole::Metering)?),
     };
     // Windows first: a missing monitor or a wrong mode fails before the controller is touched.
     let mut projectors = projector_backend(&args.projectors, &booth, &schedule)?;
     let connection = connect(&args.controller)?;
     let mut session = open_session(ControllerLink::new(connection.port))?;
+    if let Some(camera) = metering_camera {
+        schedule = metered(
+            &mut session,
+            schedule,
+            &booth,
+            projectors.as_mut(),
+            camera,
+            &args.out,
+        )?;
+    }
+    let camera = open_camera(&args, &booth, CameraRole::Scan)?;
     let bar = progress_bar(schedule.entries.len());
     let acquired = acquire(
         &mut session,
@@ -402,6 +507,7 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
                 "complete": acquired.complete,
                 "frames_late": report.frames_late,
                 "frames_dropped": report.frames_dropped,
+                "exposure": schedule.exposure,
                 "camera_failures": acquired
                     .camera_failures
                     .iter()

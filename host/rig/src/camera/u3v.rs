@@ -535,7 +535,7 @@ mod tests {
     }
 
     fn exposure(frame: u32) -> Exposure {
-        Exposure { frame, lit: None }
+        Exposure::nominal(frame, None)
     }
 
     #[test]
