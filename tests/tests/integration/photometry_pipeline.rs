@@ -91,10 +91,10 @@ fn fused_normals_beat_photometric_stereo_alone_and_cover_more_of_the_head() {
     };
     assert_eq!(fused["source"], "fused");
     assert_eq!(photometric["source"], "photometric");
-    assert!(
-        value(&fused["fusion"], "fused_with_detail") > 0.0,
-        "{fused}"
-    );
+    // The virtual head has no detail finer than the plane fits' window: the fusion reads none
+    // from the image and takes the geometry's low frequencies.
+    assert!(value(&fused["fusion"], "fused") > 0.0, "{fused}");
+    assert!(value(&fused["fusion"], "detail_rms_deg") < 0.5, "{fused}");
     assert!(
         value(&fused, "mean_angular_error_deg")
             < 0.8 * value(&photometric, "mean_angular_error_deg"),

@@ -35,7 +35,7 @@ use mlsss_core::capture::{CaptureManifest, truth};
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::geometry::point_normals::{PointNormalParams, fit_point_normals};
 use mlsss_vision::photometry::normal_fusion::{
-    FusionCounts, FusionError, FusionParams, fuse_normals,
+    FusionError, FusionParams, FusionSummary, fuse_normals, photometric_noise_proxy,
 };
 use mlsss_vision::photometry::photometric_stereo::{
     LightModel, LightSample, Method, NormalMap, NormalMapStats, PhotometricStereoError, PsParams,
@@ -47,7 +47,7 @@ use mlsss_vision::photometry::transmission_ps::{TransmissionParams, solve_transm
 /// The photometric-stereo stage.
 pub const STAGE: Stage = Stage {
     name: "normals",
-    version: 7,
+    version: 8,
     inputs: &["separate", "geometry"],
     uses_calibration: true,
     run,
@@ -112,8 +112,7 @@ pub enum NormalSource {
     /// Photometric stereo's normals alone.
     Photometric,
     /// The geometry's low frequencies with photometric detail (`photometry::normal_fusion`).
-    /// Default: quick heads, seed 81, photometric 2.24 / 4.07 / 5.08 deg (types I / V / VI),
-    /// fused 1.2 / 1.7 / 2.4 on the same pixels (README).
+    /// Default (README for figures).
     Fused,
 }
 
@@ -169,7 +168,7 @@ pub struct NormalsReport {
     pub source: NormalSource,
     /// With fusion: where each normal came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub fusion: Option<FusionCounts>,
+    pub fusion: Option<FusionSummary>,
     /// With ground truth: angular errors over the solved pixels of the truth mask.
     #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
     pub truth: Option<NormalErrors>,
@@ -404,7 +403,7 @@ fn fused_normals(
     map: &NormalMap,
     lights: &ProjectorLights,
     params: &NormalsParams,
-) -> Result<(Rgb32FImage, FusionCounts), NormalsStageError> {
+) -> Result<(Rgb32FImage, FusionSummary), NormalsStageError> {
     let geometry = fit_point_normals(
         &lights.points,
         map.width,
@@ -413,8 +412,8 @@ fn fused_normals(
         &params.point_normals,
     );
     let photometric: Vec<[f32; 3]> = map.pixels.iter().map(|p| p.normal).collect();
-    let lights_used: Vec<u32> = map.pixels.iter().map(|p| p.lights_used()).collect();
-    let fused = fuse_normals(&photometric, &lights_used, &geometry, &params.fusion)?;
+    let noise = photometric_noise_proxy(map, lights);
+    let fused = fuse_normals(&photometric, &noise, &geometry, &params.fusion)?;
     let data = fused.normals.into_iter().flatten().collect();
     let image =
         Rgb32FImage::from_raw(map.width, map.height, data).ok_or(NormalsStageError::Size {
@@ -422,7 +421,7 @@ fn fused_normals(
             got: (map.width, map.height),
             expected: (map.width, map.height),
         })?;
-    Ok((image, fused.counts))
+    Ok((image, fused.summary))
 }
 
 /// Every projector's image of the separation that photometric stereo reads.
