@@ -3,21 +3,26 @@
 //! `photometry_numpy.py` (skipped with a note when python3/numpy are missing).
 //!
 //! Run: `cargo bench -p mlsss-vision --bench photometry` (`separation_kernel_aware` races the
-//! kernel-aware separation, slit-sweep leak included, against the Nayar variants).
+//! kernel-aware separation, slit-sweep leak included, against the Nayar variants;
+//! `normal_fusion` is what the normals stage adds to the robust solve by default).
 
 use std::process::Command;
 
 use criterion::{Criterion, criterion_group};
 use image::Rgb32FImage;
+use mlsss_vision::geometry::point_normals::{PointNormalParams, fit_point_normals};
 use mlsss_vision::photometry::kernel_leak::{
     LeakParams, colourless_smoothed_direct, separate_with_leak,
+};
+use mlsss_vision::photometry::normal_fusion::{
+    FusionParams, fuse_normals, photometric_noise_proxy,
 };
 use mlsss_vision::photometry::photometric_stereo::{
     DirectionalLights, LightSample, Method, PsParams, solve_images,
 };
 use mlsss_vision::photometry::separation::{SeparationParams, separate};
 use mlsss_vision::photometry::slit_leak::{LeakReading, SweepGeometry, leak_from_slits};
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 
 const WIDTH: u32 = 1379;
 const HEIGHT: u32 = 1029;
@@ -79,6 +84,22 @@ fn ps_frames(lights: &[LightSample]) -> Vec<Rgb32FImage> {
                 let v = (0.6 * n.dot(&l.direction).max(0.0)) as f32;
                 image::Rgb([v, 0.7 * v, 0.5 * v])
             })
+        })
+        .collect()
+}
+
+/// A full-size point map of a gently curved surface 500 mm in front of a camera at the origin.
+fn surface_points() -> Vec<[f32; 3]> {
+    let f = 2000.0;
+    (0..HEIGHT)
+        .flat_map(|y| (0..WIDTH).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let (u, v) = (
+                (f64::from(x) - f64::from(WIDTH) / 2.0) / f,
+                (f64::from(y) - f64::from(HEIGHT) / 2.0) / f,
+            );
+            let depth = 500.0 + 40.0 * (u * u + v * v);
+            [(u * depth) as f32, (v * depth) as f32, depth as f32]
         })
         .collect()
 }
@@ -146,6 +167,25 @@ fn bench(c: &mut Criterion) {
             b.iter(|| solve_images(&refs, &model, None, &params).map(|m| m.pixels.len()))
         });
     }
+    let Ok(map) = solve_images(&refs, &model, None, &PsParams::default()) else {
+        panic!("the benchmark's frames are solvable");
+    };
+    let points = surface_points();
+    group.bench_function("normal_fusion", |b| {
+        b.iter(|| {
+            let geometry = fit_point_normals(
+                &points,
+                WIDTH,
+                HEIGHT,
+                Point3::origin(),
+                &PointNormalParams::default(),
+            );
+            let photometric: Vec<[f32; 3]> = map.pixels.iter().map(|p| p.normal).collect();
+            let noise = photometric_noise_proxy(&map, &model);
+            fuse_normals(&photometric, &noise, &geometry, &FusionParams::default())
+                .map(|f| f.summary.fused)
+        })
+    });
     group.finish();
 }
 

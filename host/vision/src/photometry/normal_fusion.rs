@@ -27,6 +27,7 @@
 
 use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 
 use super::photometric_stereo::{LightModel, LightSample, NormalMap, indices};
 use crate::geometry::point_normals::PointNormals;
@@ -234,37 +235,39 @@ pub fn photometric_noise_proxy(map: &NormalMap, lights: &dyn LightModel) -> Vec<
         direction: Vector3::zeros(),
         irradiance: [0.0; 3],
     };
-    let mut samples = vec![blank; lights.count()];
     let width = map.width.max(1) as usize;
     map.pixels
-        .iter()
+        .par_iter()
         .enumerate()
-        .map(|(i, p)| {
-            let n = Vector3::from(p.normal.map(f64::from));
-            let (x, y) = ((i % width) as u32, (i / width) as u32);
-            if n == Vector3::zeros() || lights.at(x, y, &mut samples).is_none() {
-                return f64::NAN;
-            }
-            let mut normal_matrix = Matrix3::zeros();
-            let mut brightest: f64 = 0.0;
-            for sample in indices(p.used).filter_map(|k| samples.get(k)) {
-                let row = sample.direction * sample.irradiance[1];
-                normal_matrix += row * row.transpose();
-                brightest = brightest.max(row.dot(&n));
-            }
-            let Some(inverse) = normal_matrix.try_inverse() else {
-                return f64::NAN;
-            };
-            if p.lights_used() < MIN_LIGHTS_FOR_DETAIL {
-                return f64::INFINITY;
-            }
-            let readings = 3.0 * f64::from(p.lights_used());
-            let residual = f64::from(p.residual);
-            residual * residual * readings / (readings - UNKNOWNS).max(1.0)
-                * brightest
-                * brightest
-                * inverse.trace()
-        })
+        .map_init(
+            || vec![blank; lights.count()],
+            |samples, (i, p)| {
+                let n = Vector3::from(p.normal.map(f64::from));
+                let (x, y) = ((i % width) as u32, (i / width) as u32);
+                if n == Vector3::zeros() || lights.at(x, y, samples).is_none() {
+                    return f64::NAN;
+                }
+                let mut normal_matrix = Matrix3::zeros();
+                let mut brightest: f64 = 0.0;
+                for sample in indices(p.used).filter_map(|k| samples.get(k)) {
+                    let row = sample.direction * sample.irradiance[1];
+                    normal_matrix += row * row.transpose();
+                    brightest = brightest.max(row.dot(&n));
+                }
+                let Some(inverse) = normal_matrix.try_inverse() else {
+                    return f64::NAN;
+                };
+                if p.lights_used() < MIN_LIGHTS_FOR_DETAIL {
+                    return f64::INFINITY;
+                }
+                let readings = 3.0 * f64::from(p.lights_used());
+                let residual = f64::from(p.residual);
+                residual * residual * readings / (readings - UNKNOWNS).max(1.0)
+                    * brightest
+                    * brightest
+                    * inverse.trace()
+            },
+        )
         .collect()
 }
 
