@@ -44,10 +44,10 @@ pub use medium::{Layer, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
 
 /// Names the random streams and the order in which photons draw from them (`LANES` photons in
-/// flight per batch, xoshiro256++ per lane). The result for a given (medium, config) is fixed
+/// flight per batch, xoshiro128++ per lane). The result for a given (medium, config) is fixed
 /// while this stays the same and changes, within the noise, when it does: caches of Monte Carlo
 /// results must include it in their key.
-pub const RANDOM_STREAMS: &str = "xoshiro256++, 8 lanes of 4096-photon batches, v1";
+pub const RANDOM_STREAMS: &str = "xoshiro128++, 16 lanes of 4096-photon batches, f32 lanes, v2";
 
 /// Errors of the Monte Carlo module.
 #[derive(Debug, thiserror::Error)]
