@@ -2,7 +2,8 @@
 //! here, the lane-vector code in `lane_kernels.rs` (compiled once per instruction set).
 //!
 //! `std`'s `f32::ln` and `sin_cos` call into libm, which the compiler cannot vectorise; these
-//! versions are straight-line code (bit manipulation and polynomials, no division) that it turns
+//! versions are straight-line code (bit manipulation and polynomials with fused multiply-adds, no
+//! division) that it turns
 //! into SIMD over 16 lanes. They use the Cephes single-precision polynomials (Moshier 1984-2000,
 //! `logf.c`, `sinf.c`; freely usable), without the special-case branches the transport never
 //! needs.
@@ -33,17 +34,17 @@
 /// ln(2) split so that `k * LN2_HI` is exact for every f32 exponent (Cephes' C1, C2).
 pub(crate) const LN2_HI: f32 = 0.693_359_375;
 pub(crate) const LN2_LO: f32 = -2.121_944_40e-4;
-/// Coefficients of P(f) with ln(1 + f) ~ f - f^2 / 2 + f^3 P(f), highest degree first (Cephes).
+/// Coefficients of P(f) with ln(1 + f) ~ f - f^2 / 2 + f^3 P(f), constant term first (Cephes).
 pub(crate) const LN_POLY: [f32; 9] = [
-    7.037_683_629_2e-2,
-    -1.151_461_031_0e-1,
-    1.167_699_874_0e-1,
-    -1.242_014_084_6e-1,
-    1.424_932_278_7e-1,
-    -1.666_805_766_5e-1,
-    2.000_071_476_5e-1,
-    -2.499_999_399_3e-1,
     3.333_333_117_4e-1,
+    -2.499_999_399_3e-1,
+    2.000_071_476_5e-1,
+    -1.666_805_766_5e-1,
+    1.424_932_278_7e-1,
+    -1.242_014_084_6e-1,
+    1.167_699_874_0e-1,
+    -1.151_461_031_0e-1,
+    7.037_683_629_2e-2,
 ];
 /// sin a ~ a + a z S(z), z = a^2, highest degree first (Cephes `sinf`).
 pub(crate) const SIN_POLY: [f32; 3] =

@@ -16,8 +16,9 @@
 //! the hot loop never gathers either.
 //!
 //! The vector step (`lane_kernels.rs`) is compiled on portable array vectors (`simd`), on AVX2
-//! registers (`simd_avx2`) and on AVX-512 registers (`simd_avx512`), and picked at run time. No
-//! fused multiply-add is used, so all give bit-identical results.
+//! registers (`simd_avx2`) and on AVX-512 registers (`simd_avx512`), and picked at run time. Fused
+//! multiply-adds are exactly rounded on every one (FMA3, AVX-512, `f32::mul_add`), so all give
+//! bit-identical results.
 //!
 //! The lanes hold f32 (16 per AVX-512 register, twice the photons per instruction of f64; see
 //! `fast_math` for why f32 is enough). The scalar boundary code computes in f64 from the lanes'
@@ -362,9 +363,10 @@ fn run_batch_lanes(
 /// The batch loop with the AVX2 vector step.
 ///
 /// # Safety
-/// The CPU must support AVX2 (the `simd_avx2` intrinsics are only sound under this function).
+/// The CPU must support AVX2 and FMA (the `simd_avx2` intrinsics are only sound under this
+/// function).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn run_batch_avx2(geo: &Geometry, seed: u64, batch: u64, photons: u64) -> BatchTally {
     // A closure, not the fn item: closures inherit this function's target features, so the
     // intrinsics inline into it (the fn item's `Fn::call` shim would not have AVX2).
@@ -399,7 +401,9 @@ impl Isa {
             if std::arch::is_x86_feature_detected!("avx512f") {
                 return Self::Avx512;
             }
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
                 return Self::Avx2;
             }
         }
@@ -429,7 +433,7 @@ pub(crate) fn run_batch(
         // SAFETY: `Isa::detect` found AVX-512 F on this CPU.
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => unsafe { run_batch_avx512(geo, seed, batch, photons) },
-        // SAFETY: `Isa::detect` found AVX2 on this CPU.
+        // SAFETY: `Isa::detect` found AVX2 and FMA on this CPU.
         #[cfg(target_arch = "x86_64")]
         Isa::Avx2 => unsafe { run_batch_avx2(geo, seed, batch, photons) },
         _ => run_batch_lanes(geo, seed, batch, photons, portable::interact),

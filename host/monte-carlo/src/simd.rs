@@ -5,8 +5,8 @@
 //! (per register width of the target features the caller was compiled with: see the dispatch in
 //! `photon_lanes`). Writing the photon step as a long scalar body per lane instead leaves a loop too
 //! big to unroll that the loop vectoriser refuses, and the code stays scalar; hence this type.
-//! Operations are the IEEE ones (no fused multiply-add), so every instruction set gives
-//! bit-identical results.
+//! Operations are the IEEE ones (the fused multiply-add exactly rounded), so every instruction set
+//! gives bit-identical results.
 
 use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Shl, Shr, Sub};
 
@@ -107,6 +107,17 @@ impl F32s {
     #[inline(always)]
     pub(crate) fn store(self) -> [f32; LANES] {
         self.0
+    }
+
+    /// `self * a + b` with one rounding (`f32::mul_add`: the FMA instruction or libm's exact
+    /// software version).
+    #[inline(always)]
+    pub(crate) fn mul_add(self, a: Self, b: Self) -> Self {
+        let mut out = [0.0; LANES];
+        for i in 0..LANES {
+            out[i] = self.0[i].mul_add(a.0[i], b.0[i]);
+        }
+        Self(out)
     }
 
     #[inline(always)]

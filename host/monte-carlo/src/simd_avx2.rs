@@ -4,9 +4,9 @@
 //! pairs), so the photon step is compiled a second time against these types (see
 //! `photon_lanes::avx2`). Same API, same IEEE operations, bit-identical results.
 //!
-//! Soundness: the operations call AVX/AVX2 intrinsics without checking the CPU. Values of these
+//! Soundness: the operations call AVX/AVX2/FMA intrinsics without checking the CPU. Values of these
 //! types are only created inside `photon_lanes::avx2`, whose single entry point is a
-//! `#[target_feature(enable = "avx2")]` function called after `is_x86_feature_detected!("avx2")`.
+//! `#[target_feature(enable = "avx2,fma")]` function called after `is_x86_feature_detected!` found both.
 
 use std::arch::x86_64::*;
 use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Shl, Shr, Sub};
@@ -140,6 +140,12 @@ impl F32s {
             unsafe { _mm256_storeu_ps(out.as_mut_ptr().add(8 * r), self.0[r]) };
         }
         out
+    }
+
+    /// `self * a + b` with one rounding (FMA3).
+    #[inline(always)]
+    pub(crate) fn mul_add(self, a: Self, b: Self) -> Self {
+        per_register!(F32s, _mm256_fmadd_ps, self, a, b)
     }
 
     #[inline(always)]

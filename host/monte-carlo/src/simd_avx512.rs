@@ -101,6 +101,13 @@ impl F32s {
         out
     }
 
+    /// `self * a + b` with one rounding.
+    #[inline(always)]
+    pub(crate) fn mul_add(self, a: Self, b: Self) -> Self {
+        // SAFETY: see the module documentation.
+        Self(unsafe { _mm512_fmadd_ps(self.0, a.0, b.0) })
+    }
+
     #[inline(always)]
     pub(crate) fn sqrt(self) -> Self {
         // SAFETY: see the module documentation.
