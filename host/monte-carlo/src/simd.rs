@@ -113,11 +113,7 @@ impl F32s {
     /// software version).
     #[inline(always)]
     pub(crate) fn mul_add(self, a: Self, b: Self) -> Self {
-        let mut out = [0.0; LANES];
-        for i in 0..LANES {
-            out[i] = self.0[i].mul_add(a.0[i], b.0[i]);
-        }
-        Self(out)
+        Self(std::array::from_fn(|i| self.0[i].mul_add(a.0[i], b.0[i])))
     }
 
     #[inline(always)]
