@@ -22,7 +22,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let photons: u64 = args.get(1).map_or(Ok(100_000), |s| s.parse())?;
     let seed: u64 = args.get(2).map_or(Ok(201), |s| s.parse())?;
-    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/mcml-7layer-skin-600nm.toml");
+    let file = std::env::var("MC_FILE")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|_| {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("data/mcml-7layer-skin-600nm.toml")
+        });
     let medium = mlsss_mc::LayersFile::read(&file)?.medium();
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     let cpu0 = cpu_seconds();

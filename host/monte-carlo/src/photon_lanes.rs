@@ -134,6 +134,7 @@ pub(crate) struct StepOutcome {
 
 /// Moves `lane` to the boundary its step reached and applies Fresnel there. Returns false when the
 /// photon ends (all its weight left, or it was lost).
+#[inline(always)]
 fn cross_boundary(geo: &Geometry, lanes: &mut Lanes, lane: usize, tally: &mut BatchTally) -> bool {
     if lanes.events[lane] >= MAX_EVENTS_PER_PHOTON {
         // Trapped by total internal reflection in a clear layer: drop it.
@@ -202,6 +203,7 @@ fn escape_partially(
 }
 
 /// At an interface between two layers: reflect or refract at random with the Fresnel probability.
+#[inline(always)]
 fn cross_internal(geo: &Geometry, lanes: &mut Lanes, lane: usize, going_down: bool) {
     let index = lanes.layer[lane];
     let layer = &geo.layers[index];
@@ -279,6 +281,7 @@ fn launch(geo: &Geometry, lanes: &mut Lanes, lane: usize, left: &mut u64, tally:
 }
 
 /// Scalar work for one lane after a vector step; ends and replaces its photon when it dies.
+#[inline(always)]
 fn settle_lane(
     geo: &Geometry,
     lanes: &mut Lanes,
