@@ -240,10 +240,12 @@ mod tests {
     #[test]
     fn the_stream_name_follows_the_lane_count_and_batch_size() {
         let name = crate::RANDOM_STREAMS;
-        assert!(
-            name.contains(&format!("{} lanes", crate::simd::LANES)),
-            "{name}"
+        let lanes = format!(
+            "{} groups x {} lanes",
+            crate::photon_lanes::GROUPS,
+            crate::simd::LANES
         );
+        assert!(name.contains(&lanes), "{name}");
         assert!(name.contains(&format!("{BATCH_PHOTONS}-photon")), "{name}");
     }
 
