@@ -1,6 +1,8 @@
 //! Times `mlsss_mc::run` on MCML's 7-layer skin (the race input) in this process, one thread:
-//! `cargo run --release -p mlsss-mc --example seven_layer -- [PHOTONS] [SEED]`. Prints the
-//! result's JSON-like summary and photons per CPU second of this process.
+//! `cargo run --release -p mlsss-mc --example seven_layer -- [PHOTONS] [SEED]` (`MC_FILE=x.toml`
+//! for another layers file). Prints the result and photons per CPU second of this process (CPU
+//! time from Linux's /proc/self/stat): a quick A/B tool; the race against MCML is
+//! `benches/mcml_race.py`.
 
 use std::path::Path;
 

@@ -11,8 +11,8 @@
 //! Error bounds (checked by the tests below against `f64`'s `ln`, `sin`, `cos` on dense sweeps):
 //! - `ln`: absolute error below 1.2e-7 on [1/2, 2] (ln there is below 0.7) and relative error
 //!   below 1.5e-7 (1.3 f32 epsilons) elsewhere, for every positive normal `x`. The transport
-//!   samples a step as -ln(u), u in (0, 1]: its relative error is then below 2.4e-7 for steps
-//!   above 0.5 optical depths and absolute below 1.2e-7 below, a millionth of a mean free path.
+//!   samples a step as -ln(u), u in (0, 1]: its error is then below 1.5e-7 relative for steps above
+//!   0.7 optical depths and 1.2e-7 absolute below (0.1 parts per million of a mean free path).
 //! - `sin_cos_quarter`: absolute error below 1.2e-7 for |a| <= pi/4.
 //!
 //! Why f32 is enough for the walk: every quantity the lanes carry is O(1) in its units (mm,
