@@ -1,115 +1,115 @@
 // The lane-vector code of the photon step, compiled once per instruction set: included by
-// `photon_lanes` into modules where `F64s` and `U64s` are the array vectors of `simd` or the AVX2
-// vectors of `simd_avx2`. Everything here is written against that common API.
+// `photon_lanes` into modules where `F32s` and `U32s` are the array vectors of `simd`, the AVX2
+// vectors of `simd_avx2` or the AVX-512 ones of `simd_avx512`. Everything here is written against
+// that common API, in f32: 16 photons per AVX-512 register.
+
+/// Old directions with ux^2 + uy^2 below this are treated as vertical by `spin` (within 1e-6 rad;
+/// MCML's COSZERO is 1e-12 on uz, the same order on the sine).
+const NEAR_VERTICAL_SIN_SQ: f32 = 1e-12;
 
 /// The constants of every lane's current layer, as vectors.
 pub(crate) struct LayerVectors {
-    z_top: F64s,
-    z_bottom: F64s,
-    inv_mu_t: F64s,
-    absorb_fraction: F64s,
-    hg_one_plus_g2: F64s,
-    hg_one_minus_g2: F64s,
-    hg_one_minus_g: F64s,
-    hg_two_g: F64s,
-    hg_inv_two_g: F64s,
+    z_top: F32s,
+    z_bottom: F32s,
+    inv_mu_t: F32s,
+    absorb_fraction: F32s,
+    hg_one_minus_g2: F32s,
+    hg_one_minus_g: F32s,
+    hg_two_g: F32s,
+    hg_inv_two_g: F32s,
 }
 
 impl LayerVectors {
     #[inline(always)]
     fn load(lanes: &Lanes) -> Self {
         Self {
-            z_top: F64s::load(lanes.z_top),
-            z_bottom: F64s::load(lanes.z_bottom),
-            inv_mu_t: F64s::load(lanes.inv_mu_t),
-            absorb_fraction: F64s::load(lanes.absorb_fraction),
-            hg_one_plus_g2: F64s::load(lanes.hg_one_plus_g2),
-            hg_one_minus_g2: F64s::load(lanes.hg_one_minus_g2),
-            hg_one_minus_g: F64s::load(lanes.hg_one_minus_g),
-            hg_two_g: F64s::load(lanes.hg_two_g),
-            hg_inv_two_g: F64s::load(lanes.hg_inv_two_g),
+            z_top: F32s::load(lanes.z_top),
+            z_bottom: F32s::load(lanes.z_bottom),
+            inv_mu_t: F32s::load(lanes.inv_mu_t),
+            absorb_fraction: F32s::load(lanes.absorb_fraction),
+            hg_one_minus_g2: F32s::load(lanes.hg_one_minus_g2),
+            hg_one_minus_g: F32s::load(lanes.hg_one_minus_g),
+            hg_two_g: F32s::load(lanes.hg_two_g),
+            hg_inv_two_g: F32s::load(lanes.hg_inv_two_g),
         }
     }
 }
 
-/// 64 random bits for every lane: one xoshiro256++ step of each lane's stream.
+/// 32 random bits for every lane: one xoshiro128++ step of each lane's stream.
 #[inline(always)]
-pub(crate) fn next_bits(rng: &mut LaneRng) -> U64s {
+pub(crate) fn next_bits(rng: &mut LaneRng) -> U32s {
     // Explicit loads: `array::map` with a fn item would go through a shim without AVX2.
-    let s0 = U64s::load(rng.s[0]);
-    let s1 = U64s::load(rng.s[1]);
-    let s2 = U64s::load(rng.s[2]);
-    let s3 = U64s::load(rng.s[3]);
-    let result = s0.wrapping_add(s3).rotate_left(23).wrapping_add(s0);
-    let t = s1 << 17;
+    let s0 = U32s::load(rng.s[0]);
+    let s1 = U32s::load(rng.s[1]);
+    let s2 = U32s::load(rng.s[2]);
+    let s3 = U32s::load(rng.s[3]);
+    let result = s0.wrapping_add(s3).rotate_left(7).wrapping_add(s0);
+    let t = s1 << 9;
     let s2 = s2 ^ s0;
     let s3 = s3 ^ s1;
     let s1 = s1 ^ s2;
     let s0 = s0 ^ s3;
     let s2 = s2 ^ t;
-    let s3 = s3.rotate_left(45);
+    let s3 = s3.rotate_left(11);
     rng.s = [s0.store(), s1.store(), s2.store(), s3.store()];
     result
 }
 
-/// Uniform in [0, 1) from the top 52 bits of every lane (see `lane_rng::unit`).
+/// Uniform in [0, 1) on a 2^-23 grid from the top 23 bits of every lane (exponent trick).
 #[inline(always)]
-pub(crate) fn units(bits: U64s) -> F64s {
-    ((bits >> 12) | U64s::splat(0x3ff0_0000_0000_0000)).as_f64_bits() - F64s::splat(1.0)
+pub(crate) fn units(bits: U32s) -> F32s {
+    ((bits >> 9) | U32s::splat(0x3f80_0000)).as_f32_bits() - F32s::splat(1.0)
 }
 
-/// Uniform in (0, 1] from the top 52 bits of every lane, safe for `ln`.
+/// Uniform in (0, 1] from the top 31 bits of every lane, down to 2^-32: safe for `ln`, and the
+/// sampled optical depth -ln(u) reaches 22 (a 23-bit grid would stop at 16).
 #[inline(always)]
-pub(crate) fn units_open(bits: U64s) -> F64s {
-    F64s::splat(2.0) - ((bits >> 12) | U64s::splat(0x3ff0_0000_0000_0000)).as_f64_bits()
+pub(crate) fn units_open(bits: U32s) -> F32s {
+    (bits >> 1).signed_to_f32().mul_add(
+        F32s::splat(fast_math::TWO_POW_M31),
+        F32s::splat(fast_math::TWO_POW_M32),
+    )
 }
 
-/// Natural logarithm of positive normal numbers, to about 1 ulp.
+/// Natural logarithm of positive normal f32 (bound in `fast_math`).
 #[inline(always)]
-pub(crate) fn ln(x: F64s) -> F64s {
+pub(crate) fn ln(x: F32s) -> F32s {
     // Shift the exponent so that the mantissa lands in [sqrt(1/2), sqrt(2)): ln(1 + f) then has
-    // |f| < 0.42 and the series converges fast (musl's reduction, on the whole 64-bit word).
-    const SQRT_HALF_HIGH: u64 = 0x3fe6_a09e_0000_0000;
+    // |f| < 0.42 and Cephes' polynomial applies (no division, unlike fdlibm's reduction).
+    const SQRT_HALF: u32 = 0x3f35_04f3;
     let shifted = x
         .to_bits()
-        .wrapping_add(U64s::splat(0x3ff0_0000_0000_0000 - SQRT_HALF_HIGH));
-    let biased_exponent = shifted >> 52;
-    // k as f64 without an integer conversion (which does not vectorise before AVX-512):
-    // 2^52 + e has e in its low mantissa bits.
-    let k = (U64s::splat(0x4330_0000_0000_0000) | biased_exponent).as_f64_bits()
-        - F64s::splat(4_503_599_627_370_496.0 + 1023.0);
-    let m = ((shifted & U64s::splat(0x000f_ffff_ffff_ffff))
-        .wrapping_add(U64s::splat(SQRT_HALF_HIGH)))
-    .as_f64_bits();
-    let c = F64s::splat;
+        .wrapping_add(U32s::splat(0x3f80_0000 - SQRT_HALF));
+    // k as f32 without an integer conversion: 2^23 + e has e in its low mantissa bits.
+    let k = (U32s::splat(0x4b00_0000) | (shifted >> 23)).as_f32_bits()
+        - F32s::splat(8_388_608.0 + 127.0);
+    let m = ((shifted & U32s::splat(0x007f_ffff)).wrapping_add(U32s::splat(SQRT_HALF)))
+        .as_f32_bits();
+    let c = F32s::splat;
     let f = m - c(1.0);
-    let half_f_sq = c(0.5) * f * f;
-    let s = f / (c(2.0) + f);
-    let z = s * s;
-    let w = z * z;
-    let odd = w * (c(fast_math::LG2) + w * (c(fast_math::LG4) + w * c(fast_math::LG6)));
-    let even = z
-        * (c(fast_math::LG1)
-            + w * (c(fast_math::LG3) + w * (c(fast_math::LG5) + w * c(fast_math::LG7))));
-    let r = even + odd;
-    s * (half_f_sq + r) + k * c(fast_math::LN2_LO) - half_f_sq + f + k * c(fast_math::LN2_HI)
+    let z = f * f;
+    // Estrin's scheme: a tree of depth 4 instead of Horner's chain of 8 (the step's latency).
+    let [a0, a1, a2, a3, a4, a5, a6, a7, a8] = fast_math::LN_POLY.map(c);
+    let z2 = z * z;
+    let low = f.mul_add(a1, a0) + z * f.mul_add(a3, a2);
+    let high = f.mul_add(a5, a4) + z * f.mul_add(a7, a6);
+    let p = z2.mul_add(high, low) + (z2 * z2) * a8;
+    let y = (f * z).mul_add(p, k.mul_add(c(fast_math::LN2_LO), c(-0.5) * z));
+    k.mul_add(c(fast_math::LN2_HI), f + y)
 }
 
-/// (sin a, cos a) for |a| <= pi/4 (fdlibm's kernel polynomials).
+/// (sin a, cos a) for |a| <= pi/4 (Cephes' single-precision kernel polynomials).
 #[inline(always)]
-pub(crate) fn sin_cos_quarter(a: F64s) -> (F64s, F64s) {
-    let c = F64s::splat;
+pub(crate) fn sin_cos_quarter(a: F32s) -> (F32s, F32s) {
+    let c = F32s::splat;
     let z = a * a;
-    let sin_poly = c(fast_math::S1)
-        + z * (c(fast_math::S2)
-            + z * (c(fast_math::S3)
-                + z * (c(fast_math::S4) + z * (c(fast_math::S5) + z * c(fast_math::S6)))));
-    let cos_poly = c(fast_math::C1)
-        + z * (c(fast_math::C2)
-            + z * (c(fast_math::C3)
-                + z * (c(fast_math::C4) + z * (c(fast_math::C5) + z * c(fast_math::C6)))));
-    let sin = a + a * z * sin_poly;
-    let cos = c(1.0) - c(0.5) * z + z * z * cos_poly;
+    let [s1, s2, s3] = fast_math::SIN_POLY;
+    let [c1, c2, c3] = fast_math::COS_POLY;
+    let sin = (z * a).mul_add(z.mul_add(z.mul_add(c(s1), c(s2)), c(s3)), a);
+    let cos = (z * z).mul_add(
+        z.mul_add(z.mul_add(c(c1), c(c2)), c(c3)),
+        z.mul_add(c(-0.5), c(1.0)),
+    );
     (sin, cos)
 }
 
@@ -117,17 +117,17 @@ pub(crate) fn sin_cos_quarter(a: F64s) -> (F64s, F64s) {
 /// lanes whose step reaches a boundary keep their state and the sampled depth for the scalar code.
 #[inline(always)]
 pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
-    let x = F64s::load(lanes.x);
-    let y = F64s::load(lanes.y);
-    let z = F64s::load(lanes.z);
-    let ux = F64s::load(lanes.ux);
-    let uy = F64s::load(lanes.uy);
-    let uz = F64s::load(lanes.uz);
-    let weight = F64s::load(lanes.weight);
-    let optical_left = F64s::load(lanes.optical_left);
-    let deposit_sum = F64s::load(lanes.deposit);
+    let x = F32s::load(lanes.x);
+    let y = F32s::load(lanes.y);
+    let z = F32s::load(lanes.z);
+    let ux = F32s::load(lanes.ux);
+    let uy = F32s::load(lanes.uy);
+    let uz = F32s::load(lanes.uz);
+    let weight = F32s::load(lanes.weight);
+    let optical_left = F32s::load(lanes.optical_left);
+    let deposit_sum = F32s::load(lanes.deposit);
     let layer = LayerVectors::load(lanes);
-    let zero = F64s::splat(0.0);
+    let zero = F32s::splat(0.0);
     let sampled = -ln(units_open(next_bits(&mut lanes.rng)));
     let xi = units(next_bits(&mut lanes.rng));
     let (cos_p, sin_p) = azimuth(next_bits(&mut lanes.rng));
@@ -141,11 +141,12 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let inside = (step * uz.abs()).lt(depth_to_boundary);
 
     let deposit = weight * layer.absorb_fraction;
-    let cos_t = henyey_greenstein_cos(&layer, xi);
-    let [nx, ny, nz] = spin([ux, uy, uz], cos_t, cos_p, sin_p);
-    let x = inside.select(x + step * ux, x);
-    let y = inside.select(y + step * uy, y);
-    let z = inside.select(z + step * uz, z);
+    let (one_minus_cos_t, sin_t_sq) = henyey_greenstein(&layer, xi);
+    let cos_t = F32s::splat(1.0) - one_minus_cos_t;
+    let [nx, ny, nz] = spin([ux, uy, uz], cos_t, sin_t_sq, cos_p, sin_p);
+    let x = inside.select(step.mul_add(ux, x), x);
+    let y = inside.select(step.mul_add(uy, y), y);
+    let z = inside.select(step.mul_add(uz, z), z);
     let ux = inside.select(nx, ux);
     let uy = inside.select(ny, uy);
     let uz = inside.select(nz, uz);
@@ -153,15 +154,15 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let deposit_sum = deposit_sum + inside.select(deposit, zero);
     let optical_left = inside.select(zero, tau);
 
-    let active = U64s::load(lanes.active);
+    let active = U32s::load(lanes.active);
     let counted = (inside & active).store();
     for (total, lane_counted) in lanes.interactions.iter_mut().zip(counted) {
-        *total += lane_counted & 1;
+        *total += u64::from(lane_counted & 1);
     }
     for events in &mut lanes.events {
         *events = events.wrapping_add(1);
     }
-    let light = weight.lt(F64s::splat(ROULETTE_THRESHOLD));
+    let light = weight.lt(F32s::splat(ROULETTE_THRESHOLD as f32));
     lanes.x = x.store();
     lanes.y = y.store();
     lanes.z = z.store();
@@ -177,53 +178,62 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     }
 }
 
-/// Henyey-Greenstein scattering cosine by inverse CDF for uniforms `xi` in [0, 1).
+/// Henyey-Greenstein scattering by inverse CDF for uniforms `xi` in [0, 1): (1 - cos theta,
+/// sin^2 theta). 1 - cos is formed directly, (t - (1 - g)) (t + (1 - g)) / 2g, not as 1 minus the
+/// cosine: forward scattering (cos near 1, the common case at g = 0.9) keeps f32's relative
+/// precision in sin theta.
 #[inline(always)]
-fn henyey_greenstein_cos(layer: &LayerVectors, xi: F64s) -> F64s {
-    let c = F64s::splat;
-    let t = layer.hg_one_minus_g2 / (layer.hg_one_minus_g + layer.hg_two_g * xi);
-    let anisotropic = ((layer.hg_one_plus_g2 - t * t) * layer.hg_inv_two_g)
-        .max(c(-1.0))
-        .min(c(1.0));
+fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> (F32s, F32s) {
+    let c = F32s::splat;
+    let t = layer.hg_one_minus_g2 / layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
+    let anisotropic = (t - layer.hg_one_minus_g) * (t + layer.hg_one_minus_g) * layer.hg_inv_two_g;
     let isotropic = layer.hg_inv_two_g.eq(c(0.0));
-    isotropic.select(c(2.0) * xi - c(1.0), anisotropic)
+    let one_minus_cos = isotropic
+        .select(c(2.0) - c(2.0) * xi, anisotropic)
+        .max(c(0.0))
+        .min(c(2.0));
+    let sin_sq = one_minus_cos * (c(2.0) - one_minus_cos);
+    (one_minus_cos, sin_sq)
 }
 
-/// (cos phi, sin phi) of a uniform azimuth: a uniform angle in [-pi/4, pi/4) from the top 52 bits,
+/// (cos phi, sin phi) of a uniform azimuth: a uniform angle in [-pi/4, pi/4) from the top 23 bits,
 /// turned by a uniform multiple of 90 degrees from the lowest two bits.
 #[inline(always)]
-pub(crate) fn azimuth(bits: U64s) -> (F64s, F64s) {
-    let a = (units(bits) - F64s::splat(0.5)) * F64s::splat(std::f64::consts::FRAC_PI_2);
+pub(crate) fn azimuth(bits: U32s) -> (F32s, F32s) {
+    let a = (units(bits) - F32s::splat(0.5)) * F32s::splat(std::f32::consts::FRAC_PI_2);
     let (s, c) = sin_cos_quarter(a);
-    let zero = U64s::splat(0);
-    let quarter_turn = !((bits & U64s::splat(1)).eq_u64(zero));
-    let half_turn = !((bits & U64s::splat(2)).eq_u64(zero));
+    let zero = U32s::splat(0);
+    let quarter_turn = !((bits & U32s::splat(1)).eq_u32(zero));
+    let half_turn = !((bits & U32s::splat(2)).eq_u32(zero));
     let (c, s) = (quarter_turn.select(-s, c), quarter_turn.select(c, s));
     (half_turn.select(-c, c), half_turn.select(-s, s))
 }
 
-/// Turns directions by polar cosine `cos_t` and azimuth (cos_p, sin_p) about themselves (MCML's
-/// formulas, with sin(theta) / sqrt(1 - uz^2) taken as one square root).
+/// Turns directions by polar angle (cos theta, sin^2 theta) and azimuth (cos_p, sin_p) about
+/// themselves (MCML's formulas). The sine of the old polar angle is taken from ux^2 + uy^2, not
+/// 1 - uz^2: in f32 the latter loses the small sines of near-vertical directions, and the new
+/// direction would then not be a unit vector. sin(theta) / sin(old) is one square root.
 #[inline(always)]
-pub(crate) fn spin(dir: [F64s; 3], cos_t: F64s, cos_p: F64s, sin_p: F64s) -> [F64s; 3] {
-    let c = F64s::splat;
-    let sin_t_sq = (c(1.0) - cos_t * cos_t).max(c(0.0));
+pub(crate) fn spin(dir: [F32s; 3], cos_t: F32s, sin_t_sq: F32s, cos_p: F32s, sin_p: F32s) -> [F32s; 3] {
+    let c = F32s::splat;
     let [ux, uy, uz] = dir;
-    let one_minus_uz2 = c(1.0) - uz * uz;
-    let vertical = one_minus_uz2.lt(c(NEAR_VERTICAL));
-    // Both branches are computed (the lanes disagree); the unused one may divide by ~0 harmlessly.
-    let k = (sin_t_sq / one_minus_uz2).sqrt();
-    let sin_t = sin_t_sq.sqrt();
+    let sin_old_sq = ux.mul_add(ux, uy * uy);
+    let vertical = sin_old_sq.lt(c(NEAR_VERTICAL_SIN_SQ));
+    // Vertical lanes divide by 1, so that k is sin(theta) there.
+    let k = (sin_t_sq / vertical.select(c(1.0), sin_old_sq)).sqrt();
     let signed_cos_t = uz.lt(c(0.0)).select(-cos_t, cos_t);
     [
         vertical.select(
-            sin_t * cos_p,
-            k * (ux * uz * cos_p - uy * sin_p) + ux * cos_t,
+            k * cos_p,
+            k.mul_add((ux * uz).mul_add(cos_p, -(uy * sin_p)), ux * cos_t),
         ),
         vertical.select(
-            sin_t * sin_p,
-            k * (uy * uz * cos_p + ux * sin_p) + uy * cos_t,
+            k * sin_p,
+            k.mul_add((uy * uz).mul_add(cos_p, ux * sin_p), uy * cos_t),
         ),
-        vertical.select(signed_cos_t, -k * cos_p * one_minus_uz2 + uz * cos_t),
+        vertical.select(
+            signed_cos_t,
+            (-k * cos_p).mul_add(sin_old_sq, uz * cos_t),
+        ),
     ]
 }

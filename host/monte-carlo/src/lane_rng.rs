@@ -1,27 +1,29 @@
-//! One random stream per photon lane: xoshiro256++ (Blackman & Vigna 2019) with its four state
-//! words stored lane-major, so the compiler advances all lanes with SIMD integer instructions
-//! (PCG-64's 128-bit multiply does not vectorise).
+//! One random stream per photon lane: xoshiro128++ (Blackman & Vigna 2019) with its four 32-bit
+//! state words stored lane-major, so all 16 lanes advance with one SIMD integer instruction per
+//! operation (32-bit words: the lanes' f32 width; PCG's wide multiply does not vectorise).
 //!
 //! Each (seed, batch, lane) gets its own state from splitmix64, the seeding its authors recommend;
-//! the streams are 2^256 long, so overlap between them is not a practical concern.
+//! the streams are 2^128 - 1 long and a run draws far fewer than 2^64 numbers, so overlap between
+//! them is not a practical concern.
 
 use super::simd::LANES;
 
-/// Lane-major xoshiro256++ state: `s[word][lane]`.
+/// Lane-major xoshiro128++ state: `s[word][lane]`.
 pub(crate) struct LaneRng {
-    pub(crate) s: [[u64; LANES]; 4],
+    pub(crate) s: [[u32; LANES]; 4],
 }
 
 impl LaneRng {
     /// The streams of one batch: a pure function of (seed, batch).
     pub(crate) fn for_batch(seed: u64, batch: u64) -> Self {
-        let mut s = [[0u64; LANES]; 4];
+        let mut s = [[0u32; LANES]; 4];
         let base = splitmix64(splitmix64(seed) ^ splitmix64(batch ^ 0x6a09_e667_f3bc_c909));
         for lane in 0..LANES {
             let mut state = base.wrapping_add((lane as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-            for word in &mut s {
+            for pair in s.chunks_exact_mut(2) {
                 state = splitmix64(state);
-                word[lane] = state;
+                pair[0][lane] = state as u32;
+                pair[1][lane] = (state >> 32) as u32;
             }
             // An all-zero state would stay zero; splitmix64 is a bijection, so this needs four
             // zero outputs in a row, but make it impossible rather than improbable.
@@ -32,28 +34,28 @@ impl LaneRng {
         Self { s }
     }
 
-    /// 64 random bits from one lane's stream (for the scalar boundary and roulette code).
+    /// 32 random bits from one lane's stream (for the scalar boundary and roulette code).
     #[inline(always)]
-    pub(crate) fn next_bits_of(&mut self, lane: usize) -> u64 {
+    pub(crate) fn next_bits_of(&mut self, lane: usize) -> u32 {
         self.step(lane)
     }
 
     #[inline(always)]
-    fn step(&mut self, lane: usize) -> u64 {
+    fn step(&mut self, lane: usize) -> u32 {
         let [s0, s1, s2, s3] = [
             self.s[0][lane],
             self.s[1][lane],
             self.s[2][lane],
             self.s[3][lane],
         ];
-        let result = s0.wrapping_add(s3).rotate_left(23).wrapping_add(s0);
-        let t = s1 << 17;
+        let result = s0.wrapping_add(s3).rotate_left(7).wrapping_add(s0);
+        let t = s1 << 9;
         let s2 = s2 ^ s0;
         let s3 = s3 ^ s1;
         let s1 = s1 ^ s2;
         let s0 = s0 ^ s3;
         let s2 = s2 ^ t;
-        let s3 = s3.rotate_left(45);
+        let s3 = s3.rotate_left(11);
         self.s[0][lane] = s0;
         self.s[1][lane] = s1;
         self.s[2][lane] = s2;
@@ -62,11 +64,10 @@ impl LaneRng {
     }
 }
 
-/// Uniform in [0, 1) from the top 52 bits (exponent trick: no integer-to-float conversion, which
-/// has no SIMD instruction before AVX-512).
+/// Uniform in [0, 1) with all 32 bits (exact in f64), for the scalar code's probabilities.
 #[inline(always)]
-pub(crate) fn unit(bits: u64) -> f64 {
-    f64::from_bits((bits >> 12) | 0x3ff0_0000_0000_0000) - 1.0
+pub(crate) fn unit(bits: u32) -> f64 {
+    f64::from(bits) * (1.0 / 4_294_967_296.0)
 }
 
 fn splitmix64(mut z: u64) -> u64 {
@@ -80,17 +81,17 @@ fn splitmix64(mut z: u64) -> u64 {
 mod tests {
     use super::*;
     use crate::photon_lanes::portable::{next_bits, units, units_open};
-    use crate::simd::U64s;
+    use crate::simd::U32s;
 
-    /// First output of xoshiro256++ from the state (1, 2, 3, 4), computed by hand from the
-    /// reference C code: rotl(1 + 4, 23) + 1 = 5 * 2^23 + 1.
+    /// First output of xoshiro128++ from the state (1, 2, 3, 4), computed by hand from the
+    /// reference C code: rotl(1 + 4, 7) + 1 = 5 * 2^7 + 1.
     #[test]
     fn matches_the_reference_algorithm() {
         let mut rng = LaneRng {
             s: [[1; LANES], [2; LANES], [3; LANES], [4; LANES]],
         };
-        assert_eq!(rng.next_bits_of(0), 5 * (1 << 23) + 1);
-        assert_eq!(next_bits(&mut rng).0[1], 5 * (1 << 23) + 1);
+        assert_eq!(rng.next_bits_of(0), 5 * (1 << 7) + 1);
+        assert_eq!(next_bits(&mut rng).0[1], 5 * (1 << 7) + 1);
         // Lanes are independent copies of one algorithm: lane 0 has now made two steps and lane 1
         // one, so lane 0's third output is lane 1's third.
         assert_eq!(next_bits(&mut rng).0[0], rng.next_bits_of(1));
@@ -99,10 +100,12 @@ mod tests {
     #[test]
     fn unit_draws_cover_their_intervals() {
         assert_eq!(unit(0), 0.0);
-        assert!(unit(u64::MAX) < 1.0);
-        assert_eq!(units_open(U64s::splat(0)).0[0], 1.0);
-        assert!(units_open(U64s::splat(u64::MAX)).0[0] > 0.0);
-        assert_eq!(units(U64s::splat(u64::MAX)).0[3], unit(u64::MAX));
+        assert!(unit(u32::MAX) < 1.0);
+        assert!(units(U32s::splat(u32::MAX)).0[3] < 1.0);
+        assert_eq!(units(U32s::splat(0)).0[3], 0.0);
+        // The step's uniform: in (0, 1], never 0 (its log is taken), down to 2^-32.
+        assert_eq!(units_open(U32s::splat(u32::MAX)).0[0], 1.0);
+        assert_eq!(units_open(U32s::splat(0)).0[0], 2f32.powi(-32));
         // Mean and variance of many draws from one lane: 1/2 and 1/12 within 5 standard errors.
         let mut rng = LaneRng::for_batch(7, 3);
         let n = 100_000;

@@ -19,8 +19,8 @@
 //!   leaves the top after entering the medium is diffuse reflectance (as in MCML).
 //! - Results depend only on the medium, the configuration and the seed, never on the number of
 //!   threads: photons are simulated in fixed batches, each with its own random stream, and the
-//!   batch tallies are summed in batch order. Within a batch, `LANES` photons are in flight at once
-//!   (SIMD over photons, see `photon_lanes`), each lane with its own random stream.
+//!   batch tallies are summed in batch order. Within a batch, `GROUPS` x `LANES` photons are in flight
+//!   at once (SIMD over photons, see `photon_lanes`), each lane with its own random stream.
 
 mod fast_math;
 mod fresnel;
@@ -44,10 +44,11 @@ pub use medium::{Layer, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
 
 /// Names the random streams and the order in which photons draw from them (`LANES` photons in
-/// flight per batch, xoshiro256++ per lane). The result for a given (medium, config) is fixed
+/// flight per batch, xoshiro128++ per lane). The result for a given (medium, config) is fixed
 /// while this stays the same and changes, within the noise, when it does: caches of Monte Carlo
 /// results must include it in their key.
-pub const RANDOM_STREAMS: &str = "xoshiro256++, 8 lanes of 4096-photon batches, v1";
+pub const RANDOM_STREAMS: &str =
+    "xoshiro128++, 2 groups x 16 lanes of 4096-photon batches, f32 lanes, v2";
 
 /// Errors of the Monte Carlo module.
 #[derive(Debug, thiserror::Error)]

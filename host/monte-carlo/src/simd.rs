@@ -1,25 +1,25 @@
-//! A minimal portable SIMD vector on stable Rust: `LANES` f64 or u64 in an array, every operation a
+//! A minimal portable SIMD vector on stable Rust: `LANES` f32 or u32 in an array, every operation a
 //! one-line loop over the lanes.
 //!
 //! Each operation is small enough for the compiler to unroll and turn into one vector instruction
 //! (per register width of the target features the caller was compiled with: see the dispatch in
 //! `photon_lanes`). Writing the photon step as a long scalar body per lane instead leaves a loop too
 //! big to unroll that the loop vectoriser refuses, and the code stays scalar; hence this type.
-//! Operations are the IEEE ones (no fused multiply-add), so every instruction set gives
-//! bit-identical results.
+//! Operations are the IEEE ones (the fused multiply-add exactly rounded), so every instruction set
+//! gives bit-identical results.
 
 use std::ops::{Add, BitAnd, BitOr, BitXor, Div, Mul, Neg, Not, Shl, Shr, Sub};
 
-/// Photons in flight per thread: one AVX-512 register of f64 (two AVX2 registers).
-pub(crate) const LANES: usize = 8;
+/// Photons in flight per thread: one AVX-512 register of f32 (two AVX2 registers).
+pub(crate) const LANES: usize = 16;
 
-/// `LANES` f64 values.
+/// `LANES` f32 values.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct F64s(pub [f64; LANES]);
+pub(crate) struct F32s(pub [f32; LANES]);
 
-/// `LANES` u64 values; also the lane masks (all ones for true, zero for false).
+/// `LANES` u32 values; also the lane masks (all ones for true, zero for false).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct U64s(pub [u64; LANES]);
+pub(crate) struct U32s(pub [u32; LANES]);
 
 macro_rules! lanewise {
     ($a:expr, |$x:ident| $body:expr) => {{
@@ -53,60 +53,67 @@ macro_rules! binary_op {
     };
 }
 
-binary_op!(F64s, Add, add, +);
-binary_op!(F64s, Sub, sub, -);
-binary_op!(F64s, Mul, mul, *);
-binary_op!(F64s, Div, div, /);
-binary_op!(U64s, BitAnd, bitand, &);
-binary_op!(U64s, BitOr, bitor, |);
-binary_op!(U64s, BitXor, bitxor, ^);
+binary_op!(F32s, Add, add, +);
+binary_op!(F32s, Sub, sub, -);
+binary_op!(F32s, Mul, mul, *);
+binary_op!(F32s, Div, div, /);
+binary_op!(U32s, BitAnd, bitand, &);
+binary_op!(U32s, BitOr, bitor, |);
+binary_op!(U32s, BitXor, bitxor, ^);
 
-impl Neg for F64s {
-    type Output = F64s;
+impl Neg for F32s {
+    type Output = F32s;
     #[inline(always)]
-    fn neg(self) -> F64s {
-        F64s(lanewise!(self.0, |x| -x))
+    fn neg(self) -> F32s {
+        F32s(lanewise!(self.0, |x| -x))
     }
 }
 
-impl Not for U64s {
-    type Output = U64s;
+impl Not for U32s {
+    type Output = U32s;
     #[inline(always)]
-    fn not(self) -> U64s {
-        U64s(lanewise!(self.0, |x| !x))
+    fn not(self) -> U32s {
+        U32s(lanewise!(self.0, |x| !x))
     }
 }
 
-impl Shl<u32> for U64s {
-    type Output = U64s;
+impl Shl<u32> for U32s {
+    type Output = U32s;
     #[inline(always)]
-    fn shl(self, n: u32) -> U64s {
-        U64s(lanewise!(self.0, |x| x << n))
+    fn shl(self, n: u32) -> U32s {
+        U32s(lanewise!(self.0, |x| x << n))
     }
 }
 
-impl Shr<u32> for U64s {
-    type Output = U64s;
+impl Shr<u32> for U32s {
+    type Output = U32s;
     #[inline(always)]
-    fn shr(self, n: u32) -> U64s {
-        U64s(lanewise!(self.0, |x| x >> n))
+    fn shr(self, n: u32) -> U32s {
+        U32s(lanewise!(self.0, |x| x >> n))
     }
 }
 
-impl F64s {
+impl F32s {
     #[inline(always)]
-    pub(crate) fn splat(x: f64) -> Self {
+    pub(crate) fn splat(x: f32) -> Self {
         Self([x; LANES])
     }
 
     #[inline(always)]
-    pub(crate) fn load(values: [f64; LANES]) -> Self {
+    pub(crate) fn load(values: [f32; LANES]) -> Self {
         Self(values)
     }
 
     #[inline(always)]
-    pub(crate) fn store(self) -> [f64; LANES] {
+    pub(crate) fn store(self) -> [f32; LANES] {
         self.0
+    }
+
+    /// `self * a + b` with one rounding (`f32::mul_add`: the FMA instruction or libm's exact
+    /// software version).
+    #[inline(always)]
+    pub(crate) fn mul_add(self, a: Self, b: Self) -> Self {
+        Self(std::array::from_fn(|i| self.0[i].mul_add(a.0[i], b.0[i])))
     }
 
     #[inline(always)]
@@ -131,39 +138,39 @@ impl F64s {
     }
 
     #[inline(always)]
-    pub(crate) fn lt(self, other: Self) -> U64s {
-        U64s(lanewise!(self.0, other.0, |x, y| mask(x < y)))
+    pub(crate) fn lt(self, other: Self) -> U32s {
+        U32s(lanewise!(self.0, other.0, |x, y| mask(x < y)))
     }
 
     #[inline(always)]
-    pub(crate) fn gt(self, other: Self) -> U64s {
-        U64s(lanewise!(self.0, other.0, |x, y| mask(x > y)))
+    pub(crate) fn gt(self, other: Self) -> U32s {
+        U32s(lanewise!(self.0, other.0, |x, y| mask(x > y)))
     }
 
     #[inline(always)]
-    pub(crate) fn eq(self, other: Self) -> U64s {
-        U64s(lanewise!(self.0, other.0, |x, y| mask(x == y)))
+    pub(crate) fn eq(self, other: Self) -> U32s {
+        U32s(lanewise!(self.0, other.0, |x, y| mask(x == y)))
     }
 
     #[inline(always)]
-    pub(crate) fn to_bits(self) -> U64s {
-        U64s(lanewise!(self.0, |x| x.to_bits()))
+    pub(crate) fn to_bits(self) -> U32s {
+        U32s(lanewise!(self.0, |x| x.to_bits()))
     }
 }
 
-impl U64s {
+impl U32s {
     #[inline(always)]
-    pub(crate) fn splat(x: u64) -> Self {
+    pub(crate) fn splat(x: u32) -> Self {
         Self([x; LANES])
     }
 
     #[inline(always)]
-    pub(crate) fn load(values: [u64; LANES]) -> Self {
+    pub(crate) fn load(values: [u32; LANES]) -> Self {
         Self(values)
     }
 
     #[inline(always)]
-    pub(crate) fn store(self) -> [u64; LANES] {
+    pub(crate) fn store(self) -> [u32; LANES] {
         self.0
     }
 
@@ -178,19 +185,25 @@ impl U64s {
     }
 
     #[inline(always)]
-    pub(crate) fn as_f64_bits(self) -> F64s {
-        F64s(lanewise!(self.0, |x| f64::from_bits(x)))
+    pub(crate) fn as_f32_bits(self) -> F32s {
+        F32s(lanewise!(self.0, |x| f32::from_bits(x)))
+    }
+
+    /// Each lane read as an i32 and rounded to the nearest f32 (`cvtdq2ps`).
+    #[inline(always)]
+    pub(crate) fn signed_to_f32(self) -> F32s {
+        F32s(lanewise!(self.0, |x| x as i32 as f32))
     }
 
     #[inline(always)]
-    pub(crate) fn eq_u64(self, other: Self) -> U64s {
-        U64s(lanewise!(self.0, other.0, |x, y| mask(x == y)))
+    pub(crate) fn eq_u32(self, other: Self) -> U32s {
+        U32s(lanewise!(self.0, other.0, |x, y| mask(x == y)))
     }
 
     /// As a mask: `a` where set, `b` elsewhere (bitwise, so exact for any value).
     #[inline(always)]
-    pub(crate) fn select(self, a: F64s, b: F64s) -> F64s {
-        ((self & a.to_bits()) | (!self & b.to_bits())).as_f64_bits()
+    pub(crate) fn select(self, a: F32s, b: F32s) -> F32s {
+        ((self & a.to_bits()) | (!self & b.to_bits())).as_f32_bits()
     }
 
     /// As a mask: one bit per lane, lane 0 in bit 0.
@@ -205,8 +218,8 @@ impl U64s {
 }
 
 #[inline(always)]
-fn mask(b: bool) -> u64 {
-    if b { u64::MAX } else { 0 }
+fn mask(b: bool) -> u32 {
+    if b { u32::MAX } else { 0 }
 }
 
 #[cfg(test)]
@@ -215,14 +228,18 @@ mod tests {
 
     #[test]
     fn select_and_masks_follow_the_comparisons() {
-        let a = F64s([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
-        let b = F64s::splat(3.5);
+        let a = F32s(std::array::from_fn(|i| i as f32));
+        let b = F32s::splat(3.5);
         let lower = a.lt(b);
-        assert_eq!(lower.bitmask(), 0b0000_1111);
-        assert_eq!(a.gt(b).bitmask(), 0b1111_0000);
-        let picked = lower.select(a, F64s::splat(-1.0));
-        assert_eq!(picked.0, [0.0, 1.0, 2.0, 3.0, -1.0, -1.0, -1.0, -1.0]);
-        assert_eq!((a - b).abs().min(F64s::splat(1.0)).0[0], 1.0);
+        assert_eq!(lower.bitmask(), 0b1111);
+        assert_eq!(a.gt(b).bitmask(), 0xffff & !0b1111);
+        let picked = lower.select(a, F32s::splat(-1.0));
+        assert_eq!(picked.0[..6], [0.0, 1.0, 2.0, 3.0, -1.0, -1.0]);
+        assert_eq!((a - b).abs().min(F32s::splat(1.0)).0[0], 1.0);
         assert_eq!(a.max(b).0[7], 7.0);
+        assert_eq!(
+            U32s::splat(0x7fff_ffff).signed_to_f32().0[3],
+            2_147_483_648.0
+        );
     }
 }

@@ -28,9 +28,6 @@ pub(crate) const ROULETTE_SURVIVAL: f64 = 0.1;
 /// A photon trapped by total internal reflection in a non-scattering layer would bounce forever;
 /// after this many events it is dropped (its weight is then missing from every tally).
 pub(crate) const MAX_EVENTS_PER_PHOTON: u32 = 1_000_000;
-/// Directions with 1 - uz^2 below this are treated as vertical by the spin formula (MCML's
-/// COSZERO, 1 - 1e-12, expressed on 1 - uz^2).
-pub(crate) const NEAR_VERTICAL: f64 = 2e-12;
 
 /// Per-layer constants precomputed once per run.
 #[derive(Debug, Clone, Copy)]
@@ -113,7 +110,6 @@ impl Geometry {
 /// Henyey-Greenstein phase function constants for inverse-CDF sampling of the scattering cosine.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct HenyeyGreenstein {
-    pub(crate) one_plus_g2: f64,
     pub(crate) one_minus_g2: f64,
     pub(crate) one_minus_g: f64,
     pub(crate) two_g: f64,
@@ -125,7 +121,6 @@ impl HenyeyGreenstein {
         // Below |g| = 1e-6 the inverse CDF loses precision; the isotropic law is then exact enough.
         let isotropic = g.abs() < 1e-6;
         Self {
-            one_plus_g2: 1.0 + g * g,
             one_minus_g2: 1.0 - g * g,
             one_minus_g: 1.0 - g,
             two_g: 2.0 * g,
@@ -245,10 +240,12 @@ mod tests {
     #[test]
     fn the_stream_name_follows_the_lane_count_and_batch_size() {
         let name = crate::RANDOM_STREAMS;
-        assert!(
-            name.contains(&format!("{} lanes", crate::simd::LANES)),
-            "{name}"
+        let lanes = format!(
+            "{} groups x {} lanes",
+            crate::photon_lanes::GROUPS,
+            crate::simd::LANES
         );
+        assert!(name.contains(&lanes), "{name}");
         assert!(name.contains(&format!("{BATCH_PHOTONS}-photon")), "{name}");
     }
 
