@@ -86,8 +86,9 @@ pub fn grey_coefficient(total: [f32; 3], rho: [f32; 3]) -> f32 {
     }
 }
 
-/// Replaces the separation's direct part by the dichromatic one (see the module documentation),
-/// averaged over separated neighbours with a Gaussian of `sigma_px` camera px (0: per pixel),
+/// Replaces the separation's direct part by the dichromatic one (see the module documentation)
+/// on every pixel with a total (flag `Ok` or `NarrowKernel`; the flags are kept), averaged over
+/// such neighbours with a Gaussian of `sigma_px` camera px (0: per pixel),
 /// keeping each pixel's total. Returns the body colour used, `None` (and the separation
 /// unchanged) when it could not be read.
 pub fn dichromatic_direct(sep: &mut LeakSeparation, sigma_px: f64) -> Option<[f32; 3]> {
@@ -97,7 +98,13 @@ pub fn dichromatic_direct(sep: &mut LeakSeparation, sigma_px: f64) -> Option<[f3
     let (w, h) = (w as usize, h as usize);
     let direct = sep.direct.as_raw();
     let global = sep.global.as_raw();
-    let ok: Vec<bool> = sep.flags.iter().map(|f| *f == LeakFlag::Ok).collect();
+    // Pixels the stripes could not split (kernel too narrow in some channel) still have their
+    // total, which is all the fit needs.
+    let ok: Vec<bool> = sep
+        .flags
+        .iter()
+        .map(|f| matches!(f, LeakFlag::Ok | LeakFlag::NarrowKernel))
+        .collect();
     let totals: Vec<[f32; 3]> = (0..ok.len())
         .map(|i| std::array::from_fn(|c| direct[i * 3 + c] + global[i * 3 + c]))
         .collect();
