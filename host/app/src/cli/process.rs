@@ -41,8 +41,8 @@ pub struct Args {
     /// not), `none` (all slit light counts as subsurface light) or `auto` (per pixel: the
     /// separation's direct image weighted by the share of the pixel's light it holds, 0 below
     /// `--direct-fraction-range`'s low end, 1 above its high end; none on light skin,
-    /// separation on very dark skin).
-    #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
+    /// separation on very dark skin, the default before the dichromatic separation).
+    #[arg(long, value_enum, default_value_t = DirectArg::Separation)]
     direct: DirectArg,
     /// Profiles stage, `--direct auto`: the direct fractions (low, high) between which the
     /// separated direct light goes from ignored to removed, e.g. `0.25,0.45`.
