@@ -11,6 +11,7 @@ use std::process::Command;
 use criterion::{Criterion, criterion_group};
 use image::Rgb32FImage;
 use mlsss_vision::geometry::point_normals::{PointNormalParams, fit_point_normals};
+use mlsss_vision::photometry::dichromatic::dichromatic_direct;
 use mlsss_vision::photometry::kernel_leak::{
     LeakParams, colourless_smoothed_direct, separate_with_leak,
 };
@@ -144,6 +145,16 @@ fn bench(c: &mut Criterion) {
             let (leak, _) = leak_from_slits(&slit_refs, &white, &geometry, LeakReading::Cosine);
             separate_with_leak(&refs, &leak, &leak_params).map(|mut s| {
                 colourless_smoothed_direct(&mut s, 1.0);
+                s.stats
+            })
+        })
+    });
+    // The separate stage's default since version 5: harmonics reading, dichromatic direct part.
+    group.bench_function("separation_kernel_dichromatic", |b| {
+        b.iter(|| {
+            let (leak, _) = leak_from_slits(&slit_refs, &white, &geometry, LeakReading::Harmonics);
+            separate_with_leak(&refs, &leak, &leak_params).map(|mut s| {
+                dichromatic_direct(&mut s, 1.0);
                 s.stats
             })
         })

@@ -9,7 +9,7 @@ use mlsss::photometry::slit_leak::LeakReading;
 use mlsss::pipeline::fit_stage::FitParams;
 use mlsss::pipeline::normals_stage::{NormalSource, NormalsParams, PsInput, ShadingModel};
 use mlsss::pipeline::profiles_stage::{DirectPart, ProfilesParams, SlitCoordinates};
-use mlsss::pipeline::separate_stage::{SeparateParams, SeparationMethod};
+use mlsss::pipeline::separate_stage::{DirectModel, SeparateParams, SeparationMethod};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
 
 #[derive(Debug, clap::Args)]
@@ -41,8 +41,8 @@ pub struct Args {
     /// not), `none` (all slit light counts as subsurface light) or `auto` (per pixel: the
     /// separation's direct image weighted by the share of the pixel's light it holds, 0 below
     /// `--direct-fraction-range`'s low end, 1 above its high end; none on light skin,
-    /// separation on very dark skin).
-    #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
+    /// separation on very dark skin, the default before the dichromatic separation).
+    #[arg(long, value_enum, default_value_t = DirectArg::Separation)]
     direct: DirectArg,
     /// Profiles stage, `--direct auto`: the direct fractions (low, high) between which the
     /// separated direct light goes from ignored to removed, e.g. `0.25,0.45`.
@@ -106,11 +106,16 @@ pub struct Args {
           value_parser = super::number_arg::non_negative_finite)]
     direct_smoothing: f64,
     /// Separate stage, `kernel`: how each pixel's kernel leak is read from its slit profile,
-    /// `cosine` (a cosine at the stripe frequency about the brightest slit) or `harmonics` (the
-    /// sweep's harmonics around it: exact for the profile, better on light skin, worse on dark
-    /// skin, whose direct reflection in the slits it counts as kernel).
-    #[arg(long, value_enum, default_value_t = LeakReadingArg::Cosine)]
+    /// `harmonics` (the sweep's harmonics around the stripe frequency: exact for the profile,
+    /// the skin's direct reflection included) or `cosine` (a cosine at the stripe frequency about
+    /// the brightest slit, the method before).
+    #[arg(long, value_enum, default_value_t = LeakReadingArg::Harmonics)]
     leak_reading: LeakReadingArg,
+    /// Separate stage, `kernel`: how the direct part is read from the leak-corrected split,
+    /// `dichromatic` (a colourless reflection plus the skin's body colour read from the split's
+    /// global part) or `colourless` (the mean of the channels' direct parts, the method before).
+    #[arg(long, value_enum, default_value_t = DirectModelArg::Dichromatic)]
+    direct_model: DirectModelArg,
     /// Normals stage: the images photometric stereo reads, `nayar-direct` (the Nayar baseline's
     /// direct part, whatever `--separation` says), `white` (the stray-free white frames),
     /// `direct` (the separation's direct part) or `global` (the separation's global part: white
@@ -135,6 +140,13 @@ pub struct Args {
     /// Print the report as one JSON object on stdout.
     #[arg(long)]
     json: bool,
+}
+
+/// `--direct-model` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum DirectModelArg {
+    Dichromatic,
+    Colourless,
 }
 
 /// `--leak-reading` values.
@@ -266,6 +278,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         leak_reading: match args.leak_reading {
             LeakReadingArg::Cosine => LeakReading::Cosine,
             LeakReadingArg::Harmonics => LeakReading::Harmonics,
+        },
+        direct_model: match args.direct_model {
+            DirectModelArg::Dichromatic => DirectModel::Dichromatic,
+            DirectModelArg::Colourless => DirectModel::Colourless,
         },
         ..SeparateParams::default()
     };

@@ -1,6 +1,7 @@
 //! Photometry: projector response calibration, direct/global separation and photometric stereo
 //! (DESIGN section 4, stages 4 and 5).
 
+pub mod dichromatic;
 pub mod image_set;
 pub mod kernel_leak;
 pub mod mat_file;

@@ -19,9 +19,10 @@
 //! box, the exponential the blur, which the separation accounts for in the pattern itself).
 //!
 //! What it cannot see, and how that shows:
-//! - The direct reflection sits in the brightest slit as if it were kernel; it is a few percent of
-//!   skin's light, so it raises `lambda` by about `Ld / T`, which the separation then treats as
-//!   global (a small, known underestimate of the direct part).
+//! - The direct reflection sits in the lit slit as if it were kernel, and so does the part of the
+//!   kernel narrower than a projector pixel (20-75 % of skin's subsurface light per channel on
+//!   the virtual booth): `lambda` is the transfer of reflection and kernel together, and a split
+//!   with it keeps almost no direct light. Colour separates them ([`super::dichromatic`]).
 //! - Slits as wide as the stripes (the full-size booth: both 3 px) sample the profile no finer
 //!   than the stripes themselves: `lambda` then equals the stripes' own contrast and the split
 //!   gives almost all light to the global part. Flagged by [`SlitLeakStats::coarse_slits`].
@@ -58,13 +59,15 @@ pub struct SweepGeometry {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum LeakReading {
-    /// A cosine at the stripe frequency about the brightest slit (the first method, default):
-    /// reads a narrow kernel low by the pixel's offset from that slit and a wide one low by its
-    /// wrapped tail, which on dark skin happens to offset the direct reflection the profile holds.
-    #[default]
+    /// A cosine at the stripe frequency about the brightest slit (the first method): reads a
+    /// narrow kernel low by the pixel's offset from that slit and a wide one low by its wrapped
+    /// tail, which on dark skin happens to offset the direct reflection the profile holds.
     Cosine,
     /// The sweep's harmonics around the stripe frequency ([`HarmonicPlan`]): the profile's
-    /// transfer read exactly, direct reflection included (see the module documentation).
+    /// transfer read exactly, direct reflection included (see the module documentation), so the
+    /// split keeps almost no direct light; the separate stage's default since its version 5,
+    /// which reads the direct part by colour instead (`super::dichromatic`).
+    #[default]
     Harmonics,
 }
 

@@ -116,11 +116,14 @@ pub const DEFAULT_DIRECT_FRACTION_RANGE: (f32, f32) = (0.25, 0.45);
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DirectPart {
-    /// The separation stage's direct image (its method: kernel-aware by default, or Nayar et
-    /// al.). Held-out relighting error on quick heads of seed 21
-    /// (`fit.heldout_global_rel_rmse.white.mlsss`, holdout 3): light skin 0.181 (`none` 0.090),
-    /// dark skin 0.129 (`none` 0.608, `--block 4`): the better rule for dark skin, the worse for
-    /// light skin (README).
+    /// Default. The separation stage's direct image (its method: kernel-aware by default, or
+    /// Nayar et al.). With the separate stage's version 5 (dichromatic direct part) the best
+    /// rule on every type tried: held-out relighting error on quick heads
+    /// (`fit.heldout_global_rel_rmse.white.mlsss`, holdout 3, components 4, block 6), seed 97
+    /// (seed 93): type I 0.069 (0.071) against `auto` 0.078 (0.082), V 0.098 (0.100) against
+    /// 0.219 (0.212), VI 0.127 (0.128) against 0.188 (0.191). With the separation before it
+    /// was the worse rule for light skin (seed 21: 0.181 against `none` 0.090; README).
+    #[default]
     Separation,
     /// None: all light of a slit frame counts as subsurface light, and renders get no direct
     /// part. Right where the surface reflection is a small part of the light (light skin away
@@ -135,13 +138,12 @@ pub enum DirectPart {
     /// is coloured and weakest in blue; the smallest channel bounds the surface reflection from
     /// above and the rest goes back to the subsurface part.
     Colourless,
-    /// Default. Per pixel from the data: the separation's direct image times a weight that
+    /// Per pixel from the data: the separation's direct image times a weight that
     /// grows with the share of the pixel's light the separation calls direct
     /// ([`auto_direct_weight`]). Where the surface reflection is small beside the subsurface
     /// light (light skin) this is [`DirectPart::None`], where it is large (dark skin,
     /// highlights) [`DirectPart::Separation`]: no skin type is needed, only the pixel's own
-    /// light.
-    #[default]
+    /// light. The default before the separate stage's version 5.
     Auto,
 }
 
@@ -213,7 +215,7 @@ impl Default for ProfilesParams {
             view_ray: ViewRay::ExitPoint,
             blur_edges: true,
             scanline_projector: 0,
-            direct: DirectPart::Auto,
+            direct: DirectPart::Separation,
             direct_fraction_range: DEFAULT_DIRECT_FRACTION_RANGE,
             coordinates: SlitCoordinates::Projected,
             compare_variants: false,
