@@ -374,27 +374,28 @@ pub fn evaluate_holdout(
     // Every pattern of one renderer is rendered in one go (the splats are found once).
     for (baseline, name) in &baselines {
         let start = Instant::now();
-        let relits = render_projector_patterns(model, k, &patterns, *baseline, opts).map_err(
-            |source| HoldoutError::Render {
-                projector: k,
-                pattern: patterns.iter().map(Pattern::label).collect::<Vec<_>>().join(","),
-                baseline: *baseline,
-                source,
-            },
-        )?;
+        let relits =
+            render_projector_patterns(model, k, &patterns, *baseline, opts).map_err(|source| {
+                HoldoutError::Render {
+                    projector: k,
+                    pattern: patterns
+                        .iter()
+                        .map(Pattern::label)
+                        .collect::<Vec<_>>()
+                        .join(","),
+                    baseline: *baseline,
+                    source,
+                }
+            })?;
         let seconds = start.elapsed().as_secs_f64() / patterns.len().max(1) as f64;
-        for (((scene, e), relit), &show) in scenes
-            .iter()
-            .zip(&mut evaluations)
-            .zip(relits)
-            .zip(&shown)
+        for (((scene, e), relit), &show) in
+            scenes.iter().zip(&mut evaluations).zip(relits).zip(&shown)
         {
             e.render_seconds += seconds;
             scene.add(e, *baseline, name, relit, show)?;
         }
     }
-    for ((pattern, e), (reference, true_global)) in
-        patterns.iter().zip(evaluations).zip(references)
+    for ((pattern, e), (reference, true_global)) in patterns.iter().zip(evaluations).zip(references)
     {
         pooled.add(&e, true_global.is_some(), pattern.label());
         per_pattern.push(PatternPsnr {
