@@ -82,7 +82,7 @@ fn flux() -> Vec<f32> {
             let x = i % WIDTH;
             (0..FRAMES).map(move |f| {
                 let period = 2 << (f % 6);
-                if (x / period + f / 6) % 2 == 0 {
+                if (x / period + f / 6).is_multiple_of(2) {
                     0.12
                 } else {
                     0.0

@@ -385,11 +385,14 @@ pub fn render_projector_patterns(
     )?)
 }
 
+/// A projector's coordinates of every surface pixel (`None` where it is not seen).
+type ProjectorCoords = Vec<Option<(f32, f32)>>;
+
 /// Projector `k`'s light and its coordinates of every visible surface pixel.
 fn projector_light(
     model: &SubsurfaceModel,
     k: usize,
-) -> Result<(&ProjectorLight, Vec<Option<(f32, f32)>>), ModelFileError> {
+) -> Result<(&ProjectorLight, ProjectorCoords), ModelFileError> {
     let light = model
         .header
         .projectors
