@@ -447,7 +447,12 @@ pub fn render_global_many(
     let (w, h) = (surface.width, surface.height);
     // Full-resolution bins per channel (from min_sigma_px up to the first pyramid level) are
     // most of a frame's bin memory.
-    let full_bins = (opts.bin_position(2.0 * opts.coarse_sigma_px).ceil() as usize + 2).min(64);
+    // (Without a pyramid, `coarse_sigma_px` is infinite: capped.)
+    let full_bins = opts
+        .bin_position(2.0 * opts.coarse_sigma_px)
+        .ceil()
+        .min(62.0) as usize
+        + 2;
     let frame_bytes = n * 3 * full_bins * std::mem::size_of::<f32>();
     let batch = (SPLAT_BATCH_BYTES / frame_bytes.max(1)).max(1);
     let mut out = Vec::with_capacity(irradiances.len());
