@@ -7,7 +7,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::profiles::{ProjectorIllumination, irradiance};
-use super::render::{LayerModel, RenderError, RenderOptions, render_global};
+use super::render::{LayerModel, RenderError, RenderOptions, render_global, render_global_many};
 use super::surface::{Surface, ViewRay, shift_per_depth};
 use mlsss_core::capture::Pattern;
 
@@ -350,4 +350,41 @@ pub fn relight(
         .map(|(&e, a)| [a[0] * e, a[1] * e, a[2] * e])
         .collect();
     Ok(Relit { direct, global })
+}
+
+/// [`relight`] under several patterns of the same projector at once, each frame exactly as
+/// [`relight`] renders it alone (the shifts are found once, the splats once per source: see
+/// [`render_global_many`]).
+#[allow(clippy::too_many_arguments)]
+pub fn relight_patterns(
+    surface: &Surface,
+    view: &ProjectorIllumination,
+    patterns: &[Pattern],
+    black_level: f32,
+    blur_px: f32,
+    model: &LayerModel,
+    albedo: &[[f32; 3]],
+    eta: f64,
+    view_ray: ViewRay,
+    opts: &RenderOptions,
+) -> Result<Vec<Relit>, RenderError> {
+    let irradiances: Vec<Vec<f32>> = patterns
+        .iter()
+        .map(|p| pattern_irradiance(surface, view, p, black_level, blur_px))
+        .collect();
+    let shift = shifts(surface, &view.centre, eta, view_ray);
+    let refs: Vec<&[f32]> = irradiances.iter().map(Vec::as_slice).collect();
+    let globals = render_global_many(surface, &refs, &shift, model, opts)?;
+    Ok(irradiances
+        .iter()
+        .zip(globals)
+        .map(|(e, global)| Relit {
+            direct: e
+                .iter()
+                .zip(albedo)
+                .map(|(&e, a)| [a[0] * e, a[1] * e, a[2] * e])
+                .collect(),
+            global,
+        })
+        .collect())
 }

@@ -366,6 +366,8 @@ impl RenderOptions {
 
 /// One sigma bin of one channel: the sources splatted on its pyramid level.
 struct Bin {
+    /// Index of the frame in a [`render_global_many`] batch (0 for [`render_global`]).
+    frame: usize,
     channel: usize,
     sigma_px: f64,
     level: u32,
@@ -409,7 +411,81 @@ pub fn render_global(
         return Ok(Vec::new());
     }
     let mut bins = splat_sources(surface, irradiance, shift, model, opts);
-    // Each bin is blurred on its own level; bins are independent jobs.
+    blur_bins(&mut bins, w, h, opts)?;
+    Ok(sum_bins(&bins, surface))
+}
+
+/// Renders the global images of several irradiance images under the same geometry and model
+/// (one frame per irradiance image), each exactly as [`render_global`] renders it alone. Why:
+/// most of a render is spent finding, per source and layer, where and into which sigma bins it
+/// splats (footprint, shift, bin position); that depends on the geometry and the model only, so
+/// it is found once per source for all the frames. Frames are splatted in batches of at most
+/// [`SPLAT_BATCH_BYTES`] of bin images.
+pub fn render_global_many(
+    surface: &Surface,
+    irradiances: &[&[f32]],
+    shift: &[Option<Vector3<f64>>],
+    model: &LayerModel,
+    opts: &RenderOptions,
+) -> Result<Vec<Vec<[f32; 3]>>, RenderError> {
+    opts.validate()?;
+    let n = surface.len();
+    for (what, got) in [
+        ("shift", shift.len()),
+        ("model", model.width * model.height),
+    ]
+    .into_iter()
+    .chain(irradiances.iter().map(|e| ("irradiance", e.len())))
+    {
+        if got != n {
+            return Err(RenderError::SizeMismatch { what, got, want: n });
+        }
+    }
+    if n == 0 {
+        return Ok(vec![Vec::new(); irradiances.len()]);
+    }
+    let (w, h) = (surface.width, surface.height);
+    // Full-resolution bins per channel (from min_sigma_px up to the first pyramid level) are
+    // most of a frame's bin memory.
+    // (Without a pyramid, `coarse_sigma_px` is infinite: capped.)
+    let full_bins = opts
+        .bin_position(2.0 * opts.coarse_sigma_px)
+        .ceil()
+        .min(62.0) as usize
+        + 2;
+    let frame_bytes = n * 3 * full_bins * std::mem::size_of::<f32>();
+    let batch = (SPLAT_BATCH_BYTES / frame_bytes.max(1)).max(1);
+    let mut out = Vec::with_capacity(irradiances.len());
+    for frames in irradiances.chunks(batch) {
+        let mut bins: Vec<Bin> = (0..3)
+            .into_par_iter()
+            .map(|c| splat_channel_frames(surface, frames, shift, model, opts, c))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .flatten()
+            .collect();
+        blur_bins(&mut bins, w, h, opts)?;
+        for f in 0..frames.len() {
+            // Per frame, the bins in the order `render_global` has them: channel by channel,
+            // each channel's in its order of first use.
+            let own: Vec<&Bin> = bins.iter().filter(|b| b.frame == f).collect();
+            out.push(sum_bin_refs(&own, surface));
+        }
+    }
+    Ok(out)
+}
+
+/// Most bytes of bin images [`render_global_many`] holds at once (frames are splatted in
+/// batches that fit).
+const SPLAT_BATCH_BYTES: usize = 768 << 20;
+
+/// Blurs every bin on its own level; bins are independent jobs.
+fn blur_bins(
+    bins: &mut [Bin],
+    w: usize,
+    h: usize,
+    opts: &RenderOptions,
+) -> Result<(), RenderError> {
     bins.par_iter_mut().try_for_each(|bin| {
         let (gw, gh) = level_grid(w, h, bin.level);
         let f = f64::from(1u32 << bin.level);
@@ -422,7 +498,20 @@ pub fn render_global(
         };
         gaussian_blur(&mut bin.image, gw, gh, sigma, opts.truncate_sigmas)
     })?;
-    // Sum the blurred bins per channel and level, then bring every level back to full resolution.
+    Ok(())
+}
+
+/// The global image from one frame's blurred bins.
+fn sum_bins(bins: &[Bin], surface: &Surface) -> Vec<[f32; 3]> {
+    let refs: Vec<&Bin> = bins.iter().collect();
+    sum_bin_refs(&refs, surface)
+}
+
+/// Sums the blurred bins per channel and level, brings every level back to full resolution and
+/// turns the deposited flux into radiance.
+fn sum_bin_refs(bins: &[&Bin], surface: &Surface) -> Vec<[f32; 3]> {
+    let (w, h) = (surface.width, surface.height);
+    let n = surface.len();
     let mut out = vec![[0.0f32; 3]; n];
     let levels: std::collections::BTreeSet<u32> = bins.iter().map(|b| b.level).collect();
     for level in levels {
@@ -445,7 +534,7 @@ pub fn render_global(
             }
             None => *o = [0.0; 3],
         });
-    Ok(out)
+    out
 }
 
 /// Forward-warps every lit source by each layer's shift into the images of its two sigma bins
@@ -516,6 +605,7 @@ fn splat_channel(
                     let level = opts.bin_level(sigma_px);
                     let (gw, gh) = level_grid(w, h, level);
                     bins.push(Bin {
+                        frame: 0,
                         channel: c,
                         sigma_px,
                         level,
@@ -538,6 +628,114 @@ fn splat_channel(
         }
     }
     bins
+}
+
+/// Where one layer of one source lands: for each of its two sigma bins, the bin, its share of the
+/// layer and the splat position on the bin's pyramid level.
+struct LayerSplat {
+    weight: f32,
+    targets: [Option<(usize, f64, BilinearAt)>; 2],
+}
+
+/// The splats of source `i`'s layers of channel `c` (none where it has no shift or footprint),
+/// and its area: all of [`splat_channel`]'s work that does not depend on the irradiance.
+fn layer_splats(
+    surface: &Surface,
+    shift: &[Option<Vector3<f64>>],
+    model: &LayerModel,
+    opts: &RenderOptions,
+    c: usize,
+    i: usize,
+    splats: &mut Vec<LayerSplat>,
+) -> f64 {
+    splats.clear();
+    let (Some(t), Some(fp)) = (shift[i], surface.footprint(i)) else {
+        return 0.0;
+    };
+    let w = surface.width;
+    let area = fp.area();
+    let pixel_mm = area.sqrt();
+    let (x, y) = ((i % w) as f64, (i / w) as f64);
+    let layers = model.layers(i, c);
+    let total: f32 = layers.iter().map(|l| l.weight).sum();
+    for l in layers {
+        if l.weight.is_nan() || l.weight <= opts.min_relative_weight * total {
+            continue;
+        }
+        let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
+            continue;
+        };
+        let pos = opts.bin_position(f64::from(l.sigma_mm) / pixel_mm);
+        let b0 = pos.floor() as usize;
+        let frac = pos - b0 as f64;
+        let target = |b: usize, share: f64| {
+            (share > 0.0).then(|| {
+                let f = f64::from(1u32 << opts.bin_level(opts.bin_sigma(b)));
+                (b, share, bilinear_at((x + d.x) / f, (y + d.y) / f))
+            })
+        };
+        splats.push(LayerSplat {
+            weight: l.weight,
+            targets: [target(b0, 1.0 - frac), target(b0 + 1, frac)],
+        });
+    }
+    area
+}
+
+/// [`splat_channel`] for several frames at once (`frames[f]` = frame `f`'s irradiance): each
+/// frame gets exactly the bins, in the same order, that [`splat_channel`] makes for it alone.
+fn splat_channel_frames(
+    surface: &Surface,
+    frames: &[&[f32]],
+    shift: &[Option<Vector3<f64>>],
+    model: &LayerModel,
+    opts: &RenderOptions,
+    c: usize,
+) -> Vec<Bin> {
+    let (w, h) = (surface.width, surface.height);
+    let mut index: Vec<Vec<Option<usize>>> = vec![Vec::new(); frames.len()];
+    let mut bins: Vec<Vec<Bin>> = (0..frames.len()).map(|_| Vec::new()).collect();
+    let mut splats = Vec::new();
+    let lit = |e: f32| !(e.is_nan() || e <= 0.0);
+    for i in 0..surface.len() {
+        if !frames.iter().any(|e| lit(e[i])) {
+            continue;
+        }
+        let area = layer_splats(surface, shift, model, opts, c, i, &mut splats);
+        for (f, irradiance) in frames.iter().enumerate() {
+            let e = irradiance[i];
+            if !lit(e) {
+                continue;
+            }
+            for l in &splats {
+                let amount = f64::from(l.weight) * f64::from(e) * area;
+                for &(b, share, at) in l.targets.iter().flatten() {
+                    let index = &mut index[f];
+                    if index.len() <= b {
+                        index.resize(b + 1, None);
+                    }
+                    let bins = &mut bins[f];
+                    let k = *index[b].get_or_insert_with(|| {
+                        let sigma_px = opts.bin_sigma(b);
+                        let level = opts.bin_level(sigma_px);
+                        let (gw, gh) = level_grid(w, h, level);
+                        bins.push(Bin {
+                            frame: f,
+                            channel: c,
+                            sigma_px,
+                            level,
+                            image: vec![0.0; gw * gh],
+                        });
+                        bins.len() - 1
+                    });
+                    let bin = &mut bins[k];
+                    let (gw, gh) = level_grid(w, h, bin.level);
+                    splat_at(&mut bin.image, gw, gh, at, (amount * share) as f32);
+                }
+            }
+        }
+    }
+    bins.into_iter().flatten().collect()
 }
 
 /// Adds the level-`level` flux image `coarse` (`gw` wide), bilinearly interpolated, to the flux
@@ -583,8 +781,32 @@ fn add_upsampled(
 }
 
 fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f32) {
+    splat_at(img, w, h, bilinear_at(x, y), amount);
+}
+
+/// The pixel below and left of `(x, y)` and the fractions towards the next ones.
+#[derive(Debug, Clone, Copy)]
+struct BilinearAt {
+    x0: f64,
+    y0: f64,
+    fx: f32,
+    fy: f32,
+}
+
+fn bilinear_at(x: f64, y: f64) -> BilinearAt {
     let (x0, y0) = (x.floor(), y.floor());
-    let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
+    BilinearAt {
+        x0,
+        y0,
+        fx: (x - x0) as f32,
+        fy: (y - y0) as f32,
+    }
+}
+
+/// [`splat_bilinear`] at a position found by [`bilinear_at`].
+#[inline]
+fn splat_at(img: &mut [f32], w: usize, h: usize, at: BilinearAt, amount: f32) {
+    let BilinearAt { x0, y0, fx, fy } = at;
     for (dx, dy, share) in [
         (0, 0, (1.0 - fx) * (1.0 - fy)),
         (1, 0, fx * (1.0 - fy)),
@@ -780,6 +1002,70 @@ mod tests {
                 worst < 0.005 && rms < 0.01,
                 "case {case}: worst {worst:.5} of the peak, rms {rms:.5}"
             );
+        }
+    }
+
+    /// The batched renderer gives every frame exactly (bit for bit) what `render_global`
+    /// gives it alone: frames lit in different places (a pixel unlit in one frame lit in
+    /// another, NaN and negative irradiance among them), random per-pixel layers, shifts that
+    /// vary per pixel and some pixels without a shift, on the pyramid and at full resolution,
+    /// with a batch of one frame and of several.
+    #[test]
+    fn many_frames_render_as_each_frame_alone() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(29);
+        let (w, h, pitch) = (53, 41, 0.2);
+        let surface = plane(w, h, pitch);
+        let frames: Vec<Vec<f32>> = (0..5)
+            .map(|f| {
+                (0..w * h)
+                    .map(|i| match (i % w + f) % 7 {
+                        0 => f32::NAN,
+                        1 => -0.3,
+                        2 | 3 => 0.0,
+                        _ => rng.gen_range(0.1..1.0),
+                    })
+                    .collect()
+            })
+            .collect();
+        let rows: Vec<Vec<SplatLayer>> = (0..w * h * 3)
+            .map(|_| {
+                (0..rng.gen_range(0..=3))
+                    .map(|k| SplatLayer {
+                        index: k,
+                        weight: rng.gen_range(0.0..1.0),
+                        sigma_mm: (0.05f32.ln() + rng.gen_range(0.0..1.0f32) * 120f32.ln()).exp(),
+                        depth_mm: rng.gen_range(0.0..1.5),
+                    })
+                    .collect()
+            })
+            .collect();
+        let model = LayerModel::from_fn(w, h, |i, c| rows[i * 3 + c].clone());
+        let shift: Vec<Option<Vector3<f64>>> = (0..w * h)
+            .map(|_| {
+                rng.gen_bool(0.95)
+                    .then(|| Vector3::new(rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8), 0.0))
+            })
+            .collect();
+        for opts in [
+            RenderOptions::default(),
+            RenderOptions {
+                coarse_sigma_px: f64::INFINITY,
+                ..RenderOptions::default()
+            },
+        ] {
+            let alone: Vec<Vec<[f32; 3]>> = frames
+                .iter()
+                .map(|e| render_global(&surface, e, &shift, &model, &opts).unwrap())
+                .collect();
+            assert!(alone.iter().flatten().flatten().any(|&v| v > 0.0));
+            let refs: Vec<&[f32]> = frames.iter().map(Vec::as_slice).collect();
+            let many = render_global_many(&surface, &refs, &shift, &model, &opts).unwrap();
+            assert_eq!(many, alone);
+            for f in 0..frames.len() {
+                let one = render_global_many(&surface, &refs[f..f + 1], &shift, &model, &opts);
+                assert_eq!(one.unwrap()[0], alone[f], "frame {f} alone");
+            }
         }
     }
 

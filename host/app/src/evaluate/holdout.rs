@@ -23,7 +23,9 @@ use super::metrics::{MetricsError, SquaredErrors};
 use crate::report::figures::RelitImages;
 use mlsss_core::capture::{Axis, Capture, CaptureError, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
-use mlsss_layer_model::model_file::{Baseline, ModelFileError, SubsurfaceModel, render_projector};
+use mlsss_layer_model::model_file::{
+    Baseline, ModelFileError, SubsurfaceModel, render_projector_patterns,
+};
 use mlsss_layer_model::relight::Relit;
 use mlsss_layer_model::render::RenderOptions;
 use mlsss_vision::photometry::response::stray_light;
@@ -339,6 +341,7 @@ pub fn evaluate_holdout(
     let mut per_pattern = Vec::new();
     let mut kept = Vec::new();
     let mut slits = Vec::new();
+    let mut references = Vec::with_capacity(patterns.len());
     for pattern in &patterns {
         let reference = reference_image(capture, k, pattern, &stray)?;
         let true_global = match &truth_dir {
@@ -347,15 +350,53 @@ pub fn evaluate_holdout(
             )),
             _ => None,
         };
-        let scene = PatternScene {
-            model,
-            k,
+        references.push((reference, true_global));
+    }
+    // The figures show the white and the first Gray-code pattern: only their renders are kept.
+    let first_gray = patterns
+        .iter()
+        .position(|p| matches!(p, Pattern::Gray { .. }));
+    let shown: Vec<bool> = (0..patterns.len())
+        .map(|i| matches!(patterns[i], Pattern::White) || Some(i) == first_gray)
+        .collect();
+    let scenes: Vec<PatternScene> = patterns
+        .iter()
+        .zip(&references)
+        .map(|(pattern, (reference, true_global))| PatternScene {
             pattern,
-            reference: &reference,
+            reference,
             true_global: true_global.as_deref(),
             mask: &mask,
-        };
-        let e = scene.evaluate(&baselines, opts)?;
+        })
+        .collect();
+    let mut evaluations: Vec<PatternEvaluation> =
+        scenes.iter().map(PatternScene::new_evaluation).collect();
+    // Every pattern of one renderer is rendered in one go (the splats are found once).
+    for (baseline, name) in &baselines {
+        let start = Instant::now();
+        let relits =
+            render_projector_patterns(model, k, &patterns, *baseline, opts).map_err(|source| {
+                HoldoutError::Render {
+                    projector: k,
+                    pattern: patterns
+                        .iter()
+                        .map(Pattern::label)
+                        .collect::<Vec<_>>()
+                        .join(","),
+                    baseline: *baseline,
+                    source,
+                }
+            })?;
+        let seconds = start.elapsed().as_secs_f64() / patterns.len().max(1) as f64;
+        for (((scene, e), relit), &show) in
+            scenes.iter().zip(&mut evaluations).zip(relits).zip(&shown)
+        {
+            e.render_seconds += seconds;
+            scene.add(e, *baseline, name, relit, show)?;
+        }
+    }
+    for ((pattern, e), (reference, true_global)) in patterns.iter().zip(evaluations).zip(references)
+    {
         pooled.add(&e, true_global.is_some(), pattern.label());
         per_pattern.push(PatternPsnr {
             pattern: pattern.label(),
@@ -368,11 +409,7 @@ pub fn evaluate_holdout(
                 renders: e.slit_globals,
             });
         }
-        let first_gray = matches!(pattern, Pattern::Gray { .. })
-            && !kept
-                .iter()
-                .any(|i: &RelitImages| i.pattern != Pattern::White.label());
-        if matches!(pattern, Pattern::White) || first_gray {
+        if !e.renders.is_empty() {
             kept.push(RelitImages {
                 pattern: pattern.label(),
                 width: model.header.width as u32,
@@ -447,8 +484,6 @@ fn reference_image(
 
 /// What one pattern of the held-out projector is compared with.
 struct PatternScene<'a> {
-    model: &'a SubsurfaceModel,
-    k: usize,
     pattern: &'a Pattern,
     reference: &'a [[f32; 3]],
     true_global: Option<&'a [[f32; 3]]>,
@@ -473,54 +508,52 @@ fn metric_err(what: String) -> impl FnOnce(MetricsError) -> HoldoutError {
 }
 
 impl PatternScene<'_> {
-    /// Renders the pattern with every baseline and compares.
-    fn evaluate(
-        &self,
-        baselines: &[(Baseline, &str)],
-        opts: &RenderOptions,
-    ) -> Result<PatternEvaluation, HoldoutError> {
-        let label = self.pattern.label();
-        let keep_slit =
-            matches!(self.pattern, Pattern::Slit { offset: 0, .. }) && self.true_global.is_some();
-        let mut e = PatternEvaluation {
+    /// An evaluation with no renderer yet.
+    fn new_evaluation(&self) -> PatternEvaluation {
+        PatternEvaluation {
             psnr_db: BTreeMap::new(),
             total: Vec::new(),
             global: Vec::new(),
             renders: Vec::new(),
-            keep_slit,
+            keep_slit: matches!(self.pattern, Pattern::Slit { offset: 0, .. })
+                && self.true_global.is_some(),
             slit_globals: Vec::new(),
             render_seconds: 0.0,
-        };
-        for (baseline, name) in baselines {
-            let start = Instant::now();
-            let relit: Relit = render_projector(self.model, self.k, self.pattern, *baseline, opts)
-                .map_err(|source| HoldoutError::Render {
-                    projector: self.k,
-                    pattern: label.clone(),
-                    baseline: *baseline,
-                    source,
-                })?;
-            e.render_seconds += start.elapsed().as_secs_f64();
-            let rendered = relit.total();
-            let sums = SquaredErrors::accumulate(&rendered, self.reference, self.mask)
-                .map_err(metric_err(format!("{name} under {label}")))?;
-            e.total.push(sums);
-            let errors = sums
-                .errors()
-                .map_err(metric_err(format!("{name} under {label}")))?;
-            e.psnr_db.insert((*name).into(), errors.psnr_db);
-            let mut global = SquaredErrors::default();
-            if let (Some(tg), false) = (self.true_global, *baseline == Baseline::Direct) {
-                global = SquaredErrors::accumulate(&relit.global, tg, self.mask)
-                    .map_err(metric_err(format!("{name} global under {label}")))?;
-                if keep_slit {
-                    e.slit_globals.push((*baseline, relit.global));
-                }
-            }
-            e.global.push(global);
-            e.renders.push(((*name).to_owned(), rendered));
         }
-        Ok(e)
+    }
+
+    /// Compares one renderer's render of the pattern (renderers are added in the order of the
+    /// baselines); keeps the render when `show`.
+    fn add(
+        &self,
+        e: &mut PatternEvaluation,
+        baseline: Baseline,
+        name: &str,
+        relit: Relit,
+        show: bool,
+    ) -> Result<(), HoldoutError> {
+        let label = self.pattern.label();
+        let rendered = relit.total();
+        let sums = SquaredErrors::accumulate(&rendered, self.reference, self.mask)
+            .map_err(metric_err(format!("{name} under {label}")))?;
+        e.total.push(sums);
+        let errors = sums
+            .errors()
+            .map_err(metric_err(format!("{name} under {label}")))?;
+        e.psnr_db.insert(name.into(), errors.psnr_db);
+        let mut global = SquaredErrors::default();
+        if let (Some(tg), false) = (self.true_global, baseline == Baseline::Direct) {
+            global = SquaredErrors::accumulate(&relit.global, tg, self.mask)
+                .map_err(metric_err(format!("{name} global under {label}")))?;
+            if e.keep_slit {
+                e.slit_globals.push((baseline, relit.global));
+            }
+        }
+        e.global.push(global);
+        if show {
+            e.renders.push((name.to_owned(), rendered));
+        }
+        Ok(())
     }
 }
 

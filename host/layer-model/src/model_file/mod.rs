@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use super::fit::{EmVariant, FitStats};
 use super::profiles::{Falloff, ProjectorIllumination};
-use super::relight::{Relit, relight};
+use super::relight::{Relit, relight, relight_patterns};
 use super::render::{LayerModel, RenderError, RenderOptions, SplatLayer};
 use super::surface::{Surface, ViewRay};
 use mlsss_core::booth::PatternSpec;
@@ -352,6 +352,80 @@ pub fn render_pattern_alone(
     opts: &RenderOptions,
 ) -> Result<Relit, ModelFileError> {
     render_with_black_level(model, k, pattern, baseline, opts, |_| 0.0)
+}
+
+/// [`render_projector`] under several patterns: the same frames, each as [`render_projector`]
+/// renders it, for much less than one render per pattern (the baseline's layers, the
+/// projector's coordinates, the shifts and the splat positions are found once).
+pub fn render_projector_patterns(
+    model: &SubsurfaceModel,
+    k: usize,
+    patterns: &[Pattern],
+    baseline: Baseline,
+    opts: &RenderOptions,
+) -> Result<Vec<Relit>, ModelFileError> {
+    let (light, coords) = projector_light(model, k)?;
+    let view = ProjectorIllumination {
+        centre: Vector3::from(light.centre),
+        falloff: light.falloff,
+        coords: &coords,
+    };
+    let (layers, albedo) = baseline_layers(model, baseline)?;
+    Ok(relight_patterns(
+        &model.surface,
+        &view,
+        patterns,
+        light.black_level,
+        light.blur_px,
+        &layers,
+        albedo,
+        model.header.eta,
+        model.header.view_ray,
+        opts,
+    )?)
+}
+
+/// A projector's coordinates of every surface pixel (`None` where it is not seen).
+type ProjectorCoords = Vec<Option<(f32, f32)>>;
+
+/// Projector `k`'s light and its coordinates of every visible surface pixel.
+fn projector_light(
+    model: &SubsurfaceModel,
+    k: usize,
+) -> Result<(&ProjectorLight, ProjectorCoords), ModelFileError> {
+    let light = model
+        .header
+        .projectors
+        .get(k)
+        .ok_or(ModelFileError::NoSuchProjector {
+            requested: k,
+            count: model.header.projectors.len(),
+        })?;
+    Ok((light, model.projector_coords(k)?))
+}
+
+/// The layers and direct albedo a baseline renders with.
+fn baseline_layers(
+    model: &SubsurfaceModel,
+    baseline: Baseline,
+) -> Result<(std::borrow::Cow<'_, LayerModel>, &[[f32; 3]]), ModelFileError> {
+    use std::borrow::Cow;
+    Ok(match baseline {
+        Baseline::Mlsss => (Cow::Borrowed(&model.layers), &model.albedo),
+        Baseline::Homogeneous => (Cow::Owned(model.homogeneous()), &model.albedo),
+        Baseline::Dipole => (
+            Cow::Borrowed(model.dipole.as_ref().ok_or(ModelFileError::NoDipole)?),
+            &model.albedo,
+        ),
+        Baseline::Direct => (
+            Cow::Owned(LayerModel::from_fn(
+                model.header.width,
+                model.header.height,
+                |_, _| Vec::new(),
+            )),
+            &model.white_albedo,
+        ),
+    })
 }
 
 fn render_with_black_level(

@@ -181,6 +181,25 @@ struct LevelCells {
     width: usize,
     height: usize,
     cells: Vec<Option<Cell>>,
+    /// Each cell's point (zero where there is no cell), apart from the rest of the cell: the
+    /// search around an output cell reads every candidate's point but the whole cell (~100
+    /// bytes) of the few within reach only.
+    points: Vec<[f32; 3]>,
+}
+
+impl LevelCells {
+    fn new(cells: Vec<Option<Cell>>, width: usize, height: usize) -> Self {
+        let points = cells
+            .iter()
+            .map(|c| c.as_ref().map_or([0.0; 3], |c| c.point))
+            .collect();
+        Self {
+            width,
+            height,
+            cells,
+            points,
+        }
+    }
 }
 
 /// The subsurface transport of one projector's light on one camera view.
@@ -207,19 +226,16 @@ impl<'k> SubsurfaceOperator<'k> {
             .iter()
             .map(|level| {
                 let (w, h) = (width.div_ceil(level.scale), height.div_ceil(level.scale));
-                LevelCells {
-                    width: w,
-                    height: h,
-                    cells: aggregate(
-                        width,
-                        height,
-                        entries,
-                        level.scale,
-                        w,
-                        h,
-                        &kernel.angles_deg,
-                    ),
-                }
+                let cells = aggregate(
+                    width,
+                    height,
+                    entries,
+                    level.scale,
+                    w,
+                    h,
+                    &kernel.angles_deg,
+                );
+                LevelCells::new(cells, w, h)
             })
             .collect();
         let points = entries
@@ -298,6 +314,7 @@ impl<'k> SubsurfaceOperator<'k> {
 
 /// Adds `sum over pairs of K * flux(source)` (minus the first-moment correction
 /// `grad K . m(source)` when `moments` are given) to `acc` = `[c * frames + f]`.
+#[inline(always)]
 fn sum_pairs(
     pairs: &[Pair],
     flux: &[f32],
@@ -470,6 +487,28 @@ struct Pair {
     gy: [f32; 3],
 }
 
+/// What every output row of one level's evaluation reads.
+struct RowInputs<'a> {
+    grid: &'a LevelCells,
+    /// Per cell: on the skin and lit in some frame.
+    lit: &'a [bool],
+    flux: &'a [f32],
+    moments: Option<(&'a [f32], &'a [f32])>,
+    frames: usize,
+}
+
+/// Whether this CPU runs AVX2 (the pair sums then use [`KernelLevel::evaluate_row_avx2`]).
+fn avx2_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Frames are summed in blocks of this many: the block's accumulators stay in registers while
 /// every source of an output cell is visited, instead of a read-modify-write of every frame's
 /// accumulator per pair.
@@ -496,23 +535,65 @@ impl KernelLevel {
                     && flux[i * frames..(i + 1) * frames].iter().any(|&v| v > 0.0)
             })
             .collect();
+        let rows = RowInputs {
+            grid,
+            lit: &lit,
+            flux,
+            moments,
+            frames,
+        };
+        let avx2 = avx2_available();
         out.par_chunks_mut(w * 3 * frames)
             .enumerate()
             .for_each_init(Vec::new, |pairs, (oy, row)| {
-                for ox in 0..w {
-                    let Some(o) = &grid.cells[oy * w + ox] else {
-                        continue;
-                    };
-                    pairs.clear();
-                    self.gather_pairs(grid, &lit, o, [ox, oy], moments.is_some(), pairs);
-                    let acc = &mut row[ox * 3 * frames..(ox + 1) * 3 * frames];
-                    sum_pairs(pairs, flux, moments, frames, acc);
+                #[cfg(target_arch = "x86_64")]
+                if avx2 {
+                    // SAFETY: AVX2 was detected on this CPU.
+                    unsafe { self.evaluate_row_avx2(&rows, oy, row, pairs) };
+                    return;
                 }
+                let _ = avx2;
+                self.evaluate_row(&rows, oy, row, pairs);
             });
+    }
+
+    /// Output row `oy` of [`Self::evaluate_into`] (`row` = its cells' accumulators; `pairs`
+    /// is scratch).
+    #[inline(always)]
+    fn evaluate_row(&self, rows: &RowInputs, oy: usize, row: &mut [f32], pairs: &mut Vec<Pair>) {
+        let (grid, frames) = (rows.grid, rows.frames);
+        let w = grid.width;
+        for ox in 0..w {
+            let Some(o) = &grid.cells[oy * w + ox] else {
+                continue;
+            };
+            pairs.clear();
+            self.gather_pairs(grid, rows.lit, o, [ox, oy], rows.moments.is_some(), pairs);
+            let acc = &mut row[ox * 3 * frames..(ox + 1) * 3 * frames];
+            sum_pairs(pairs, rows.flux, rows.moments, frames, acc);
+        }
+    }
+
+    /// [`Self::evaluate_row`] compiled for AVX2: the same operations in the same order (no
+    /// fused multiply-add), so the same results bit for bit, on wider vectors.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn evaluate_row_avx2(
+        &self,
+        rows: &RowInputs,
+        oy: usize,
+        row: &mut [f32],
+        pairs: &mut Vec<Pair>,
+    ) {
+        self.evaluate_row(rows, oy, row, pairs);
     }
 
     /// The lit source cells within this band's reach of output cell `o` (at `[ox, oy]`) and
     /// their band responses (with derivatives when `gradient`).
+    #[inline(always)]
     fn gather_pairs(
         &self,
         grid: &LevelCells,
@@ -535,16 +616,13 @@ impl KernelLevel {
                 if !lit[si] {
                     continue;
                 }
-                let Some(s) = &grid.cells[si] else { continue };
-                let d = [
-                    o.point[0] - s.point[0],
-                    o.point[1] - s.point[1],
-                    o.point[2] - s.point[2],
-                ];
+                let p = grid.points[si];
+                let d = [o.point[0] - p[0], o.point[1] - p[1], o.point[2] - p[2]];
                 let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                 if r >= r_max || r < r_min {
                     continue;
                 }
+                let Some(s) = &grid.cells[si] else { continue };
                 let response = if gradient {
                     self.kernel::<true>(s, d, r)
                 } else {
@@ -569,7 +647,7 @@ impl KernelLevel {
     /// Band response from source cell `s` at offset `d` (world mm, |d| = r), and (when
     /// `GRADIENT`) its derivatives with respect to the offset along the cell's forward and side
     /// axes; `None` beyond the tables.
-    #[inline]
+    #[inline(always)]
     fn kernel<const GRADIENT: bool>(&self, s: &Cell, d: [f32; 3], r: f32) -> Option<[[f32; 3]; 3]> {
         let dot = |a: [f32; 3]| a[0] * d[0] + a[1] * d[1] + a[2] * d[2];
         let (mut x, mut y) = (dot(s.forward), dot(s.side));

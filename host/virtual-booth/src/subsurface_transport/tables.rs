@@ -132,6 +132,10 @@ impl BandTable {
 
 /// Every (material, angle) table of one level interleaved texel by texel, so that one pair of
 /// cells costs one index computation and four contiguous texel reads whatever the material mix.
+/// Within a texel the tables go angle by angle, the materials of one angle side by side
+/// (`[angle][material]`): a cell mixes two neighbouring angles of up to all four materials, i.e.
+/// two runs of 64 bytes per corner instead of one 32-byte run per material, each in its own
+/// cache line (the lookups are bound by those reads).
 /// Each table's texel is padded to four lanes (R, G, B, 0): a tap then mixes one 4-wide vector
 /// per corner (one SIMD multiply-add) instead of three scalar ones.
 #[derive(Debug, Clone)]
@@ -139,7 +143,7 @@ pub(super) struct PackedTables {
     pub(super) spacing: f32,
     pub(super) half: usize,
     pub(super) side: usize,
-    /// Tables per texel: materials x angles, ordered `[material][angle]`.
+    /// Tables per texel: [`MATERIALS`] x angles, ordered `[angle][material]`.
     pub(super) stride: usize,
     pub(super) values: Vec<[f32; 4]>,
 }
@@ -151,13 +155,15 @@ pub(super) struct Tap {
     pub(super) weight: f32,
 }
 
+/// Basis materials a cell mixes.
+pub(super) const MATERIALS: usize = 4;
 /// At most two angles for each of the four basis materials.
-pub(super) const MAX_TAPS: usize = 8;
+pub(super) const MAX_TAPS: usize = 2 * MATERIALS;
 
 /// The tables a cell of these material weights and angle interpolation mixes, with their
 /// weights (materials below 1e-4 are skipped), for tables packed with `angles` angles.
 pub(super) fn mix_taps(
-    materials: &[f32; 4],
+    materials: &[f32; MATERIALS],
     angle_index: u16,
     angle_t: f32,
     angles: usize,
@@ -170,7 +176,7 @@ pub(super) fn mix_taps(
             continue;
         }
         let (w_lo, w_hi) = (wm * (1.0 - angle_t), wm * angle_t);
-        let offset = |a: usize| (m * angles + a) as u32;
+        let offset = |a: usize| (a * MATERIALS + m) as u32;
         taps[count] = Tap {
             offset: offset(a0),
             weight: w_lo,
@@ -203,13 +209,14 @@ impl PackedTables {
         let reach = band.r_max().min(response_reach_mm) + FILTER_REACH_CELLS * cell_size_mm;
         let half = (reach / spacing).ceil() as usize;
         let side = 2 * half + 1;
-        let stride = grids.len() * angles;
+        debug_assert!(grids.len() <= MATERIALS);
+        let stride = MATERIALS * angles;
         let mut values = vec![[0.0f32; 4]; side * side * stride];
         for (m, per_angle) in grids.iter().enumerate() {
             for (a, grid) in per_angle.iter().take(angles).enumerate() {
                 let table = BandTable::build(grid, band, cell_size_mm, spacing, half);
                 debug_assert!(table.half == half && table.spacing == spacing);
-                let offset = m * angles + a;
+                let offset = a * MATERIALS + m;
                 for (i, v) in table.values.iter().enumerate() {
                     values[i * stride + offset] = [v[0], v[1], v[2], 0.0];
                 }
@@ -226,7 +233,7 @@ impl PackedTables {
 
     /// The weighted mix of the tables `taps` at (x, y), mm, bilinearly interpolated, with its
     /// gradient (d/dx, d/dy) when `GRADIENT`; `None` outside the tables (where they are zero).
-    #[inline]
+    #[inline(always)]
     pub(super) fn lookup<const GRADIENT: bool>(
         &self,
         x: f32,

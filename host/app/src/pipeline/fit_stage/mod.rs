@@ -51,7 +51,7 @@ use mlsss_layer_model::layer_depth::SpacingEstimate;
 use mlsss_layer_model::mixture::{EmConfig, Profile};
 use mlsss_layer_model::model_file::{
     Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, SubsurfaceModel,
-    render_pattern_alone, render_projector,
+    render_pattern_alone, render_projector_patterns,
 };
 use mlsss_layer_model::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use mlsss_layer_model::relight::{direct_albedo, pattern_irradiance};
@@ -796,10 +796,12 @@ fn heldout_errors(
         offset: 0,
     };
     let patterns = [Pattern::White, slit(Axis::X), slit(Axis::Y)];
-    let mut out = BTreeMap::new();
     let opts = RenderOptions::default();
-    for pattern in &patterns {
-        let path = truth::global(truth_dir, h, pattern);
+    // The patterns with a truth image of the model's size, and that truth.
+    let mut compared = Vec::new();
+    let mut truths: Vec<Vec<[f32; 3]>> = Vec::new();
+    for pattern in patterns {
+        let path = truth::global(truth_dir, h, &pattern);
         if !path.is_file() {
             continue;
         }
@@ -807,30 +809,35 @@ fn heldout_errors(
         if img.dimensions() != size {
             continue;
         }
-        let truth: Vec<[f32; 3]> = img.pixels().map(|p| p.0).collect();
-        let mut entry = BTreeMap::new();
-        for (name, baseline) in [
-            ("mlsss", Baseline::Mlsss),
-            ("homogeneous", Baseline::Homogeneous),
-            ("dipole", Baseline::Dipole),
-        ] {
-            match render_projector(model, h, pattern, baseline, &opts) {
-                Ok(r) => match rel_rmse(&r.global, &truth, &mask) {
-                    Some(error) => {
-                        entry.insert(name.into(), error);
-                    }
-                    None => {
-                        return Err(FitStageError::NothingToCompare {
-                            projector: h,
-                            pattern: pattern.label(),
-                        });
-                    }
-                },
-                Err(ModelFileError::NoDipole) => {}
-                Err(e) => return Err(e.into()),
-            }
+        truths.push(img.pixels().map(|p| p.0).collect());
+        compared.push(pattern);
+    }
+    let mut out: BTreeMap<String, BTreeMap<String, f64>> = compared
+        .iter()
+        .map(|p| (p.label(), BTreeMap::new()))
+        .collect();
+    for (name, baseline) in [
+        ("mlsss", Baseline::Mlsss),
+        ("homogeneous", Baseline::Homogeneous),
+        ("dipole", Baseline::Dipole),
+    ] {
+        // Every pattern of one renderer in one go: the splats are found once.
+        let relits = match render_projector_patterns(model, h, &compared, baseline, &opts) {
+            Ok(r) => r,
+            Err(ModelFileError::NoDipole) => continue,
+            Err(e) => return Err(e.into()),
+        };
+        for ((pattern, truth), r) in compared.iter().zip(&truths).zip(relits) {
+            let error = rel_rmse(&r.global, truth, &mask).ok_or_else(|| {
+                FitStageError::NothingToCompare {
+                    projector: h,
+                    pattern: pattern.label(),
+                }
+            })?;
+            out.entry(pattern.label())
+                .or_default()
+                .insert(name.into(), error);
         }
-        out.insert(pattern.label(), entry);
     }
     Ok(out)
 }
