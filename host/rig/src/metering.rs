@@ -33,15 +33,17 @@ pub fn metering_plan(projectors: &[u8]) -> FramePlan {
 
 /// Meters `projectors` on the rig: runs the metering frames through `session` (written as a
 /// capture under `scratch`, a folder that must not exist and that the caller removes), and
-/// returns each projector's exposure.
+/// returns each projector's exposure, chosen for `target` (whose `max_analog_gain` must be 1
+/// for a camera whose gain the rig does not set per projector).
 pub fn meter_projectors<L: ByteLink>(
     session: &mut Session<L>,
     booth: &Booth,
     projectors: &[u8],
     scratch: &Path,
-    projector: &mut dyn ProjectorBackend,
-    camera: Box<dyn CameraBackend>,
+    backends: (&mut dyn ProjectorBackend, Box<dyn CameraBackend>),
+    target: &MeteringTarget,
 ) -> Result<Vec<ProjectorExposure>, RigError> {
+    let (projector, camera) = backends;
     let plan = metering_plan(projectors);
     let schedule = RigSchedule::from_plan(&plan, &booth.timing, None)?;
     let acquired = acquire(
@@ -83,12 +85,7 @@ pub fn meter_projectors<L: ByteLink>(
                 .pixels()
                 .map(|p| p.0[0].max(p.0[1]).max(p.0[2]))
                 .collect();
-            Ok(meter(
-                k,
-                &brightest,
-                &booth.timing,
-                &MeteringTarget::default(),
-            ))
+            Ok(meter(k, &brightest, &booth.timing, target))
         })
         .collect()
 }

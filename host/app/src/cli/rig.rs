@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use mlsss::booth::Booth;
+use mlsss::capture::exposure::MeteringTarget;
 use mlsss::capture::{Capture, FramePlan};
 use mlsss::rig::acquire::{CaptureTarget, acquire};
 use mlsss::rig::backend::{
@@ -357,6 +358,11 @@ enum CameraRole {
     Scan,
 }
 
+/// Whether `--camera` names a USB3 Vision camera.
+fn is_u3v(camera: &str) -> bool {
+    camera == "u3v" || camera.starts_with("u3v:")
+}
+
 /// The camera backend `--camera` names.
 fn open_camera(
     args: &RunArgs,
@@ -394,7 +400,7 @@ fn open_camera(
         ));
     }
     match args.camera.as_str() {
-        c if c == "u3v" || c.starts_with("u3v:") => {
+        c if is_u3v(c) => {
             let settings = U3vSettings {
                 serial: args.camera.strip_prefix("u3v:").map(str::to_owned),
                 pixel_format: args.camera_settings.pixel_format.clone(),
@@ -421,7 +427,9 @@ fn open_camera(
 
 /// The metering step: each projector `schedule` lights shows white once at the nominal
 /// exposure; returns the schedule with the exposures chosen from those frames. `out` is the
-/// scan's capture folder.
+/// scan's capture folder. Without `gain_per_projector` (a real camera, whose exposure follows
+/// the trigger pulse but whose analog gain the rig does not yet set per projector) metering
+/// lengthens the exposure only.
 fn metered<L: ByteLink>(
     session: &mut Session<L>,
     schedule: RigSchedule,
@@ -429,6 +437,7 @@ fn metered<L: ByteLink>(
     projectors: &mut dyn ProjectorBackend,
     camera: Box<dyn CameraBackend>,
     out: &std::path::Path,
+    gain_per_projector: bool,
 ) -> anyhow::Result<RigSchedule> {
     let lit: Vec<u8> = schedule
         .entries
@@ -446,8 +455,23 @@ fn metered<L: ByteLink>(
         _ => Ok(()),
     };
     remove_scratch().with_context(|| format!("removing {}", scratch.display()))?;
-    let exposure = meter_projectors(session, booth, &lit, &scratch, projectors, camera)
-        .context("metering (run with --fixed-exposure to skip it)");
+    let target = MeteringTarget {
+        max_analog_gain: if gain_per_projector {
+            MeteringTarget::default().max_analog_gain
+        } else {
+            1.0
+        },
+        ..MeteringTarget::default()
+    };
+    let exposure = meter_projectors(
+        session,
+        booth,
+        &lit,
+        &scratch,
+        (projectors, camera),
+        &target,
+    )
+    .context("metering (run with --fixed-exposure to skip it)");
     remove_scratch().with_context(|| format!("removing {}", scratch.display()))?;
     let exposure = exposure?;
     for e in &exposure {
@@ -478,6 +502,7 @@ fn run_capture(args: RunArgs) -> anyhow::Result<()> {
             projectors.as_mut(),
             camera,
             &args.out,
+            !is_u3v(&args.camera),
         )?;
     }
     let camera = open_camera(&args, &booth, CameraRole::Scan)?;

@@ -175,6 +175,13 @@ mod tests {
         assert!((e.scale - 12.0).abs() < 1e-9);
         // Nothing above the floor (all dark): nominal.
         assert_eq!(meter(3, &[0.0; 10], &t, &target).scale, 1.0);
+        // A camera whose gain the rig cannot set (`rig run` with a U3V camera): time only.
+        let time_only = MeteringTarget {
+            max_analog_gain: 1.0,
+            ..target
+        };
+        let e = meter(2, &dim, &t, &time_only);
+        assert_eq!((e.periods, e.analog_gain, e.scale), (6, 1.0, 3.0));
     }
 
     #[test]
