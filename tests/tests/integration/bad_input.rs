@@ -286,9 +286,11 @@ fn negative_numbers_are_flag_values_and_monte_carlo_refuses_an_opaque_medium() {
         String::from_utf8_lossy(&out.stderr)
     );
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
-    // Energy balance of an absorbing, scattering slab: everything is accounted for.
+    // Energy balance of an absorbing, scattering slab: everything is accounted for. The photon
+    // lanes run in f32 (rounding 6e-8 per operation), which leaves about 1e-8 unaccounted
+    // (measured 1.2e-8); one lost photon of the 2000 would be 5e-4.
     assert!(
-        v["unaccounted_energy"].as_f64().unwrap().abs() < 1e-9,
+        v["unaccounted_energy"].as_f64().unwrap().abs() < 1e-6,
         "{v}"
     );
 
