@@ -395,28 +395,12 @@ pub fn render_global(
     model: &LayerModel,
     opts: &RenderOptions,
 ) -> Result<Vec<[f32; 3]>, RenderError> {
-    opts.validate()?;
-    let n = surface.len();
-    for (what, got) in [
-        ("irradiance", irradiance.len()),
-        ("shift", shift.len()),
-        ("model", model.width * model.height),
-    ] {
-        if got != n {
-            return Err(RenderError::SizeMismatch { what, got, want: n });
-        }
-    }
-    let (w, h) = (surface.width, surface.height);
-    if n == 0 {
-        return Ok(Vec::new());
-    }
-    let mut bins = splat_sources(surface, irradiance, shift, model, opts);
-    blur_bins(&mut bins, w, h, opts)?;
-    Ok(sum_bins(&bins, surface))
+    let mut frames = render_global_many(surface, &[irradiance], shift, model, opts)?;
+    Ok(frames.pop().unwrap_or_default())
 }
 
 /// Renders the global images of several irradiance images under the same geometry and model
-/// (one frame per irradiance image), each exactly as [`render_global`] renders it alone. Why:
+/// (one frame per irradiance image), each exactly as it renders alone. Why:
 /// most of a render is spent finding, per source and layer, where and into which sigma bins it
 /// splats (footprint, shift, bin position); that depends on the geometry and the model only, so
 /// it is found once per source for all the frames. Frames are splatted in batches of at most
@@ -501,12 +485,6 @@ fn blur_bins(
     Ok(())
 }
 
-/// The global image from one frame's blurred bins.
-fn sum_bins(bins: &[Bin], surface: &Surface) -> Vec<[f32; 3]> {
-    let refs: Vec<&Bin> = bins.iter().collect();
-    sum_bin_refs(&refs, surface)
-}
-
 /// Sums the blurred bins per channel and level, brings every level back to full resolution and
 /// turns the deposited flux into radiance.
 fn sum_bin_refs(bins: &[&Bin], surface: &Surface) -> Vec<[f32; 3]> {
@@ -537,99 +515,6 @@ fn sum_bin_refs(bins: &[&Bin], surface: &Surface) -> Vec<[f32; 3]> {
     out
 }
 
-/// Forward-warps every lit source by each layer's shift into the images of its two sigma bins
-/// (bilinear, on each bin's pyramid level). Channels are splatted in parallel; the bins come out
-/// channel by channel, each channel's in the order of first use (the order the sums use, so the
-/// result does not depend on the threads).
-fn splat_sources(
-    surface: &Surface,
-    irradiance: &[f32],
-    shift: &[Option<Vector3<f64>>],
-    model: &LayerModel,
-    opts: &RenderOptions,
-) -> Vec<Bin> {
-    (0..3)
-        .into_par_iter()
-        .map(|c| splat_channel(surface, irradiance, shift, model, opts, c))
-        .collect::<Vec<_>>()
-        .into_iter()
-        .flatten()
-        .collect()
-}
-
-/// [`splat_sources`] for channel `c`.
-fn splat_channel(
-    surface: &Surface,
-    irradiance: &[f32],
-    shift: &[Option<Vector3<f64>>],
-    model: &LayerModel,
-    opts: &RenderOptions,
-    c: usize,
-) -> Vec<Bin> {
-    let (w, h) = (surface.width, surface.height);
-    // index[b]: position of bin b in `bins` (allocated on first use).
-    let mut index: Vec<Option<usize>> = Vec::new();
-    let mut bins: Vec<Bin> = Vec::new();
-    for (i, &e) in irradiance.iter().enumerate() {
-        if e.is_nan() || e <= 0.0 {
-            continue;
-        }
-        let (Some(t), Some(fp)) = (shift[i], surface.footprint(i)) else {
-            continue;
-        };
-        let area = fp.area();
-        let pixel_mm = area.sqrt();
-        let (x, y) = ((i % w) as f64, (i / w) as f64);
-        let layers = model.layers(i, c);
-        let total: f32 = layers.iter().map(|l| l.weight).sum();
-        for l in layers {
-            if l.weight.is_nan() || l.weight <= opts.min_relative_weight * total {
-                continue;
-            }
-            let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
-                continue;
-            };
-            let amount = f64::from(l.weight) * f64::from(e) * area;
-            let pos = opts.bin_position(f64::from(l.sigma_mm) / pixel_mm);
-            let b0 = pos.floor() as usize;
-            let frac = pos - b0 as f64;
-            for (b, share) in [(b0, 1.0 - frac), (b0 + 1, frac)] {
-                if share <= 0.0 {
-                    continue;
-                }
-                if index.len() <= b {
-                    index.resize(b + 1, None);
-                }
-                let k = *index[b].get_or_insert_with(|| {
-                    let sigma_px = opts.bin_sigma(b);
-                    let level = opts.bin_level(sigma_px);
-                    let (gw, gh) = level_grid(w, h, level);
-                    bins.push(Bin {
-                        frame: 0,
-                        channel: c,
-                        sigma_px,
-                        level,
-                        image: vec![0.0; gw * gh],
-                    });
-                    bins.len() - 1
-                });
-                let bin = &mut bins[k];
-                let f = f64::from(1u32 << bin.level);
-                let (gw, gh) = level_grid(w, h, bin.level);
-                splat_bilinear(
-                    &mut bin.image,
-                    gw,
-                    gh,
-                    (x + d.x) / f,
-                    (y + d.y) / f,
-                    (amount * share) as f32,
-                );
-            }
-        }
-    }
-    bins
-}
-
 /// Where one layer of one source lands: for each of its two sigma bins, the bin, its share of the
 /// layer and the splat position on the bin's pyramid level.
 struct LayerSplat {
@@ -638,7 +523,7 @@ struct LayerSplat {
 }
 
 /// The splats of source `i`'s layers of channel `c` (none where it has no shift or footprint),
-/// and its area: all of [`splat_channel`]'s work that does not depend on the irradiance.
+/// and its area: all of a source's splatting work that does not depend on the irradiance.
 fn layer_splats(
     surface: &Surface,
     shift: &[Option<Vector3<f64>>],
@@ -682,8 +567,11 @@ fn layer_splats(
     area
 }
 
-/// [`splat_channel`] for several frames at once (`frames[f]` = frame `f`'s irradiance): each
-/// frame gets exactly the bins, in the same order, that [`splat_channel`] makes for it alone.
+/// Forward-warps every lit source of channel `c` by each layer's shift into the images of its
+/// two sigma bins (bilinear, on each bin's pyramid level), for several frames at once (`frames[f]`
+/// = frame `f`'s irradiance): each frame gets its bins in the order of first use (the order the
+/// sums use, so the result does not depend on the threads), exactly the bins a render of that
+/// frame alone makes (test `many_frames_render_as_each_frame_alone`).
 fn splat_channel_frames(
     surface: &Surface,
     frames: &[&[f32]],
@@ -780,10 +668,6 @@ fn add_upsampled(
         });
 }
 
-fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f32) {
-    splat_at(img, w, h, bilinear_at(x, y), amount);
-}
-
 /// The pixel below and left of `(x, y)` and the fractions towards the next ones.
 #[derive(Debug, Clone, Copy)]
 struct BilinearAt {
@@ -803,7 +687,7 @@ fn bilinear_at(x: f64, y: f64) -> BilinearAt {
     }
 }
 
-/// [`splat_bilinear`] at a position found by [`bilinear_at`].
+/// Adds `amount` to the four pixels around a position found by [`bilinear_at`], bilinearly.
 #[inline]
 fn splat_at(img: &mut [f32], w: usize, h: usize, at: BilinearAt, amount: f32) {
     let BilinearAt { x0, y0, fx, fy } = at;
@@ -837,6 +721,123 @@ pub fn gaussian_blur(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The straightforward single-frame render the batched one is checked against: each
+    /// source's splats found and spent at once, frame by frame.
+    fn reference_render_global(
+        surface: &Surface,
+        irradiance: &[f32],
+        shift: &[Option<Vector3<f64>>],
+        model: &LayerModel,
+        opts: &RenderOptions,
+    ) -> Vec<[f32; 3]> {
+        let mut bins = splat_sources(surface, irradiance, shift, model, opts);
+        blur_bins(&mut bins, surface.width, surface.height, opts).expect("valid options");
+        sum_bins(&bins, surface)
+    }
+
+    /// The global image from one frame's blurred bins.
+    fn sum_bins(bins: &[Bin], surface: &Surface) -> Vec<[f32; 3]> {
+        let refs: Vec<&Bin> = bins.iter().collect();
+        sum_bin_refs(&refs, surface)
+    }
+
+    /// Forward-warps every lit source by each layer's shift into the images of its two sigma bins
+    /// (bilinear, on each bin's pyramid level). Channels are splatted in parallel; the bins come out
+    /// channel by channel, each channel's in the order of first use (the order the sums use, so the
+    /// result does not depend on the threads).
+    fn splat_sources(
+        surface: &Surface,
+        irradiance: &[f32],
+        shift: &[Option<Vector3<f64>>],
+        model: &LayerModel,
+        opts: &RenderOptions,
+    ) -> Vec<Bin> {
+        (0..3)
+            .into_par_iter()
+            .map(|c| splat_channel(surface, irradiance, shift, model, opts, c))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .flatten()
+            .collect()
+    }
+
+    /// [`splat_sources`] for channel `c`.
+    fn splat_channel(
+        surface: &Surface,
+        irradiance: &[f32],
+        shift: &[Option<Vector3<f64>>],
+        model: &LayerModel,
+        opts: &RenderOptions,
+        c: usize,
+    ) -> Vec<Bin> {
+        let (w, h) = (surface.width, surface.height);
+        // index[b]: position of bin b in `bins` (allocated on first use).
+        let mut index: Vec<Option<usize>> = Vec::new();
+        let mut bins: Vec<Bin> = Vec::new();
+        for (i, &e) in irradiance.iter().enumerate() {
+            if e.is_nan() || e <= 0.0 {
+                continue;
+            }
+            let (Some(t), Some(fp)) = (shift[i], surface.footprint(i)) else {
+                continue;
+            };
+            let area = fp.area();
+            let pixel_mm = area.sqrt();
+            let (x, y) = ((i % w) as f64, (i / w) as f64);
+            let layers = model.layers(i, c);
+            let total: f32 = layers.iter().map(|l| l.weight).sum();
+            for l in layers {
+                if l.weight.is_nan() || l.weight <= opts.min_relative_weight * total {
+                    continue;
+                }
+                let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
+                    continue;
+                };
+                let amount = f64::from(l.weight) * f64::from(e) * area;
+                let pos = opts.bin_position(f64::from(l.sigma_mm) / pixel_mm);
+                let b0 = pos.floor() as usize;
+                let frac = pos - b0 as f64;
+                for (b, share) in [(b0, 1.0 - frac), (b0 + 1, frac)] {
+                    if share <= 0.0 {
+                        continue;
+                    }
+                    if index.len() <= b {
+                        index.resize(b + 1, None);
+                    }
+                    let k = *index[b].get_or_insert_with(|| {
+                        let sigma_px = opts.bin_sigma(b);
+                        let level = opts.bin_level(sigma_px);
+                        let (gw, gh) = level_grid(w, h, level);
+                        bins.push(Bin {
+                            frame: 0,
+                            channel: c,
+                            sigma_px,
+                            level,
+                            image: vec![0.0; gw * gh],
+                        });
+                        bins.len() - 1
+                    });
+                    let bin = &mut bins[k];
+                    let f = f64::from(1u32 << bin.level);
+                    let (gw, gh) = level_grid(w, h, bin.level);
+                    splat_bilinear(
+                        &mut bin.image,
+                        gw,
+                        gh,
+                        (x + d.x) / f,
+                        (y + d.y) / f,
+                        (amount * share) as f32,
+                    );
+                }
+            }
+        }
+        bins
+    }
+
+    fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f32) {
+        splat_at(img, w, h, bilinear_at(x, y), amount);
+    }
 
     /// A flat patch z = 0 on a `pitch` mm grid, seen from far above.
     fn plane(w: usize, h: usize, pitch: f64) -> Surface {
@@ -1056,7 +1057,7 @@ mod tests {
         ] {
             let alone: Vec<Vec<[f32; 3]>> = frames
                 .iter()
-                .map(|e| render_global(&surface, e, &shift, &model, &opts).unwrap())
+                .map(|e| reference_render_global(&surface, e, &shift, &model, &opts))
                 .collect();
             assert!(alone.iter().flatten().flatten().any(|&v| v > 0.0));
             let refs: Vec<&[f32]> = frames.iter().map(Vec::as_slice).collect();
