@@ -7,7 +7,7 @@ use nalgebra::Vector3;
 use rayon::prelude::*;
 
 use super::profiles::{ProjectorIllumination, irradiance};
-use super::render::{LayerModel, RenderError, RenderOptions, render_global, render_global_many};
+use super::render::{LayerModel, RenderError, RenderOptions, render_global_many};
 use super::surface::{Surface, ViewRay, shift_per_depth};
 use mlsss_core::capture::Pattern;
 
@@ -310,7 +310,7 @@ mod tests {
 }
 
 /// A relit image split in its parts.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct Relit {
     pub direct: Vec<[f32; 3]>,
     pub global: Vec<[f32; 3]>,
@@ -341,19 +341,23 @@ pub fn relight(
     view_ray: ViewRay,
     opts: &RenderOptions,
 ) -> Result<Relit, RenderError> {
-    let e = pattern_irradiance(surface, view, pattern, black_level, blur_px);
-    let shift = shifts(surface, &view.centre, eta, view_ray);
-    let global = render_global(surface, &e, &shift, model, opts)?;
-    let direct = e
-        .iter()
-        .zip(albedo)
-        .map(|(&e, a)| [a[0] * e, a[1] * e, a[2] * e])
-        .collect();
-    Ok(Relit { direct, global })
+    let mut frames = relight_patterns(
+        surface,
+        view,
+        std::slice::from_ref(pattern),
+        black_level,
+        blur_px,
+        model,
+        albedo,
+        eta,
+        view_ray,
+        opts,
+    )?;
+    Ok(frames.pop().unwrap_or_default())
 }
 
-/// [`relight`] under several patterns of the same projector at once, each frame exactly as
-/// [`relight`] renders it alone (the shifts are found once, the splats once per source: see
+/// [`relight`] under several patterns of the same projector at once, each frame exactly as it
+/// renders alone (the shifts are found once, the splats once per source: see
 /// [`render_global_many`]).
 #[allow(clippy::too_many_arguments)]
 pub fn relight_patterns(

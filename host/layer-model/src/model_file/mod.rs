@@ -436,44 +436,20 @@ fn render_with_black_level(
     opts: &RenderOptions,
     black_level: impl Fn(&ProjectorLight) -> f32,
 ) -> Result<Relit, ModelFileError> {
-    let light = model
-        .header
-        .projectors
-        .get(k)
-        .ok_or(ModelFileError::NoSuchProjector {
-            requested: k,
-            count: model.header.projectors.len(),
-        })?;
-    let coords = model.projector_coords(k)?;
+    let (light, coords) = projector_light(model, k)?;
     let view = ProjectorIllumination {
         centre: Vector3::from(light.centre),
         falloff: light.falloff,
         coords: &coords,
     };
-    let homogeneous;
-    let empty;
-    let (layers, albedo) = match baseline {
-        Baseline::Mlsss => (&model.layers, &model.albedo),
-        Baseline::Homogeneous => {
-            homogeneous = model.homogeneous();
-            (&homogeneous, &model.albedo)
-        }
-        Baseline::Dipole => (
-            model.dipole.as_ref().ok_or(ModelFileError::NoDipole)?,
-            &model.albedo,
-        ),
-        Baseline::Direct => {
-            empty = LayerModel::from_fn(model.header.width, model.header.height, |_, _| Vec::new());
-            (&empty, &model.white_albedo)
-        }
-    };
+    let (layers, albedo) = baseline_layers(model, baseline)?;
     Ok(relight(
         &model.surface,
         &view,
         pattern,
         black_level(light),
         light.blur_px,
-        layers,
+        &layers,
         albedo,
         model.header.eta,
         model.header.view_ray,
