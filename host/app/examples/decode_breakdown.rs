@@ -48,12 +48,7 @@ fn missed(dir: &Path) -> anyhow::Result<()> {
     let mut out = Vec::new();
     for (k, proj) in booth.projectors.iter().enumerate() {
         let frames = code_frames::from_capture(&capture, k)?;
-        let params = base_params()?.with_camera_noise(
-            booth.camera.full_well_e,
-            booth.camera.read_noise_dn,
-            capture.manifest.bit_depth,
-            &capture.manifest.exposure_of(k),
-        );
+        let params = base_params()?.with_camera_noise(capture.manifest.frame_noise_of(k));
         let decoded = decode(&frames, (proj.width, proj.height), &params)?;
         let size = (decoded.width, decoded.height);
         let lit = load_coords(&truth::projector_coords(&truth_dir, k), size)?;

@@ -41,6 +41,7 @@ fn main() -> anyhow::Result<()> {
         .profiles
         .iter()
         .map(|p| Profile {
+            noise: None,
             samples: p
                 .s
                 .iter()

@@ -19,8 +19,8 @@ use std::f64::consts::PI;
 use super::boxed_gaussian::{BoxedGaussian, walk_boxes};
 #[cfg(test)]
 use super::em_free::{self, Component};
-use super::mixture::Profile;
 use super::mixture::image_reaches;
+use super::mixture::{Profile, relative_information};
 use super::render::SplatLayer;
 
 /// Widths (units of `1/s_t'`) of the Gaussians representing the dipole.
@@ -336,8 +336,8 @@ fn brent(
 }
 
 /// A pixel-channel's profiles prepared once for the extinction search: each profile's samples
-/// with their weights normalised to sum 1, as the EM's likelihood (`em_free::log_likelihood`)
-/// normalises them, and the same profiles left out. The score of an extinction is then computed
+/// with their weights normalised to its relative information, as the EM's likelihood
+/// (`em_free::log_likelihood`) weighs them, and the same profiles left out. The score of an extinction is then computed
 /// without allocating and with densities summed in linear space (the EM's log-space sum needs a
 /// logarithm and an exponential per term); a sample whose density underflows is summed in log
 /// space instead. Equal to the EM's likelihood summed over the profiles to ~1e-12 relative.
@@ -359,14 +359,20 @@ impl<'a> PreparedProfiles<'a> {
                 && p.slit_width.is_finite()
                 && p.samples.iter().all(|s| s.s.is_finite() && s.y.is_finite())
         };
+        let usable: Vec<&Profile> = profiles.iter().filter(|p| usable(p)).collect();
+        let trust = relative_information(usable.iter().copied());
         Self {
-            profiles: profiles
-                .iter()
-                .filter(|p| usable(p))
-                .filter_map(|p| {
+            profiles: usable
+                .into_iter()
+                .zip(trust)
+                .filter_map(|(p, trust)| {
                     let total = p.total();
                     (total > 0.0).then(|| {
-                        let w: Vec<f64> = p.samples.iter().map(|s| s.y.max(0.0) / total).collect();
+                        let w: Vec<f64> = p
+                            .samples
+                            .iter()
+                            .map(|s| trust * s.y.max(0.0) / total)
+                            .collect();
                         let mut order: Vec<usize> = (0..w.len()).filter(|&j| w[j] > 0.0).collect();
                         order.sort_by(|&a, &b| p.samples[a].s.total_cmp(&p.samples[b].s));
                         (p, w, order)
@@ -644,6 +650,7 @@ mod tests {
             })
             .collect();
         Profile {
+            noise: None,
             samples,
             slit_width: SLIT_WIDTH,
             period: Some(SLIT_PERIOD),
@@ -764,6 +771,7 @@ mod tests {
             };
             let profiles: Vec<Profile> = (0..rng.gen_range(1..7))
                 .map(|p| Profile {
+                    noise: None,
                     samples: (0..10)
                         .map(|j| Sample {
                             s: rng.gen_range(-6.0..6.0),
@@ -874,6 +882,7 @@ mod tests {
                         })
                         .collect();
                     Profile {
+                        noise: None,
                         samples,
                         slit_width: w,
                         period: Some(t),

@@ -17,6 +17,7 @@ const T: f64 = 7.5;
 /// Exact profile of a free mixture seen through the slit comb, at positions `s`.
 fn mixture_profile(components: &[Component], s: &[f64], amplitude: f64) -> Profile {
     Profile {
+        noise: None,
         samples: s
             .iter()
             .map(|&s| Sample {
@@ -89,6 +90,7 @@ fn adversarial_profiles(rng: &mut rand_pcg::Pcg64) -> Vec<(String, Profile)> {
         (
             name.to_string(),
             Profile {
+                noise: None,
                 slit_width: s[1] - s[0],
                 samples: s.iter().zip(y).map(|(&s, y)| Sample { s, y }).collect(),
                 period: Some(T),
@@ -210,6 +212,7 @@ fn layered_em_is_monotone_and_finite_on_adversarial_profiles() {
 #[test]
 fn all_zero_and_non_finite_profiles_are_clean_errors() {
     let zero = Profile {
+        noise: None,
         samples: grid(0.75).iter().map(|&s| Sample { s, y: 0.0 }).collect(),
         slit_width: W,
         period: Some(T),
@@ -402,4 +405,71 @@ fn layered_em_recovers_depth_spacing_and_predicts_a_new_light_direction() {
         .map(|(a, b)| (a.y - b.y).abs() * W)
         .sum();
     assert!(l1 < 0.03, "held-out L1 {l1}: {params:?}");
+}
+
+/// A noise model with shot noise only: a profile's information is then `total / shot_gain`, its
+/// photon count.
+fn shot_only(shot_gain: f64) -> Option<mlsss_core::capture::FrameNoise> {
+    Some(mlsss_core::capture::FrameNoise {
+        shot_gain,
+        read_sigma: 0.0,
+    })
+}
+
+#[test]
+fn information_is_photons_over_shot_and_read_variance() {
+    // Hand-derived: samples 1 and 3, variance 0.5 y + 1: 1.5 + 2.5 = 4; total 4; 16 / 4 = 4.
+    let mut p = mixture_profile(&[], &[0.0, 0.25], 1.0);
+    p.samples[0].y = 1.0;
+    p.samples[1].y = 3.0;
+    p.noise = Some(mlsss_core::capture::FrameNoise {
+        shot_gain: 0.5,
+        read_sigma: 1.0,
+    });
+    assert_eq!(p.information(), Some(4.0));
+    p.noise = None;
+    assert_eq!(p.information(), None);
+}
+
+#[test]
+fn pooled_fits_weigh_profiles_by_their_photons_when_the_noise_is_known() {
+    // One centred Gaussian fitted to two profiles of different widths: the ML width of the pool
+    // is the weighted mean of their variances, the weights 1 : 1 without a noise model and
+    // photons (here 100 : 1) with one.
+    let narrow = Component {
+        weight: 1.0,
+        mean: 0.0,
+        sigma: 0.5,
+    };
+    let wide = Component {
+        sigma: 1.0,
+        ..narrow
+    };
+    let s = grid(W);
+    let bright = mixture_profile(&[narrow], &s, 100.0);
+    let dim = mixture_profile(&[wide], &s, 1.0);
+    let cfg = EmConfig {
+        components: 1,
+        bic: false,
+        max_iterations: 500,
+        ..EmConfig::default()
+    };
+    let fit_sigma = |profiles: &[Profile]| {
+        let fit = em_layered::fit_layered(profiles, DepthSpacing::Fixed(0.0), &cfg, None).unwrap();
+        assert_eq!(fit.layers.len(), 1);
+        fit.layers[0].sigma
+    };
+    let pooled =
+        |w_bright: f64, w_dim: f64| ((w_bright * 0.25 + w_dim * 1.0) / (w_bright + w_dim)).sqrt();
+    let equal = fit_sigma(&[bright.clone(), dim.clone()]);
+    assert!((equal / pooled(1.0, 1.0) - 1.0).abs() < 0.02, "{equal}");
+    let (mut bright, mut dim) = (bright, dim);
+    bright.noise = shot_only(1e-3);
+    dim.noise = shot_only(1e-3);
+    let weighted = fit_sigma(&[bright, dim]);
+    assert!(
+        (weighted / pooled(100.0, 1.0) - 1.0).abs() < 0.02,
+        "{weighted} vs {}",
+        pooled(100.0, 1.0)
+    );
 }

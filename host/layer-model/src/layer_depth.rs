@@ -280,6 +280,7 @@ mod tests {
             })
             .collect();
         Profile {
+            noise: None,
             samples,
             slit_width: W,
             period: Some(T),
@@ -447,6 +448,7 @@ mod tests {
     fn mc_profile(values: &[f64], cell: f64, mirror: bool, c: f64) -> Profile {
         let n = values.len() as f64;
         Profile {
+            noise: None,
             samples: values
                 .iter()
                 .enumerate()

@@ -18,6 +18,8 @@
 //! `sum n_l ln pi_l`), pruning of floor-weight components only when removal does not lower the
 //! likelihood. Model selection by BIC is a separate, explicit step that may lower it.
 
+use mlsss_core::capture::FrameNoise;
+
 use super::boxed_gaussian::{BoxedGaussian, walk_boxes};
 
 /// Errors of the EM fits.
@@ -63,12 +65,26 @@ pub struct Profile {
     /// Lateral shift of layer means per mm of depth along this profile's axis,
     /// `(t_i + t_o) . s_hat` (see `em_layered`); unused by the free fit.
     pub shift_per_depth: f64,
+    /// Camera noise of the samples, when known: the fits weigh each profile by the information
+    /// it carries ([`Profile::information`]); `None` weighs every profile alike.
+    pub noise: Option<FrameNoise>,
 }
 
 impl Profile {
     /// Sum of the clamped sample values.
     pub fn total(&self) -> f64 {
         self.samples.iter().map(|s| s.y.max(0.0)).sum()
+    }
+
+    /// Effective number of photons behind the profile's shape, `total^2 / sum(variance)`: under
+    /// Poisson noise a profile of `N` photons has `N` times the log-likelihood of one photon, so
+    /// a profile's samples count in proportion to it; read noise lowers it for dim profiles.
+    /// `None` without a noise model or signal.
+    pub fn information(&self) -> Option<f64> {
+        let noise = self.noise?;
+        let total = self.total();
+        let variance: f64 = self.samples.iter().map(|s| noise.variance(s.y)).sum();
+        (total > 0.0 && variance > 0.0 && variance.is_finite()).then(|| total * total / variance)
     }
 
     /// Integrated flux (radiance x mm) over one period, from the mean sample value; with no period
@@ -257,7 +273,8 @@ pub(crate) struct State<M: MeanModel> {
 /// Prepared data: validated, clamped, normalised per profile.
 pub(crate) struct Data<'a> {
     pub profiles: &'a [Profile],
-    /// Normalised weights per profile (sum 1 over a profile with signal; empty otherwise).
+    /// Sample weights per profile: `y / total` times the profile's [`relative_information`]
+    /// (they sum to that over a profile with signal; empty otherwise).
     pub weights: Vec<Vec<f64>>,
     pub samples: usize,
 }
@@ -283,9 +300,17 @@ impl<'a> Data<'a> {
                     });
                 }
             }
+        }
+        let trust = relative_information(profiles.iter());
+        for (prof, trust) in profiles.iter().zip(trust) {
             let total = prof.total();
             if total > 0.0 {
-                weights.push(prof.samples.iter().map(|s| s.y.max(0.0) / total).collect());
+                weights.push(
+                    prof.samples
+                        .iter()
+                        .map(|s| trust * s.y.max(0.0) / total)
+                        .collect(),
+                );
                 samples += prof.samples.len();
             } else {
                 weights.push(Vec::new());
@@ -304,6 +329,33 @@ impl<'a> Data<'a> {
     fn profiles_with_signal(&self) -> usize {
         self.weights.iter().filter(|w| !w.is_empty()).count()
     }
+}
+
+/// Per profile, the weight of its samples in a pooled likelihood: its
+/// [`Profile::information`] relative to the mean over the profiles with signal (so the weights
+/// average 1 and a likelihood averaged over profiles keeps its scale), or 1 for every profile
+/// when any of them has no noise model. 0 for a profile without signal.
+pub(crate) fn relative_information<'p>(profiles: impl Iterator<Item = &'p Profile>) -> Vec<f64> {
+    let info: Vec<Option<f64>> = profiles
+        .map(|p| {
+            if p.total() > 0.0 {
+                Some(p.information())
+            } else {
+                None
+            }
+        })
+        .map(|i| i.map(|i| i.unwrap_or(f64::NAN)))
+        .collect();
+    let with_signal: Vec<f64> = info.iter().flatten().copied().collect();
+    let mean = with_signal.iter().sum::<f64>() / with_signal.len().max(1) as f64;
+    let usable = !with_signal.is_empty() && mean > 0.0 && mean.is_finite();
+    info.iter()
+        .map(|i| match i {
+            None => 0.0,
+            Some(i) if usable => i / mean,
+            Some(_) => 1.0,
+        })
+        .collect()
 }
 
 /// Offsets of the slit images considered for a profile.
@@ -774,6 +826,7 @@ mod tests {
                 .map(|_| {
                     let period = rng.gen_range(3.0..12.0);
                     Profile {
+                        noise: None,
                         samples: (0..10)
                             .map(|j| Sample {
                                 s: -0.5 * period + period * (j as f64 + 0.5) / 10.0,

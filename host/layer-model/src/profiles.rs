@@ -21,7 +21,7 @@ use rayon::prelude::*;
 
 use super::mixture::{Profile, Sample};
 use super::surface::{Footprint, Surface, ViewRay, shift_per_depth};
-use mlsss_core::capture::{Axis, Pattern};
+use mlsss_core::capture::{Axis, FrameNoise, Pattern};
 
 /// Reference distance of the irradiance unit (mm).
 pub const IRRADIANCE_REFERENCE_MM: f64 = 1000.0;
@@ -241,6 +241,8 @@ type SweepFrame<'a> = (u32, u32, u32, &'a [[f32; 3]]);
 #[derive(Debug, Clone)]
 pub struct SlitSweep<'a> {
     frames: [Vec<SweepFrame<'a>>; 2],
+    /// Camera noise of the frames, handed to every profile ([`Profile::noise`]).
+    noise: Option<FrameNoise>,
 }
 
 impl<'a> SlitSweep<'a> {
@@ -272,7 +274,19 @@ impl<'a> SlitSweep<'a> {
             };
             out[a].push((width, period, offset, f.global));
         }
-        Ok(Self { frames: out })
+        Ok(Self {
+            frames: out,
+            noise: None,
+        })
+    }
+
+    /// The sweep with the camera noise of its frames (the global parts carry the frames' noise;
+    /// the direct part taken off them is smooth and adds little).
+    pub fn with_noise(self, noise: FrameNoise) -> Self {
+        Self {
+            noise: Some(noise),
+            ..self
+        }
     }
 
     /// The profile of pixel `i`, channel `c`, along axis `a` (0 = x, 1 = y), or `None` when this
@@ -290,6 +304,7 @@ impl<'a> SlitSweep<'a> {
             })
             .collect();
         Some(Profile {
+            noise: self.noise,
             samples,
             slit_width: f64::from(width) / ax.px_per_mm,
             period: Some(f64::from(period) / ax.px_per_mm),

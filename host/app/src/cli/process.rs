@@ -8,7 +8,9 @@ use mlsss::layer_model::surface::ViewRay;
 use mlsss::photometry::slit_leak::LeakReading;
 use mlsss::pipeline::fit_stage::FitParams;
 use mlsss::pipeline::normals_stage::{NormalSource, NormalsParams, PsInput, ShadingModel};
-use mlsss::pipeline::profiles_stage::{DirectPart, ProfilesParams, SlitCoordinates};
+use mlsss::pipeline::profiles_stage::{
+    DirectPart, ProfileWeights, ProfilesParams, SlitCoordinates,
+};
 use mlsss::pipeline::separate_stage::{DirectModel, SeparateParams, SeparationMethod};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
 
@@ -88,6 +90,11 @@ pub struct Args {
     /// `decoded` (the Gray-code coordinates; subsurface light moves them toward the light).
     #[arg(long, value_enum, default_value_t = CoordinatesArg::Projected)]
     slit_coordinates: CoordinatesArg,
+    /// Profiles stage: how the layer fits weigh a pixel's profiles, `information` (by the
+    /// effective photons each carries under the camera's noise model at its projector's
+    /// exposure) or `equal` (the paper's pooling).
+    #[arg(long, value_enum, default_value_t = ProfileWeightsArg::Information)]
+    profile_weights: ProfileWeightsArg,
     /// Profiles stage, simulated captures: also extract the slit frames by the other rules
     /// (hard slit edges, each `--direct` rule) and report each one's error against the truth
     /// (`slit_global_rel_rmse_*`; decodes the slit frames again).
@@ -178,6 +185,13 @@ enum CoordinatesArg {
     Decoded,
 }
 
+/// Profile weights (`pipeline::profiles_stage::ProfileWeights`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ProfileWeightsArg {
+    Information,
+    Equal,
+}
+
 /// Separation methods (`pipeline::separate_stage::SeparationMethod`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum SeparationArg {
@@ -264,6 +278,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         coordinates: match args.slit_coordinates {
             CoordinatesArg::Projected => SlitCoordinates::Projected,
             CoordinatesArg::Decoded => SlitCoordinates::Decoded,
+        },
+        weights: match args.profile_weights {
+            ProfileWeightsArg::Information => ProfileWeights::Information,
+            ProfileWeightsArg::Equal => ProfileWeights::Equal,
         },
         compare_variants: args.compare_slit_variants,
         ..ProfilesParams::default()

@@ -169,13 +169,9 @@ fn camera_noise_params(
     capture: &mlsss_core::capture::Capture,
     k: usize,
 ) -> DecodeParams {
-    let camera = &capture.manifest.booth.camera;
-    params.clone().with_camera_noise(
-        camera.full_well_e,
-        camera.read_noise_dn,
-        capture.manifest.bit_depth,
-        &capture.manifest.exposure_of(k),
-    )
+    params
+        .clone()
+        .with_camera_noise(capture.manifest.frame_noise_of(k))
 }
 
 /// The report entry of one projector (used by the pipeline and by `mlsss decode --layout opencv`).

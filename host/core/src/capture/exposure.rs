@@ -55,6 +55,39 @@ impl ProjectorExposure {
     }
 }
 
+/// Camera noise of a frame value read back in nominal units (divided by its exposure's scale,
+/// full scale 1): `variance = shot_gain * value + read_sigma^2`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameNoise {
+    /// Shot-noise variance per unit of value (1 / electrons at full scale, scaled by exposure).
+    pub shot_gain: f64,
+    /// Read noise (standard deviation, nominal units).
+    pub read_sigma: f64,
+}
+
+impl FrameNoise {
+    /// The noise of a camera with `full_well_e` electrons at saturation and `read_noise_dn` codes
+    /// of read noise at `bit_depth` bits, for frames taken at `exposure`.
+    pub fn of_camera(
+        full_well_e: f64,
+        read_noise_dn: f64,
+        bit_depth: u32,
+        exposure: &ProjectorExposure,
+    ) -> Self {
+        let max_code = ((1u64 << bit_depth.min(32)) - 1).max(1) as f64;
+        let (shot, read) = exposure.noise_scale();
+        Self {
+            shot_gain: shot / full_well_e.max(1.0),
+            read_sigma: read * read_noise_dn / max_code,
+        }
+    }
+
+    /// Variance of a value (negative values, from noise around black, count as black).
+    pub fn variance(&self, value: f64) -> f64 {
+        self.shot_gain * value.max(0.0) + self.read_sigma * self.read_sigma
+    }
+}
+
 /// What metering aims at.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct MeteringTarget {

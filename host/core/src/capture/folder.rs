@@ -18,7 +18,7 @@ use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{ImageEncoder, Rgb32FImage};
 use serde::{Deserialize, Serialize};
 
-use super::exposure::ProjectorExposure;
+use super::exposure::{FrameNoise, ProjectorExposure};
 use super::frame_plan::{FramePlan, FrameSpec};
 use crate::atomic_file::{FolderLock, LOCK_FILE};
 use crate::booth::{Booth, BoothError};
@@ -168,6 +168,17 @@ impl CaptureManifest {
             .copied()
             .filter(|e| e.scale.is_finite() && e.scale > 0.0)
             .unwrap_or(nominal)
+    }
+
+    /// The camera noise of projector `k`'s frames as read back (nominal units).
+    pub fn frame_noise_of(&self, k: usize) -> FrameNoise {
+        let camera = &self.booth.camera;
+        FrameNoise::of_camera(
+            camera.full_well_e,
+            camera.read_noise_dn,
+            self.bit_depth,
+            &self.exposure_of(k),
+        )
     }
 
     /// Signal of frame `index` relative to the nominal exposure (1 for unlit or unknown frames).

@@ -8,7 +8,7 @@ pub mod frame_plan;
 pub mod patterns;
 pub mod truth;
 
-pub use exposure::ProjectorExposure;
+pub use exposure::{FrameNoise, ProjectorExposure};
 pub use folder::{Capture, CaptureError, CaptureManifest, CaptureWriter, TriggerRecord};
 pub use frame_plan::{FramePlan, FrameSpec};
 pub use patterns::{Axis, Pattern};

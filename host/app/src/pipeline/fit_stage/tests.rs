@@ -11,6 +11,7 @@ fn layer(weight: f32, sigma_mm: f32, depth_mm: f32) -> SplatLayer {
 
 fn single_slit(width: f64, shift_per_depth: f64) -> Profile {
     Profile {
+        noise: None,
         samples: Vec::new(),
         slit_width: width,
         period: None,

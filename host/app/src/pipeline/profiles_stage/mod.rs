@@ -38,7 +38,7 @@ use super::normals_stage::photometric_normals_path;
 use super::separate_stage::{direct_path, global_path, stripe_blur};
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::calibration::DeviceCalibration;
-use mlsss_core::capture::{Axis, CaptureError, Pattern, truth};
+use mlsss_core::capture::{Axis, CaptureError, FrameNoise, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_layer_model::profiles::{
     Falloff, PixelGeometry, ProfileError, ProjectorIllumination, SlitFrame, SlitSweep,
@@ -85,6 +85,21 @@ pub struct ProfilesParams {
     /// compare them with the truth. A design check, off by default: it decodes every slit frame
     /// again and extracts it four more times (about 4 s of the full-size booth's processing).
     pub compare_variants: bool,
+    /// How the fits weigh each profile against the others (see [`ProfileWeights`]).
+    pub weights: ProfileWeights,
+}
+
+/// How the layer fits (EM, dipole baseline) weigh a pixel's profiles against each other.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProfileWeights {
+    /// By the information each carries under the camera's noise model at its projector's
+    /// exposure (`Profile::information`: effective photons): a dim profile, from a projector at
+    /// grazing incidence or far away, counts for less than a bright one.
+    #[default]
+    Information,
+    /// Every profile alike (the paper's pooling).
+    Equal,
 }
 
 /// The projector coordinates of each camera pixel that the profiles measure distances in.
@@ -219,6 +234,7 @@ impl Default for ProfilesParams {
             direct_fraction_range: DEFAULT_DIRECT_FRACTION_RANGE,
             coordinates: SlitCoordinates::Projected,
             compare_variants: false,
+            weights: ProfileWeights::default(),
         }
     }
 }
@@ -389,6 +405,9 @@ pub struct ProjectorInputs {
     /// Light of the other projectors' black level in every frame of this projector.
     pub stray: Vec<[f32; 3]>,
     pub blur_px: f32,
+    /// Camera noise of this projector's frames when the fits weigh profiles by it
+    /// ([`ProfileWeights::Information`]).
+    pub noise: Option<FrameNoise>,
     /// Global part of each slit frame, in capture order; empty when the slits were not asked
     /// for.
     pub slits: Vec<SlitGlobal>,
@@ -416,7 +435,11 @@ impl ProjectorInputs {
                 global,
             })
             .collect();
-        SlitSweep::new(&frames, self.coords.len())
+        let sweep = SlitSweep::new(&frames, self.coords.len())?;
+        Ok(match self.noise {
+            Some(noise) => sweep.with_noise(noise),
+            None => sweep,
+        })
     }
 }
 
@@ -624,6 +647,10 @@ impl ProfileInputs {
                     stripe_blur(ctx, k)
                 } else {
                     0.0
+                },
+                noise: match params.weights {
+                    ProfileWeights::Information => Some(ctx.capture.manifest.frame_noise_of(k)),
+                    ProfileWeights::Equal => None,
                 },
                 slits: Vec::new(),
                 coords,

@@ -51,7 +51,7 @@ use serde::{Deserialize, Serialize};
 use axis::{Grid, decode_axis};
 use bits::decide_bits;
 use lit_test::{classify_lighting, demote_partly_lit};
-use mlsss_core::capture::ProjectorExposure;
+use mlsss_core::capture::FrameNoise;
 
 /// Errors of the Gray-code decoder.
 #[derive(Debug, thiserror::Error)]
@@ -252,22 +252,12 @@ impl DecodeParams {
         Ok(())
     }
 
-    /// The noise model of a camera with `full_well_e` electrons at saturation and a read noise of
-    /// `read_noise_dn` codes at `bit_depth` bits, for frames taken at `exposure` and read back in
-    /// nominal units (`Capture::read_frame` divides them by the exposure's scale: longer exposure
-    /// shrinks both noise terms, analog gain only the read noise).
-    pub fn with_camera_noise(
-        self,
-        full_well_e: f64,
-        read_noise_dn: f64,
-        bit_depth: u32,
-        exposure: &ProjectorExposure,
-    ) -> Self {
-        let max_code = ((1u64 << bit_depth.min(32)) - 1) as f64;
-        let (shot, read) = exposure.noise_scale();
+    /// These thresholds with a camera's noise model ([`FrameNoise`], from the camera and the
+    /// exposure the frames were taken at, in the nominal units `Capture::read_frame` returns).
+    pub fn with_camera_noise(self, noise: FrameNoise) -> Self {
         Self {
-            shot_noise_gain: (shot / full_well_e.max(1.0)) as f32,
-            read_noise: (read * read_noise_dn / max_code) as f32,
+            shot_noise_gain: noise.shot_gain as f32,
+            read_noise: noise.read_sigma as f32,
             ..self
         }
     }
