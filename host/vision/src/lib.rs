@@ -7,3 +7,4 @@
 pub mod chessboard_calibration;
 pub mod geometry;
 pub mod photometry;
+pub mod symmetric_eigen3;

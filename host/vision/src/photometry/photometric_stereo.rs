@@ -29,6 +29,8 @@ use std::cell::RefCell;
 
 use nalgebra::{Cholesky, Matrix3, U3, Vector3};
 
+use crate::symmetric_eigen3;
+
 /// The most lights a pixel can use (the `used` set is a 128-bit mask).
 pub const MAX_LIGHTS: usize = 128;
 
@@ -262,8 +264,7 @@ fn normal_factor(readings: &[Option<GreyReading>], set: u128) -> NormalFactor {
         let r = r.as_ref()?;
         ata += r.vector * r.vector.transpose();
     }
-    let eig = ata.symmetric_eigenvalues();
-    let (lo, hi) = (eig.min(), eig.max());
+    let [lo, _, hi] = symmetric_eigen3::eigenvalues(&ata)?;
     if lo.is_nan() || lo <= 0.0 || !hi.is_finite() {
         return None;
     }
