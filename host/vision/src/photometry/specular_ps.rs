@@ -100,20 +100,44 @@ pub fn specular_shading(
     eta: f64,
     alpha: f64,
 ) -> f64 {
-    let (cos_l, cos_v) = (n.dot(l), n.dot(v));
-    if cos_l <= 0.0 || cos_v <= 0.0 {
-        return 0.0;
+    match HalfVector::of(l, v, eta) {
+        Some(half) => half.shading(n, l, v, alpha),
+        None => 0.0,
     }
-    let Some(h) = (l + v).try_normalize(1e-12) else {
-        return 0.0;
-    };
-    let reflectance = 1.0 - fresnel_transmittance(l.dot(&h), eta);
-    let value = reflectance
-        * ggx(n.dot(&h).max(0.0), alpha)
-        * smith_g1(cos_l, alpha)
-        * smith_g1(cos_v, alpha)
-        / (4.0 * cos_v);
-    if value.is_finite() { value } else { 0.0 }
+}
+
+/// The half vector of a light and view direction and the Fresnel reflectance at it: neither
+/// depends on the normal, so the refinement computes them once per pixel and light, not once
+/// per residual evaluation (same values, bit for bit).
+#[derive(Debug, Clone, Copy)]
+struct HalfVector {
+    h: Vector3<f64>,
+    reflectance: f64,
+}
+
+impl HalfVector {
+    /// `None` when light and view are opposite (no half vector).
+    fn of(l: &Vector3<f64>, v: &Vector3<f64>, eta: f64) -> Option<Self> {
+        let h = (l + v).try_normalize(1e-12)?;
+        Some(Self {
+            h,
+            reflectance: 1.0 - fresnel_transmittance(l.dot(&h), eta),
+        })
+    }
+
+    /// [`specular_shading`] at normal `n`.
+    fn shading(&self, n: &Vector3<f64>, l: &Vector3<f64>, v: &Vector3<f64>, alpha: f64) -> f64 {
+        let (cos_l, cos_v) = (n.dot(l), n.dot(v));
+        if cos_l <= 0.0 || cos_v <= 0.0 {
+            return 0.0;
+        }
+        let value = self.reflectance
+            * ggx(n.dot(&self.h).max(0.0), alpha)
+            * smith_g1(cos_l, alpha)
+            * smith_g1(cos_v, alpha)
+            / (4.0 * cos_v);
+        if value.is_finite() { value } else { 0.0 }
+    }
 }
 
 /// The usable readings of one pixel and its geometry.
@@ -123,6 +147,33 @@ struct PixelData<'a> {
     view: Vector3<f64>,
     /// Bit i set when reading i is used.
     set: u128,
+    /// Per light (index as `lights`, up to 16): its mean irradiance and half vector.
+    constants: [(f64, Option<HalfVector>); 16],
+}
+
+impl<'a> PixelData<'a> {
+    fn new(
+        readings: &'a [[f32; 3]],
+        lights: &'a [LightSample],
+        view: Vector3<f64>,
+        set: u128,
+        eta: f64,
+    ) -> Self {
+        let mut constants = [(0.0, None); 16];
+        for (slot, light) in constants.iter_mut().zip(lights) {
+            *slot = (
+                light.irradiance.iter().sum::<f64>() / 3.0,
+                HalfVector::of(&light.direction, &view, eta),
+            );
+        }
+        Self {
+            readings,
+            lights,
+            view,
+            set,
+            constants,
+        }
+    }
 }
 
 /// Linear part of the model at one normal: albedo, specular weight and the squared residual.
@@ -143,14 +194,15 @@ fn shading_parts(
     normal_incidence: f64,
 ) -> (f64, f64) {
     let light = &data.lights[k];
-    let irradiance = light.irradiance.iter().sum::<f64>() / 3.0;
+    let (irradiance, half) = data.constants[k];
     let cos = light.direction.dot(n);
     if cos <= 0.0 {
         return (0.0, 0.0);
     }
-    let eta = params.transmission.eta;
-    let diffuse = cos * fresnel_transmittance(cos, eta) / normal_incidence;
-    let specular = specular_shading(n, &light.direction, &data.view, eta, params.roughness);
+    let diffuse = cos * fresnel_transmittance(cos, params.transmission.eta) / normal_incidence;
+    let specular = half.map_or(0.0, |h| {
+        h.shading(n, &light.direction, &data.view, params.roughness)
+    });
     (irradiance * diffuse, irradiance * specular)
 }
 
@@ -233,7 +285,7 @@ fn refine(
     normal_incidence: f64,
 ) -> Option<(Vector3<f64>, LinearFit)> {
     const STEP: f64 = 1e-4;
-    let (mut r0, mut rp) = (Vec::new(), Vec::new());
+    let (mut r0, mut rp, mut rc) = (Vec::new(), Vec::new(), Vec::new());
     let mut n = start;
     let mut fit = residuals(data, &n, params, normal_incidence, &mut r0)?;
     let mut lambda = 1e-3;
@@ -262,13 +314,12 @@ fn refine(
                 continue;
             };
             let candidate = (n + t1 * step.x + t2 * step.y).normalize();
-            let mut rc = Vec::new();
             match residuals(data, &candidate, params, normal_incidence, &mut rc) {
                 Some(next) if next.cost < fit.cost => {
                     converged = step.norm() < params.tolerance;
                     n = candidate;
                     fit = next;
-                    r0 = rc;
+                    std::mem::swap(&mut r0, &mut rc);
                     lambda = (lambda * 0.3).max(1e-9);
                     improved = true;
                     break;
@@ -297,12 +348,7 @@ fn refine_pixel(
     if set.count_ones() < 3 {
         return None;
     }
-    let data = PixelData {
-        readings,
-        lights,
-        view,
-        set,
-    };
+    let data = PixelData::new(readings, lights, view, set, params.transmission.eta);
     let n0 = Vector3::new(
         f64::from(start.normal[0]),
         f64::from(start.normal[1]),
