@@ -8,6 +8,13 @@
 //! boundary (Fresnel reflection, refraction, escape) and Russian roulette, are handled lane by lane
 //! in scalar code; when a photon ends, its lane is refilled with the batch's next photon.
 //!
+//! Internal interfaces stay scalar on purpose: refracting or reflecting them inside the vector step
+//! (Fresnel without division, the next layer's constants by a 16-entry permute) ran the 7-layer
+//! skin 12 % slower with a branch around it (mispredicted about half the time) and no faster
+//! without one (2026-11-25, seven_layer example, alternated runs): the step is bound by its
+//! instruction count, and the ~50 instructions the crossing adds to every step cost what the
+//! scalar code spends on the ~0.7 crossings per step.
+//!
 //! The physics is exactly that of the scalar walk it replaces (see `transport`): the same step
 //! sampling in optical depth, partial reflection at the outer surfaces, random reflection at
 //! internal interfaces, the same roulette. Each lane keeps a running sum of the weight deposited in
