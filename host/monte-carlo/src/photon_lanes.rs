@@ -11,7 +11,7 @@
 //! Internal interfaces stay scalar on purpose: refracting or reflecting them inside the vector step
 //! (Fresnel without division, the next layer's constants by a 16-entry permute) ran the 7-layer
 //! skin 12 % slower with a branch around it (mispredicted about half the time) and no faster
-//! without one (2026-11-25, seven_layer example, alternated runs): the step is bound by its
+//! without one (2026-11-25, seven_layer example, alternated runs): the step seems bound by its
 //! instruction count, and the ~50 instructions the crossing adds to every step cost what the
 //! scalar code spends on the ~0.7 crossings per step.
 //!
