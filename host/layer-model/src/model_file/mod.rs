@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use super::fit::{EmVariant, FitStats};
 use super::profiles::{Falloff, ProjectorIllumination};
-use super::relight::{Relit, relight, relight_patterns};
+use super::relight::{Relit, relight_patterns};
 use super::render::{LayerModel, RenderError, RenderOptions, SplatLayer};
 use super::surface::{Surface, ViewRay};
 use mlsss_core::booth::PatternSpec;
@@ -364,25 +364,9 @@ pub fn render_projector_patterns(
     baseline: Baseline,
     opts: &RenderOptions,
 ) -> Result<Vec<Relit>, ModelFileError> {
-    let (light, coords) = projector_light(model, k)?;
-    let view = ProjectorIllumination {
-        centre: Vector3::from(light.centre),
-        falloff: light.falloff,
-        coords: &coords,
-    };
-    let (layers, albedo) = baseline_layers(model, baseline)?;
-    Ok(relight_patterns(
-        &model.surface,
-        &view,
-        patterns,
-        light.black_level,
-        light.blur_px,
-        &layers,
-        albedo,
-        model.header.eta,
-        model.header.view_ray,
-        opts,
-    )?)
+    render_patterns_with_black_level(model, k, patterns, baseline, opts, |light| {
+        light.black_level
+    })
 }
 
 /// A projector's coordinates of every surface pixel (`None` where it is not seen).
@@ -436,6 +420,22 @@ fn render_with_black_level(
     opts: &RenderOptions,
     black_level: impl Fn(&ProjectorLight) -> f32,
 ) -> Result<Relit, ModelFileError> {
+    let patterns = std::slice::from_ref(pattern);
+    let mut frames =
+        render_patterns_with_black_level(model, k, patterns, baseline, opts, black_level)?;
+    // One frame per pattern, as `relight` takes it.
+    Ok(frames.pop().unwrap_or_default())
+}
+
+/// Projector `k` under each of `patterns`, its black level given by `black_level`.
+fn render_patterns_with_black_level(
+    model: &SubsurfaceModel,
+    k: usize,
+    patterns: &[Pattern],
+    baseline: Baseline,
+    opts: &RenderOptions,
+    black_level: impl Fn(&ProjectorLight) -> f32,
+) -> Result<Vec<Relit>, ModelFileError> {
     let (light, coords) = projector_light(model, k)?;
     let view = ProjectorIllumination {
         centre: Vector3::from(light.centre),
@@ -443,10 +443,10 @@ fn render_with_black_level(
         coords: &coords,
     };
     let (layers, albedo) = baseline_layers(model, baseline)?;
-    Ok(relight(
+    Ok(relight_patterns(
         &model.surface,
         &view,
-        pattern,
+        patterns,
         black_level(light),
         light.blur_px,
         &layers,
