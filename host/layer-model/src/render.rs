@@ -608,14 +608,15 @@ fn layer_splats(
     let area = fp.area();
     let pixel_mm = area.sqrt();
     let (x, y) = ((i % w) as f64, (i / w) as f64);
+    let Some(map) = fp.pixel_map() else {
+        return area;
+    };
     let total: f32 = layers.iter().map(|l| l.weight).sum();
     for l in layers {
         if l.weight.is_nan() || l.weight <= table.opts.min_relative_weight * total {
             continue;
         }
-        let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
-            continue;
-        };
+        let d = map.pixels_for(&(t * f64::from(l.depth_mm)));
         let pos = table.bin_position(f64::from(l.sigma_mm) / pixel_mm);
         let b0 = floor(pos) as usize;
         let frac = pos - b0 as f64;

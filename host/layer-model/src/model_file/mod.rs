@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use super::fit::{EmVariant, FitStats};
 use super::profiles::{Falloff, ProjectorIllumination};
-use super::relight::{Relit, relight, relight_patterns};
+use super::relight::{LitPatterns, Relit, relight, relight_patterns};
 use super::render::{LayerModel, RenderError, RenderOptions, SplatLayer};
 use super::surface::{Surface, ViewRay};
 use mlsss_core::booth::PatternSpec;
@@ -383,6 +383,52 @@ pub fn render_projector_patterns(
         model.header.view_ray,
         opts,
     )?)
+}
+
+/// Projector `k` showing several patterns, made ready to render with any baseline: the
+/// projector's coordinates, the patterns' irradiance and the shifts are found once, so each
+/// baseline costs only its own splats ([`ProjectorPatterns::render`] gives the frames
+/// [`render_projector_patterns`] gives).
+pub struct ProjectorPatterns<'m> {
+    model: &'m SubsurfaceModel,
+    lit: LitPatterns,
+}
+
+impl<'m> ProjectorPatterns<'m> {
+    pub fn new(
+        model: &'m SubsurfaceModel,
+        k: usize,
+        patterns: &[Pattern],
+    ) -> Result<Self, ModelFileError> {
+        let (light, coords) = projector_light(model, k)?;
+        let view = ProjectorIllumination {
+            centre: Vector3::from(light.centre),
+            falloff: light.falloff,
+            coords: &coords,
+        };
+        let lit = LitPatterns::new(
+            &model.surface,
+            &view,
+            patterns,
+            light.black_level,
+            light.blur_px,
+            model.header.eta,
+            model.header.view_ray,
+        );
+        Ok(Self { model, lit })
+    }
+
+    /// Every pattern rendered with `baseline`.
+    pub fn render(
+        &self,
+        baseline: Baseline,
+        opts: &RenderOptions,
+    ) -> Result<Vec<Relit>, ModelFileError> {
+        let (layers, albedo) = baseline_layers(self.model, baseline)?;
+        Ok(self
+            .lit
+            .relight(&self.model.surface, &layers, albedo, opts)?)
+    }
 }
 
 /// A projector's coordinates of every surface pixel (`None` where it is not seen).

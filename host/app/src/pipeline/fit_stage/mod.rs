@@ -51,8 +51,8 @@ use mlsss_layer_model::fit::{EmVariant, FitError, FitOptions, fit_dipole_model, 
 use mlsss_layer_model::layer_depth::SpacingEstimate;
 use mlsss_layer_model::mixture::{EmConfig, Profile};
 use mlsss_layer_model::model_file::{
-    Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, SubsurfaceModel,
-    render_pattern_alone, render_projector_patterns,
+    Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, ProjectorPatterns,
+    SubsurfaceModel, render_pattern_alone,
 };
 use mlsss_layer_model::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use mlsss_layer_model::relight::{direct_albedo, pattern_irradiance};
@@ -837,13 +837,15 @@ fn heldout_errors(
         .iter()
         .map(|p| (p.label(), BTreeMap::new()))
         .collect();
+    // The irradiance and shifts are found once for every renderer; every pattern of one
+    // renderer is rendered in one go (its splats are found once).
+    let projector = ProjectorPatterns::new(model, h, &compared)?;
     for (name, baseline) in [
         ("mlsss", Baseline::Mlsss),
         ("homogeneous", Baseline::Homogeneous),
         ("dipole", Baseline::Dipole),
     ] {
-        // Every pattern of one renderer in one go: the splats are found once.
-        let relits = match render_projector_patterns(model, h, &compared, baseline, &opts) {
+        let relits = match projector.render(baseline, &opts) {
             Ok(r) => r,
             Err(ModelFileError::NoDipole) => continue,
             Err(e) => return Err(e.into()),
