@@ -46,7 +46,7 @@ use super::profiles_stage::{ProfileInputs, ProfilesRecord, ProfilesStageError, t
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::{Axis, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
-use mlsss_core::resources::cpu_seconds;
+use mlsss_core::resources::{cpu_seconds, release_free_memory};
 use mlsss_layer_model::fit::{EmVariant, FitError, FitOptions, fit_dipole_model, fit_model};
 use mlsss_layer_model::layer_depth::SpacingEstimate;
 use mlsss_layer_model::mixture::{EmConfig, Profile};
@@ -446,6 +446,7 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     drop(profiles);
     release_slits(&mut inputs);
     let inputs = inputs;
+    release_free_memory();
 
     let model = assemble(ctx, &inputs, params, &training, layers, dipole, &fit.stats)?;
     let t_heldout = Instant::now();
@@ -454,6 +455,8 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
         _ => None,
     };
     let heldout_s = t_heldout.elapsed().as_secs_f64();
+    // The renders' bins (up to 768 MB) go back before the save and the figures allocate.
+    release_free_memory();
     let c3 = cpu_seconds();
     let path = ctx.dir().join(MODEL_FILE);
     let (save_s, figures_s) = save_and_draw(ctx, &inputs, &record, &model, prepared, &path)?;
@@ -593,6 +596,8 @@ fn fit_layers(
     let t_em = Instant::now();
     let mut fit = fit_model(surface, geometries, sweeps, &opts)?;
     let em_s = t_em.elapsed().as_secs_f64();
+    // The EM's scratch goes back before the prior and the dipole allocate theirs side by side.
+    release_free_memory();
     let cpu_after_em = cpu_seconds();
     let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
     // The dipole baseline needs only the EM's amplitudes: it runs beside the spatial prior,
