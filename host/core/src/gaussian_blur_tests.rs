@@ -400,3 +400,25 @@ fn identity_and_bad_shapes() {
         Ok(())
     );
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(12))]
+
+    /// Rows longer than a pass's block of outputs (full-size camera rows): still the old
+    /// render blur bit for bit, across the block seams.
+    #[test]
+    fn long_rows_identical_to_the_old_render_blur(
+        (w, h, data) in (500..1400usize, 1..4usize).prop_flat_map(|(w, h)| {
+            (Just(w), Just(h), prop::collection::vec(value(), w * h))
+        }),
+        sigma in 0.0..30.0f64,
+    ) {
+        let data: Vec<f32> = data.iter().map(|&v| v as f32).collect();
+        let mut want = data.clone();
+        old_render(&mut want, w, h, sigma, 3.5);
+        let mut got = data;
+        let kernel = GaussianKernel::new(sigma, 3.5, Normalisation::Weights).to_f32();
+        blur_2d(&mut got, w, h, &kernel, Border::Zero).unwrap();
+        prop_assert_eq!(bits32(&got), bits32(&want));
+    }
+}

@@ -372,23 +372,60 @@ pub fn relight_patterns(
     view_ray: ViewRay,
     opts: &RenderOptions,
 ) -> Result<Vec<Relit>, RenderError> {
-    let irradiances: Vec<Vec<f32>> = patterns
-        .iter()
-        .map(|p| pattern_irradiance(surface, view, p, black_level, blur_px))
-        .collect();
-    let shift = shifts(surface, &view.centre, eta, view_ray);
-    let refs: Vec<&[f32]> = irradiances.iter().map(Vec::as_slice).collect();
-    let globals = render_global_many(surface, &refs, &shift, model, opts)?;
-    Ok(irradiances
-        .iter()
-        .zip(globals)
-        .map(|(e, global)| Relit {
-            direct: e
+    LitPatterns::new(surface, view, patterns, black_level, blur_px, eta, view_ray)
+        .relight(surface, model, albedo, opts)
+}
+
+/// A light's patterns made ready for any model: their irradiance and the light's shifts, which
+/// every model's render of them shares (so several baselines need them found once).
+pub struct LitPatterns {
+    irradiances: Vec<Vec<f32>>,
+    shift: Vec<Option<Vector3<f64>>>,
+}
+
+impl LitPatterns {
+    /// The irradiance of `view` showing each of `patterns` on `surface`, and its shifts.
+    pub fn new(
+        surface: &Surface,
+        view: &ProjectorIllumination,
+        patterns: &[Pattern],
+        black_level: f32,
+        blur_px: f32,
+        eta: f64,
+        view_ray: ViewRay,
+    ) -> Self {
+        Self {
+            irradiances: patterns
                 .iter()
-                .zip(albedo)
-                .map(|(&e, a)| [a[0] * e, a[1] * e, a[2] * e])
+                .map(|p| pattern_irradiance(surface, view, p, black_level, blur_px))
                 .collect(),
-            global,
-        })
-        .collect())
+            shift: shifts(surface, &view.centre, eta, view_ray),
+        }
+    }
+
+    /// Every pattern rendered with `model` (global) and `albedo` (direct), as
+    /// [`relight_patterns`] renders them.
+    pub fn relight(
+        &self,
+        surface: &Surface,
+        model: &LayerModel,
+        albedo: &[[f32; 3]],
+        opts: &RenderOptions,
+    ) -> Result<Vec<Relit>, RenderError> {
+        let refs: Vec<&[f32]> = self.irradiances.iter().map(Vec::as_slice).collect();
+        let globals = render_global_many(surface, &refs, &self.shift, model, opts)?;
+        Ok(self
+            .irradiances
+            .iter()
+            .zip(globals)
+            .map(|(e, global)| Relit {
+                direct: e
+                    .iter()
+                    .zip(albedo)
+                    .map(|(&e, a)| [a[0] * e, a[1] * e, a[2] * e])
+                    .collect(),
+                global,
+            })
+            .collect())
+    }
 }

@@ -371,6 +371,8 @@ struct Bin {
     channel: usize,
     sigma_px: f64,
     level: u32,
+    /// Size of the level's grid ([`level_grid`]), kept so a splat need not divide.
+    grid: (usize, usize),
     /// Coarse image (`grid.0 x grid.1`) of the level.
     image: Vec<f32>,
 }
@@ -383,6 +385,67 @@ fn level_grid(w: usize, h: usize, level: u32) -> (usize, usize) {
     }
     let f = 1usize << level;
     ((w - 1) / f + 2, (h - 1) / f + 2)
+}
+
+/// [`RenderOptions`]' bin arithmetic with what depends on the bin index alone tabulated: the
+/// same numbers without a `powi`, `log2` and `floor` per layer and bin (which were most of a
+/// splat's cost).
+struct BinTable {
+    min_sigma_px: f64,
+    /// `ln(sigma_bin_ratio)`.
+    ln_ratio: f64,
+    /// `2^bin_level(bin_sigma(b))` of the first bins.
+    factors: Vec<f64>,
+    opts: RenderOptions,
+}
+
+impl BinTable {
+    /// Bins tabulated; wider bins (never reached by a real model) are computed.
+    const TABULATED: usize = 128;
+
+    fn new(opts: &RenderOptions) -> Self {
+        Self {
+            min_sigma_px: opts.min_sigma_px,
+            ln_ratio: opts.sigma_bin_ratio.ln(),
+            factors: (0..Self::TABULATED)
+                .map(|b| Self::factor_of(opts, b))
+                .collect(),
+            opts: opts.clone(),
+        }
+    }
+
+    fn factor_of(opts: &RenderOptions, b: usize) -> f64 {
+        f64::from(1u32 << opts.bin_level(opts.bin_sigma(b)))
+    }
+
+    /// [`RenderOptions::bin_position`].
+    #[inline]
+    fn bin_position(&self, sigma_px: f64) -> f64 {
+        (sigma_px.max(self.min_sigma_px) / self.min_sigma_px).ln() / self.ln_ratio
+    }
+
+    /// Downsampling factor of bin `b`'s pyramid level.
+    #[inline]
+    fn level_factor(&self, b: usize) -> f64 {
+        match self.factors.get(b) {
+            Some(&f) => f,
+            None => Self::factor_of(&self.opts, b),
+        }
+    }
+}
+
+/// `x.floor()` without the libm call the baseline x86-64 target makes of it: equal for
+/// `|x| < 2^52` (a truncation then a step down for negatives; `-0.0` gives `0.0`, which splats
+/// the same), the library's beyond.
+#[inline(always)]
+fn floor(x: f64) -> f64 {
+    const EXACT_BELOW: f64 = 4_503_599_627_370_496.0; // 2^52: every such float truncates exactly
+    if x.abs() < EXACT_BELOW {
+        let t = x as i64 as f64;
+        if t > x { t - 1.0 } else { t }
+    } else {
+        x.floor()
+    }
 }
 
 /// Renders the subsurface (global) image, RGB per pixel, of the light whose per-pixel irradiance
@@ -528,12 +591,16 @@ fn layer_splats(
     surface: &Surface,
     shift: &[Option<Vector3<f64>>],
     model: &LayerModel,
-    opts: &RenderOptions,
+    table: &BinTable,
     c: usize,
     i: usize,
     splats: &mut Vec<LayerSplat>,
 ) -> f64 {
     splats.clear();
+    let layers = model.layers(i, c);
+    if layers.is_empty() {
+        return 0.0;
+    }
     let (Some(t), Some(fp)) = (shift[i], surface.footprint(i)) else {
         return 0.0;
     };
@@ -541,21 +608,21 @@ fn layer_splats(
     let area = fp.area();
     let pixel_mm = area.sqrt();
     let (x, y) = ((i % w) as f64, (i / w) as f64);
-    let layers = model.layers(i, c);
+    let Some(map) = fp.pixel_map() else {
+        return area;
+    };
     let total: f32 = layers.iter().map(|l| l.weight).sum();
     for l in layers {
-        if l.weight.is_nan() || l.weight <= opts.min_relative_weight * total {
+        if l.weight.is_nan() || l.weight <= table.opts.min_relative_weight * total {
             continue;
         }
-        let Some(d) = fp.pixels_for(&(t * f64::from(l.depth_mm))) else {
-            continue;
-        };
-        let pos = opts.bin_position(f64::from(l.sigma_mm) / pixel_mm);
-        let b0 = pos.floor() as usize;
+        let d = map.pixels_for(&(t * f64::from(l.depth_mm)));
+        let pos = table.bin_position(f64::from(l.sigma_mm) / pixel_mm);
+        let b0 = floor(pos) as usize;
         let frac = pos - b0 as f64;
         let target = |b: usize, share: f64| {
             (share > 0.0).then(|| {
-                let f = f64::from(1u32 << opts.bin_level(opts.bin_sigma(b)));
+                let f = table.level_factor(b);
                 (b, share, bilinear_at((x + d.x) / f, (y + d.y) / f))
             })
         };
@@ -584,12 +651,13 @@ fn splat_channel_frames(
     let mut index: Vec<Vec<Option<usize>>> = vec![Vec::new(); frames.len()];
     let mut bins: Vec<Vec<Bin>> = (0..frames.len()).map(|_| Vec::new()).collect();
     let mut splats = Vec::new();
+    let table = BinTable::new(opts);
     let lit = |e: f32| !(e.is_nan() || e <= 0.0);
     for i in 0..surface.len() {
         if !frames.iter().any(|e| lit(e[i])) {
             continue;
         }
-        let area = layer_splats(surface, shift, model, opts, c, i, &mut splats);
+        let area = layer_splats(surface, shift, model, &table, c, i, &mut splats);
         for (f, irradiance) in frames.iter().enumerate() {
             let e = irradiance[i];
             if !lit(e) {
@@ -612,12 +680,13 @@ fn splat_channel_frames(
                             channel: c,
                             sigma_px,
                             level,
+                            grid: (gw, gh),
                             image: vec![0.0; gw * gh],
                         });
                         bins.len() - 1
                     });
                     let bin = &mut bins[k];
-                    let (gw, gh) = level_grid(w, h, bin.level);
+                    let (gw, gh) = bin.grid;
                     splat_at(&mut bin.image, gw, gh, at, (amount * share) as f32);
                 }
             }
@@ -678,7 +747,7 @@ struct BilinearAt {
 }
 
 fn bilinear_at(x: f64, y: f64) -> BilinearAt {
-    let (x0, y0) = (x.floor(), y.floor());
+    let (x0, y0) = (floor(x), floor(y));
     BilinearAt {
         x0,
         y0,
@@ -814,6 +883,7 @@ mod tests {
                             channel: c,
                             sigma_px,
                             level,
+                            grid: (gw, gh),
                             image: vec![0.0; gw * gh],
                         });
                         bins.len() - 1
@@ -835,8 +905,17 @@ mod tests {
         bins
     }
 
+    /// The bilinear splat with the standard library's `floor` (the render's own is checked
+    /// against it).
     fn splat_bilinear(img: &mut [f32], w: usize, h: usize, x: f64, y: f64, amount: f32) {
-        splat_at(img, w, h, bilinear_at(x, y), amount);
+        let (x0, y0) = (x.floor(), y.floor());
+        let at = BilinearAt {
+            x0,
+            y0,
+            fx: (x - x0) as f32,
+            fy: (y - y0) as f32,
+        };
+        splat_at(img, w, h, at, amount);
     }
 
     /// A flat patch z = 0 on a `pitch` mm grid, seen from far above.

@@ -127,14 +127,39 @@ impl Footprint {
 
     /// Pixel offset `(dx, dy)` whose surface displacement is closest to `d` (least squares).
     pub fn pixels_for(&self, d: &Vector3<f64>) -> Option<Vector2<f64>> {
+        self.pixel_map().map(|m| m.pixels_for(d))
+    }
+
+    /// [`Footprint::pixels_for`] made ready for many displacements (the normal equations
+    /// inverted once); `None` for a degenerate footprint.
+    pub fn pixel_map(&self) -> Option<PixelMap> {
         let jtj = Matrix2::new(
             self.dx.dot(&self.dx),
             self.dx.dot(&self.dy),
             self.dy.dot(&self.dx),
             self.dy.dot(&self.dy),
         );
-        let rhs = Vector2::new(self.dx.dot(d), self.dy.dot(d));
-        jtj.try_inverse().map(|inv| inv * rhs)
+        jtj.try_inverse().map(|inverse| PixelMap {
+            dx: self.dx,
+            dy: self.dy,
+            inverse,
+        })
+    }
+}
+
+/// A footprint's least-squares map from surface displacements to pixel offsets.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelMap {
+    dx: Vector3<f64>,
+    dy: Vector3<f64>,
+    /// Inverse of the footprint's normal equations.
+    inverse: Matrix2<f64>,
+}
+
+impl PixelMap {
+    /// Pixel offset whose surface displacement is closest to `d` ([`Footprint::pixels_for`]).
+    pub fn pixels_for(&self, d: &Vector3<f64>) -> Vector2<f64> {
+        self.inverse * Vector2::new(self.dx.dot(d), self.dy.dot(d))
     }
 }
 

@@ -59,7 +59,7 @@ use serde_json::Value;
 use mlsss_core::atomic_file::{FolderLock, LockError, write_bytes_atomically};
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, truth};
-use mlsss_core::resources::cpu_seconds;
+use mlsss_core::resources::{cpu_seconds, release_free_memory};
 
 /// Every stage, in an order where inputs come first.
 pub const STAGES: &[Stage] = &[
@@ -580,6 +580,8 @@ impl Pipeline {
         let start = Instant::now();
         let cpu_start = cpu_seconds();
         let report = (stage.run)(&ctx).map_err(|source| source.into_pipeline_error(stage.name))?;
+        // What the stage freed goes back to the system before the next stage allocates.
+        release_free_memory();
         let record = StageRecord {
             key,
             report,

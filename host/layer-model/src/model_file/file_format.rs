@@ -30,37 +30,57 @@ impl SubsurfaceModel {
             path: path.to_owned(),
             source,
         };
-        let buf = self.encode(version)?;
         // Written aside and renamed: a run killed while saving keeps the previous model whole.
-        mlsss_core::atomic_file::write_atomically(path, |out| {
+        // An encoding error (not an I/O one) is kept here while the write is abandoned.
+        let mut invalid = None;
+        let written = mlsss_core::atomic_file::write_atomically(path, |out| {
             out.write_all(MAGIC)?;
             out.write_all(&version.to_le_bytes())?;
-            write_gzip_members(out, &buf)
-        })
-        .map_err(io)
+            let mut members = GzipMembers::new(out);
+            match self.encode(version, &mut members) {
+                Ok(()) => members.finish(),
+                Err(EncodeError::Io(e)) => Err(e),
+                Err(EncodeError::Model(e)) => {
+                    invalid = Some(e);
+                    Err(std::io::Error::other("the model cannot be encoded"))
+                }
+            }
+        });
+        match (invalid, written) {
+            (Some(e), _) => Err(e),
+            (None, w) => w.map_err(io),
+        }
     }
 
     /// The uncompressed sections of layout `version`: header length and JSON, then the binary
-    /// sections (see the module doc).
-    fn encode(&self, version: u32) -> Result<Vec<u8>, ModelFileError> {
+    /// sections (see the module doc), into `members`, which compresses and writes them as they
+    /// fill (the uncompressed file, 0.5 GB and more at full size, is never held whole).
+    fn encode<W: Write>(
+        &self,
+        version: u32,
+        members: &mut GzipMembers<'_, W>,
+    ) -> Result<(), EncodeError> {
         let header = serde_json::to_vec(&self.header)
             .map_err(|e| ModelFileError::Inconsistent(e.to_string()))?;
-        let mut buf = Vec::with_capacity(header.len() + 64 * self.surface.len());
-        put_u32(&mut buf, header.len() as u32);
+        let buf = &mut members.pending;
+        put_u32(buf, header.len() as u32);
         buf.extend_from_slice(&header);
         for p in &self.surface.points {
-            put_f32s(&mut buf, &[p.x as f32, p.y as f32, p.z as f32]);
+            put_f32s(buf, &[p.x as f32, p.y as f32, p.z as f32]);
         }
         for n in &self.surface.normals {
-            put_f32s(&mut buf, &[n.x as f32, n.y as f32, n.z as f32]);
+            put_f32s(buf, &[n.x as f32, n.y as f32, n.z as f32]);
         }
         buf.extend(self.surface.mask.iter().map(|&m| u8::from(m)));
+        members.write_full_chunks()?;
+        let buf = &mut members.pending;
         for a in self.albedo.iter().chain(&self.white_albedo) {
-            put_f32s(&mut buf, a);
+            put_f32s(buf, a);
         }
         for v in &self.visibility {
             buf.extend(v.iter().map(|&m| u8::from(m)));
         }
+        members.write_full_chunks()?;
         let put = |buf: &mut Vec<u8>, model: &LayerModel| match version {
             1 => {
                 put_layers_v1(buf, model);
@@ -68,15 +88,16 @@ impl SubsurfaceModel {
             }
             _ => put_layers(buf, model),
         };
-        put(&mut buf, &self.layers)?;
+        put(&mut members.pending, &self.layers)?;
+        members.write_full_chunks()?;
         match &self.dipole {
             Some(d) => {
-                buf.push(1);
-                put(&mut buf, d)?;
+                members.pending.push(1);
+                put(&mut members.pending, d)?;
             }
-            None => buf.push(0),
+            None => members.pending.push(0),
         }
-        Ok(buf)
+        Ok(())
     }
 
     /// Reads a model file.
@@ -144,21 +165,74 @@ impl SubsurfaceModel {
     }
 }
 
-/// Writes `buf` compressed in chunks on every core, as consecutive gzip members (one gzip
-/// stream to a reader that reads them all, as `load` does).
-fn write_gzip_members(out: &mut impl Write, buf: &[u8]) -> std::io::Result<()> {
-    let members: Vec<Vec<u8>> = buf
-        .par_chunks(GZIP_CHUNK)
-        .map(|chunk| {
-            let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
-            gz.write_all(chunk)?;
-            gz.finish()
-        })
-        .collect::<Result<_, _>>()?;
-    for member in &members {
-        out.write_all(member)?;
+/// Why a model could not be encoded: it is inconsistent, or the file could not be written.
+enum EncodeError {
+    Model(ModelFileError),
+    Io(std::io::Error),
+}
+
+impl From<ModelFileError> for EncodeError {
+    fn from(e: ModelFileError) -> Self {
+        Self::Model(e)
     }
-    Ok(())
+}
+
+impl From<std::io::Error> for EncodeError {
+    fn from(e: std::io::Error) -> Self {
+        Self::Io(e)
+    }
+}
+
+/// The encoded bytes written as consecutive gzip members of [`GZIP_CHUNK`] bytes each (one
+/// gzip stream to a reader that reads them all, as `load` does), compressed on every core.
+/// Bytes are appended to `pending`; whole chunks leave it once there are enough to keep the
+/// cores busy, so the members are cut where a whole buffer's would be (the same file) while
+/// memory holds a few chunks and the section being encoded.
+struct GzipMembers<'w, W: Write> {
+    out: &'w mut W,
+    pending: Vec<u8>,
+}
+
+impl<'w, W: Write> GzipMembers<'w, W> {
+    fn new(out: &'w mut W) -> Self {
+        Self {
+            out,
+            pending: Vec::new(),
+        }
+    }
+
+    /// Compresses and writes the whole chunks of `pending` once there are at least as many as
+    /// threads (fewer would leave cores idle); the rest stays pending.
+    fn write_full_chunks(&mut self) -> std::io::Result<()> {
+        let whole = self.pending.len() / GZIP_CHUNK;
+        if whole < rayon::current_num_threads() {
+            return Ok(());
+        }
+        self.write_members(whole * GZIP_CHUNK)?;
+        self.pending.drain(..whole * GZIP_CHUNK);
+        Ok(())
+    }
+
+    /// Writes everything still pending (the last member may be short).
+    fn finish(mut self) -> std::io::Result<()> {
+        self.write_members(self.pending.len())
+    }
+
+    /// Compresses `pending[..len]` in chunks, in parallel, and writes the members in order.
+    fn write_members(&mut self, len: usize) -> std::io::Result<()> {
+        let members: Vec<Vec<u8>> = self.pending[..len]
+            .par_chunks(GZIP_CHUNK)
+            .map(|chunk| {
+                let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+                gz.write_all(chunk)?;
+                gz.finish()
+            })
+            .collect::<Result<_, _>>()?;
+        for member in &members {
+            self.out.write_all(member)?;
+        }
+        Ok(())
+    }
 }
 
 /// The version and decompressed sections of the model file at `path`, after checking its
@@ -441,5 +515,38 @@ impl<'a> Reader<'a> {
             .collect::<Result<Vec<_>, ModelFileError>>()?;
         LayerModel::from_parts(width, height, offsets, layers)
             .ok_or_else(|| self.corrupt("layer offsets do not index the layers"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Streamed in uneven pieces, flushed as they come, the members are those of the whole
+    /// buffer cut into chunks and compressed at once (the file the one-shot save wrote).
+    #[test]
+    fn streamed_members_are_the_whole_buffers_members() {
+        let data: Vec<u8> = (0..GZIP_CHUNK * 21 / 2)
+            .map(|i| ((i * 7) % 251) as u8 ^ (i / 97) as u8)
+            .collect();
+        let whole: Vec<u8> = data
+            .chunks(GZIP_CHUNK)
+            .flat_map(|chunk| {
+                let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+                gz.write_all(chunk).unwrap();
+                gz.finish().unwrap()
+            })
+            .collect();
+        let mut out = Vec::new();
+        let mut members = GzipMembers::new(&mut out);
+        let mut most_pending = 0;
+        for piece in data.chunks(1500) {
+            members.pending.extend_from_slice(piece);
+            members.write_full_chunks().unwrap();
+            most_pending = most_pending.max(members.pending.len());
+        }
+        members.finish().unwrap();
+        assert_eq!(out, whole);
+        assert!(most_pending < (rayon::current_num_threads() + 1) * GZIP_CHUNK);
     }
 }

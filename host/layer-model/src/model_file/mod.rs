@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use super::fit::{EmVariant, FitStats};
 use super::profiles::{Falloff, ProjectorIllumination};
-use super::relight::{Relit, relight_patterns};
+use super::relight::{LitPatterns, Relit};
 use super::render::{LayerModel, RenderError, RenderOptions, SplatLayer};
 use super::surface::{Surface, ViewRay};
 use mlsss_core::booth::PatternSpec;
@@ -364,9 +364,63 @@ pub fn render_projector_patterns(
     baseline: Baseline,
     opts: &RenderOptions,
 ) -> Result<Vec<Relit>, ModelFileError> {
-    render_patterns_with_black_level(model, k, patterns, baseline, opts, |light| {
-        light.black_level
-    })
+    ProjectorPatterns::new(model, k, patterns)?.render(baseline, opts)
+}
+
+/// Projector `k` showing several patterns, made ready to render with any baseline: the
+/// projector's coordinates, the patterns' irradiance and the shifts are found once, so each
+/// baseline costs only its own splats ([`ProjectorPatterns::render`] gives the frames
+/// [`render_projector_patterns`] gives).
+pub struct ProjectorPatterns<'m> {
+    model: &'m SubsurfaceModel,
+    lit: LitPatterns,
+}
+
+impl<'m> ProjectorPatterns<'m> {
+    pub fn new(
+        model: &'m SubsurfaceModel,
+        k: usize,
+        patterns: &[Pattern],
+    ) -> Result<Self, ModelFileError> {
+        Self::with_black_level(model, k, patterns, |light| light.black_level)
+    }
+
+    /// As [`ProjectorPatterns::new`] with the projector's black level given by `black_level`.
+    fn with_black_level(
+        model: &'m SubsurfaceModel,
+        k: usize,
+        patterns: &[Pattern],
+        black_level: impl Fn(&ProjectorLight) -> f32,
+    ) -> Result<Self, ModelFileError> {
+        let (light, coords) = projector_light(model, k)?;
+        let view = ProjectorIllumination {
+            centre: Vector3::from(light.centre),
+            falloff: light.falloff,
+            coords: &coords,
+        };
+        let lit = LitPatterns::new(
+            &model.surface,
+            &view,
+            patterns,
+            black_level(light),
+            light.blur_px,
+            model.header.eta,
+            model.header.view_ray,
+        );
+        Ok(Self { model, lit })
+    }
+
+    /// Every pattern rendered with `baseline`.
+    pub fn render(
+        &self,
+        baseline: Baseline,
+        opts: &RenderOptions,
+    ) -> Result<Vec<Relit>, ModelFileError> {
+        let (layers, albedo) = baseline_layers(self.model, baseline)?;
+        Ok(self
+            .lit
+            .relight(&self.model.surface, &layers, albedo, opts)?)
+    }
 }
 
 /// A projector's coordinates of every surface pixel (`None` where it is not seen).
@@ -436,23 +490,5 @@ fn render_patterns_with_black_level(
     opts: &RenderOptions,
     black_level: impl Fn(&ProjectorLight) -> f32,
 ) -> Result<Vec<Relit>, ModelFileError> {
-    let (light, coords) = projector_light(model, k)?;
-    let view = ProjectorIllumination {
-        centre: Vector3::from(light.centre),
-        falloff: light.falloff,
-        coords: &coords,
-    };
-    let (layers, albedo) = baseline_layers(model, baseline)?;
-    Ok(relight_patterns(
-        &model.surface,
-        &view,
-        patterns,
-        black_level(light),
-        light.blur_px,
-        &layers,
-        albedo,
-        model.header.eta,
-        model.header.view_ray,
-        opts,
-    )?)
+    ProjectorPatterns::with_black_level(model, k, patterns, black_level)?.render(baseline, opts)
 }

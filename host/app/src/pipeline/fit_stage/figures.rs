@@ -73,24 +73,65 @@ impl Scanline {
     }
 }
 
+/// What the figures take from the slit profiles, taken as soon as the layers are fitted so the
+/// profiles can be freed before the model is assembled, rendered and saved.
+pub(super) struct PreparedFigures {
+    /// The projector Fig. 10 shows (the held-out one, else the first training projector).
+    projector: usize,
+    /// Its slit's measured global light (`None` when it cannot be extracted).
+    measured_slit: Option<Vec<[f32; 3]>>,
+    profiles_plot: LinePlot,
+}
+
+/// The figures' data from the profiles: Fig. 10's measured slit and the pixel profiles' plot
+/// (drawn from `layers`, the model's layers).
+#[allow(clippy::too_many_arguments)] // the profiles' parts, each borrowed for this moment only
+pub(super) fn prepare_figures(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    record: &ProfilesRecord,
+    layers: &LayerModel,
+    holdout: Option<usize>,
+    training: &[usize],
+    sweeps: &[SlitSweep],
+    geometries: &[Vec<Option<PixelGeometry>>],
+) -> Result<PreparedFigures, FitStageError> {
+    let scanline = Scanline::new(inputs, record);
+    let projector = holdout.unwrap_or(training[0]);
+    let slit = fig10_slit(&ctx.capture.manifest.booth.patterns);
+    Ok(PreparedFigures {
+        projector,
+        measured_slit: measured_slit_global(ctx, inputs, projector, &slit)?,
+        profiles_plot: pixel_profiles_plot(layers, training, sweeps, geometries, &scanline),
+    })
+}
+
+/// The slit Fig. 10 shows: vertical lines at offset 0.
+fn fig10_slit(spec: &mlsss_core::booth::PatternSpec) -> Pattern {
+    Pattern::Slit {
+        axis: Axis::X,
+        width: spec.slit_width_px,
+        period: spec.slit_period_px,
+        offset: 0,
+    }
+}
+
 /// Draws `fig10` and `pixel_profiles` (SVG and PNG) and writes their data to `fig10.json`.
 pub(super) fn write_figures(
     ctx: &StageContext,
     inputs: &ProfileInputs,
     record: &ProfilesRecord,
     model: &SubsurfaceModel,
-    training: &[usize],
-    sweeps: &[SlitSweep],
-    geometries: &[Vec<Option<PixelGeometry>>],
+    prepared: &PreparedFigures,
 ) -> Result<(), FitStageError> {
     let scanline = Scanline::new(inputs, record);
-    let fig10 = fig10_plot(ctx, inputs, model, training, &scanline)?;
+    let fig10 = fig10_plot(ctx, inputs, model, prepared, &scanline)?;
     fig10.write(&ctx.dir().join("fig10"))?;
-    let profiles_plot = pixel_profiles_plot(model, training, sweeps, geometries, &scanline);
+    let profiles_plot = &prepared.profiles_plot;
     profiles_plot.write(&ctx.dir().join("pixel_profiles"))?;
     let data = json!({
         "fig10": series_json(&fig10),
-        "pixel_profiles": series_json(&profiles_plot),
+        "pixel_profiles": series_json(profiles_plot),
     });
     let path = ctx.dir().join("fig10.json");
     mlsss_core::atomic_file::write_bytes_atomically(&path, data.to_string())
@@ -104,22 +145,16 @@ fn fig10_plot(
     ctx: &StageContext,
     inputs: &ProfileInputs,
     model: &SubsurfaceModel,
-    training: &[usize],
+    prepared: &PreparedFigures,
     scanline: &Scanline,
 ) -> Result<LinePlot, FitStageError> {
     let surface = &inputs.surface;
     let row = scanline.row;
     let size = (surface.width as u32, surface.height as u32);
-    let k = model.header.holdout.unwrap_or(training[0]);
-    let spec = &model.header.patterns;
-    let slit = Pattern::Slit {
-        axis: Axis::X,
-        width: spec.slit_width_px,
-        period: spec.slit_period_px,
-        offset: 0,
-    };
+    let k = prepared.projector;
+    let slit = fig10_slit(&model.header.patterns);
     let mut series = Vec::new();
-    if let Some(m) = &measured_slit_global(ctx, inputs, k, &slit)? {
+    if let Some(m) = &prepared.measured_slit {
         series.push(Series {
             label: "measured (R)".into(),
             colour: [200, 30, 30],
@@ -226,7 +261,7 @@ fn rendered_slit_series(
 /// A few scanline pixels' profiles (R, first training projector, along x): samples against the
 /// fitted model's profile.
 fn pixel_profiles_plot(
-    model: &SubsurfaceModel,
+    model_layers: &LayerModel,
     training: &[usize],
     sweeps: &[SlitSweep],
     geometries: &[Vec<Option<PixelGeometry>>],
@@ -255,7 +290,7 @@ fn pixel_profiles_plot(
             points: profile.samples.iter().map(|s| (s.s, s.y)).collect(),
         });
         let half = profile.period.unwrap_or(10.0) / 2.0;
-        let layers = model.layers.layers(i, 0);
+        let layers = model_layers.layers(i, 0);
         profile_series.push(Series {
             label: format!("{pixel} model"),
             colour,

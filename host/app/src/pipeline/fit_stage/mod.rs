@@ -22,10 +22,11 @@
 //! Report fragment: `components_mean`, `depth_spacing_mm`, `depth_estimate`, `pixels_fitted`,
 //! `pixels_skipped`, `pixels_filled`, `fits`, `mean_iterations`, `em`, `components`, `holdout`,
 //! `training_projectors`, `model_file`, `model_bytes`,
-//! `timing_s.{load,fit,fit_normals,fit_em,fit_prior,dipole,save,figures}` (wall; `fit` ends
-//! with the model, its parts are the normals' shading correction, the EM, then the spatial prior
-//! while the dipole baseline is fitted beside it; the model is saved while the figures are
-//! drawn) and `timing_cpu_s.{load,fit,fit_normals,fit_em,prior_and_dipole,save_and_figures}`
+//! `timing_s.{load,fit,fit_normals,fit_em,fit_prior,dipole,heldout,save,figures}` (wall; `fit`
+//! ends with the model, its parts are the normals' shading correction, the EM, then the spatial
+//! prior while the dipole baseline is fitted beside it; `heldout` is the held-out renders; the
+//! model is saved while the figures are drawn) and
+//! `timing_cpu_s.{load,fit,fit_normals,fit_em,prior_and_dipole,heldout,save_and_figures}`
 //! (CPU, all threads),
 //! and with a holdout on a simulated capture (unless `heldout_check` is off)
 //! `heldout_global_rel_rmse.{pattern}.{mlsss,homogeneous,dipole}`: relative RMS error of the held-out projector's rendered subsurface light
@@ -45,13 +46,13 @@ use super::profiles_stage::{ProfileInputs, ProfilesRecord, ProfilesStageError, t
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::{Axis, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
-use mlsss_core::resources::cpu_seconds;
+use mlsss_core::resources::{cpu_seconds, release_free_memory};
 use mlsss_layer_model::fit::{EmVariant, FitError, FitOptions, fit_dipole_model, fit_model};
 use mlsss_layer_model::layer_depth::SpacingEstimate;
 use mlsss_layer_model::mixture::{EmConfig, Profile};
 use mlsss_layer_model::model_file::{
-    Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, SubsurfaceModel,
-    render_pattern_alone, render_projector_patterns,
+    Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, ProjectorPatterns,
+    SubsurfaceModel, render_pattern_alone,
 };
 use mlsss_layer_model::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
 use mlsss_layer_model::relight::{direct_albedo, pattern_irradiance};
@@ -64,7 +65,7 @@ mod figures;
 
 #[cfg(test)]
 use figures::model_profile;
-use figures::write_figures;
+use figures::{PreparedFigures, prepare_figures, write_figures};
 
 /// The fit stage.
 pub const STAGE: Stage = Stage {
@@ -278,6 +279,9 @@ pub struct FitTimings {
     /// pixels) and the dipole baseline.
     pub fit_prior: f64,
     pub dipole: f64,
+    /// The held-out projector's renders against the truth (`heldout_global_rel_rmse`).
+    #[serde(default)]
+    pub heldout: f64,
     /// Side by side too: saving the model and drawing the figures.
     pub save: f64,
     pub figures: f64,
@@ -292,6 +296,9 @@ pub struct FitCpuTimings {
     pub fit_normals: Option<f64>,
     pub fit_em: Option<f64>,
     pub prior_and_dipole: Option<f64>,
+    /// The model's assembly and the held-out renders.
+    #[serde(default)]
+    pub heldout: Option<f64>,
     pub save_and_figures: Option<f64>,
 }
 
@@ -413,7 +420,6 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
 
     let t1 = Instant::now();
     let (geometries, shading) = training_geometry(&mut inputs, &training, params)?;
-    let inputs = inputs;
     let profiles = TrainingProfiles::new(&inputs, &training, geometries)?;
     let normals_s = t1.elapsed().as_secs_f64();
     let c_em = cpu_seconds();
@@ -425,14 +431,35 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     let fit_s = t1.elapsed().as_secs_f64();
     let c2 = cpu_seconds();
 
+    // What the figures need of the profiles, taken now: the profiles (the training slits and
+    // their geometry, 1.4 GB at full size) are freed before the held-out renders and the save.
+    let prepared = prepare_figures(
+        ctx,
+        &inputs,
+        &record,
+        &layers,
+        params.holdout,
+        &training,
+        &profiles.sweeps,
+        &profiles.geometries,
+    )?;
+    drop(profiles);
+    release_slits(&mut inputs);
+    let inputs = inputs;
+    release_free_memory();
+
     let model = assemble(ctx, &inputs, params, &training, layers, dipole, &fit.stats)?;
+    let t_heldout = Instant::now();
     let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
         (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
         _ => None,
     };
+    let heldout_s = t_heldout.elapsed().as_secs_f64();
+    // The renders' bins (up to 768 MB) go back before the save and the figures allocate.
+    release_free_memory();
+    let c3 = cpu_seconds();
     let path = ctx.dir().join(MODEL_FILE);
-    let (save_s, figures_s) =
-        save_and_draw(ctx, &inputs, &record, &model, &training, &profiles, &path)?;
+    let (save_s, figures_s) = save_and_draw(ctx, &inputs, &record, &model, prepared, &path)?;
     let model_bytes = std::fs::metadata(&path).map_or(0, |m| m.len());
     let c4 = cpu_seconds();
 
@@ -443,6 +470,7 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
         fit_em: fit.em_s,
         fit_prior: fit.prior_s,
         dipole: fit.dipole_s,
+        heldout: heldout_s,
         save: save_s,
         figures: figures_s,
     };
@@ -452,7 +480,8 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
         fit_normals: cpu_span(c1, c_em),
         fit_em: cpu_span(c_em, fit.cpu_after_em),
         prior_and_dipole: cpu_span(fit.cpu_after_em, c2),
-        save_and_figures: cpu_span(c2, c4),
+        heldout: cpu_span(c2, c3),
+        save_and_figures: cpu_span(c3, c4),
     };
     let outcome = FitOutcome {
         training,
@@ -567,6 +596,8 @@ fn fit_layers(
     let t_em = Instant::now();
     let mut fit = fit_model(surface, geometries, sweeps, &opts)?;
     let em_s = t_em.elapsed().as_secs_f64();
+    // The EM's scratch goes back before the prior and the dipole allocate theirs side by side.
+    release_free_memory();
     let cpu_after_em = cpu_seconds();
     let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
     // The dipole baseline needs only the EM's amplitudes: it runs beside the spatial prior,
@@ -633,8 +664,7 @@ fn save_and_draw(
     inputs: &ProfileInputs,
     record: &ProfilesRecord,
     model: &SubsurfaceModel,
-    training: &[usize],
-    profiles: &TrainingProfiles,
+    prepared: PreparedFigures,
     path: &Path,
 ) -> Result<(f64, f64), FitStageError> {
     let timed = |f: &dyn Fn() -> Result<(), FitStageError>| {
@@ -643,21 +673,17 @@ fn save_and_draw(
     };
     let (save_s, figures_s) = rayon::join(
         || timed(&|| Ok(model.save(path)?)),
-        || {
-            timed(&|| {
-                write_figures(
-                    ctx,
-                    inputs,
-                    record,
-                    model,
-                    training,
-                    &profiles.sweeps,
-                    &profiles.geometries,
-                )
-            })
-        },
+        || timed(&|| write_figures(ctx, inputs, record, model, &prepared)),
     );
     Ok((save_s?, figures_s?))
+}
+
+/// Frees the slits' global light of every projector: after the fit only the figures read them,
+/// and [`prepare_figures`] has taken what they need.
+fn release_slits(inputs: &mut ProfileInputs) {
+    for p in &mut inputs.projectors {
+        p.slits = Vec::new();
+    }
 }
 
 /// Surface pixels without layers in a channel get the homogeneous layers of that channel.
@@ -816,13 +842,15 @@ fn heldout_errors(
         .iter()
         .map(|p| (p.label(), BTreeMap::new()))
         .collect();
+    // The irradiance and shifts are found once for every renderer; every pattern of one
+    // renderer is rendered in one go (its splats are found once).
+    let projector = ProjectorPatterns::new(model, h, &compared)?;
     for (name, baseline) in [
         ("mlsss", Baseline::Mlsss),
         ("homogeneous", Baseline::Homogeneous),
         ("dipole", Baseline::Dipole),
     ] {
-        // Every pattern of one renderer in one go: the splats are found once.
-        let relits = match render_projector_patterns(model, h, &compared, baseline, &opts) {
+        let relits = match projector.render(baseline, &opts) {
             Ok(r) => r,
             Err(ModelFileError::NoDipole) => continue,
             Err(e) => return Err(e.into()),
