@@ -327,55 +327,6 @@ impl Relit {
     }
 }
 
-/// Renders the light `view` showing `pattern` with `model` (global) and `albedo` (direct).
-#[allow(clippy::too_many_arguments)]
-pub fn relight(
-    surface: &Surface,
-    view: &ProjectorIllumination,
-    pattern: &Pattern,
-    black_level: f32,
-    blur_px: f32,
-    model: &LayerModel,
-    albedo: &[[f32; 3]],
-    eta: f64,
-    view_ray: ViewRay,
-    opts: &RenderOptions,
-) -> Result<Relit, RenderError> {
-    let mut frames = relight_patterns(
-        surface,
-        view,
-        std::slice::from_ref(pattern),
-        black_level,
-        blur_px,
-        model,
-        albedo,
-        eta,
-        view_ray,
-        opts,
-    )?;
-    Ok(frames.pop().unwrap_or_default())
-}
-
-/// [`relight`] under several patterns of the same projector at once, each frame exactly as it
-/// renders alone (the shifts are found once, the splats once per source: see
-/// [`render_global_many`]).
-#[allow(clippy::too_many_arguments)]
-pub fn relight_patterns(
-    surface: &Surface,
-    view: &ProjectorIllumination,
-    patterns: &[Pattern],
-    black_level: f32,
-    blur_px: f32,
-    model: &LayerModel,
-    albedo: &[[f32; 3]],
-    eta: f64,
-    view_ray: ViewRay,
-    opts: &RenderOptions,
-) -> Result<Vec<Relit>, RenderError> {
-    LitPatterns::new(surface, view, patterns, black_level, blur_px, eta, view_ray)
-        .relight(surface, model, albedo, opts)
-}
-
 /// A light's patterns made ready for any model: their irradiance and the light's shifts, which
 /// every model's render of them shares (so several baselines need them found once).
 pub struct LitPatterns {
@@ -403,8 +354,8 @@ impl LitPatterns {
         }
     }
 
-    /// Every pattern rendered with `model` (global) and `albedo` (direct), as
-    /// [`relight_patterns`] renders them.
+    /// Every pattern rendered with `model` (global) and `albedo` (direct), each frame exactly
+    /// as it renders alone (the splats are found once per source: see [`render_global_many`]).
     pub fn relight(
         &self,
         surface: &Surface,

@@ -475,20 +475,8 @@ fn render_with_black_level(
     black_level: impl Fn(&ProjectorLight) -> f32,
 ) -> Result<Relit, ModelFileError> {
     let patterns = std::slice::from_ref(pattern);
-    let mut frames =
-        render_patterns_with_black_level(model, k, patterns, baseline, opts, black_level)?;
-    // One frame per pattern, as `relight` takes it.
+    let mut frames = ProjectorPatterns::with_black_level(model, k, patterns, black_level)?
+        .render(baseline, opts)?;
+    // One frame per pattern.
     Ok(frames.pop().unwrap_or_default())
-}
-
-/// Projector `k` under each of `patterns`, its black level given by `black_level`.
-fn render_patterns_with_black_level(
-    model: &SubsurfaceModel,
-    k: usize,
-    patterns: &[Pattern],
-    baseline: Baseline,
-    opts: &RenderOptions,
-    black_level: impl Fn(&ProjectorLight) -> f32,
-) -> Result<Vec<Relit>, ModelFileError> {
-    ProjectorPatterns::with_black_level(model, k, patterns, black_level)?.render(baseline, opts)
 }
