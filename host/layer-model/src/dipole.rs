@@ -337,10 +337,11 @@ fn brent(
 
 /// A pixel-channel's profiles prepared once for the extinction search: each profile's samples
 /// with their weights normalised to its relative information, as the EM's likelihood
-/// (`em_free::log_likelihood`) weighs them, and the same profiles left out. The score of an extinction is then computed
-/// without allocating and with densities summed in linear space (the EM's log-space sum needs a
-/// logarithm and an exponential per term); a sample whose density underflows is summed in log
-/// space instead. Equal to the EM's likelihood summed over the profiles to ~1e-12 relative.
+/// (`em_free::log_likelihood`) weighs them, and the same profiles left out. The score of an
+/// extinction is then computed without allocating and with densities summed in linear space
+/// (the EM's log-space sum needs a logarithm and an exponential per term); a sample whose
+/// density underflows is summed in log space instead. Equal to the EM's likelihood summed over
+/// the profiles to ~1e-12 relative.
 struct PreparedProfiles<'a> {
     /// Per usable profile: the profile, its normalised sample weights, and its samples with
     /// weight in order of position (for [`walk_boxes`]).

@@ -336,24 +336,26 @@ impl<'a> Data<'a> {
 /// average 1 and a likelihood averaged over profiles keeps its scale), or 1 for every profile
 /// when any of them has no noise model. 0 for a profile without signal.
 pub(crate) fn relative_information<'p>(profiles: impl Iterator<Item = &'p Profile>) -> Vec<f64> {
-    let info: Vec<Option<f64>> = profiles
-        .map(|p| {
-            if p.total() > 0.0 {
-                Some(p.information())
-            } else {
-                None
-            }
-        })
-        .map(|i| i.map(|i| i.unwrap_or(f64::NAN)))
+    let profiles: Vec<&Profile> = profiles.collect();
+    let has_signal = |p: &Profile| p.total() > 0.0;
+    // The information of each profile with signal, in order; `None` when one has no noise model.
+    let information: Option<Vec<f64>> = profiles
+        .iter()
+        .filter(|p| has_signal(p))
+        .map(|p| p.information())
         .collect();
-    let with_signal: Vec<f64> = info.iter().flatten().copied().collect();
-    let mean = with_signal.iter().sum::<f64>() / with_signal.len().max(1) as f64;
-    let usable = !with_signal.is_empty() && mean > 0.0 && mean.is_finite();
-    info.iter()
-        .map(|i| match i {
-            None => 0.0,
-            Some(i) if usable => i / mean,
-            Some(_) => 1.0,
+    let mean = information
+        .as_ref()
+        .filter(|info| !info.is_empty())
+        .map(|info| info.iter().sum::<f64>() / info.len() as f64)
+        .filter(|m| *m > 0.0 && m.is_finite());
+    let mut relative = information.into_iter().flatten();
+    profiles
+        .iter()
+        .map(|p| match (has_signal(p), mean) {
+            (false, _) => 0.0,
+            (true, Some(mean)) => relative.next().map_or(1.0, |i| i / mean),
+            (true, None) => 1.0,
         })
         .collect()
 }
