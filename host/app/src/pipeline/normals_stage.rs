@@ -553,12 +553,11 @@ const NOISE_FLOOR_READ_SIGMAS: f64 = 8.0;
 /// coverage 0.82 -> 0.93, type V 4.33 -> 4.08, type I unchanged (2.08).
 fn noise_floor(manifest: &CaptureManifest, projectors: usize) -> f64 {
     let fixed = PsParams::default().noise_floor;
-    let camera = &manifest.booth.camera;
-    let full_scale = (2f64.powi(camera.bit_depth.min(32) as i32) - 1.0).max(1.0);
-    let lowest_exposure = (0..projectors)
-        .map(|k| manifest.exposure_of(k).scale)
-        .fold(f64::INFINITY, f64::min);
-    let floor = NOISE_FLOOR_READ_SIGMAS * camera.read_noise_dn / full_scale / lowest_exposure;
+    // The largest read noise of the frames: the projector metered at the lowest exposure.
+    let read_sigma = (0..projectors)
+        .map(|k| manifest.frame_noise_of(k).read_sigma)
+        .fold(0.0, f64::max);
+    let floor = NOISE_FLOOR_READ_SIGMAS * read_sigma;
     if floor.is_finite() && floor > 0.0 {
         floor.min(fixed)
     } else {
