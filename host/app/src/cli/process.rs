@@ -119,9 +119,11 @@ pub struct Args {
     #[arg(long, value_enum, default_value_t = LeakReadingArg::Harmonics)]
     leak_reading: LeakReadingArg,
     /// Separate stage, `kernel`: how the direct part is read from the leak-corrected split,
-    /// `dichromatic` (a colourless reflection plus the skin's body colour read from the split's
-    /// global part) or `colourless` (the mean of the channels' direct parts, the method before).
-    #[arg(long, value_enum, default_value_t = DirectModelArg::Dichromatic)]
+    /// `lobe` (the surface's specular lobe from the geometry and the calibration, combined with
+    /// the colour estimate; body colour per band of incidence), `dichromatic` (a colourless
+    /// reflection plus one body colour read from the split's global part, the method before) or
+    /// `colourless` (the mean of the channels' direct parts).
+    #[arg(long, value_enum, default_value_t = DirectModelArg::Lobe)]
     direct_model: DirectModelArg,
     /// Normals stage: the images photometric stereo reads, `nayar-direct` (the Nayar baseline's
     /// direct part, whatever `--separation` says), `white` (the stray-free white frames),
@@ -152,6 +154,7 @@ pub struct Args {
 /// `--direct-model` values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum DirectModelArg {
+    Lobe,
     Dichromatic,
     Colourless,
 }
@@ -298,6 +301,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             LeakReadingArg::Harmonics => LeakReading::Harmonics,
         },
         direct_model: match args.direct_model {
+            DirectModelArg::Lobe => DirectModel::Lobe,
             DirectModelArg::Dichromatic => DirectModel::Dichromatic,
             DirectModelArg::Colourless => DirectModel::Colourless,
         },

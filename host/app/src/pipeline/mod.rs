@@ -45,6 +45,7 @@ pub mod geometry_stage;
 pub mod line_plot;
 pub mod normals_stage;
 pub mod profiles_stage;
+pub mod projector_lights;
 pub mod separate_stage;
 
 use std::any::Any;

@@ -6,11 +6,7 @@
 //!
 //! Conventions
 //! - World frame of the calibration, mm. Normals point out of the surface, towards the camera side.
-//! - Projector k at centre C_k with optical axis a_k lights a point X with irradiance
-//!   `s_k cos(incidence) / (r^2 cos^3(alpha))`, r = |C_k - X|, alpha the angle between a_k and the
-//!   ray: a projector's flat pixel grid puts more intensity off axis. `s_k = |C_k|^2` (the squared
-//!   distance to the world origin, the subject's nominal centre) so that white at the origin
-//!   facing the projector gets irradiance 1: the projectors are assumed equally bright.
+//! - The projectors' irradiance: `projector_lights`.
 //!
 //! Artefacts in `OUT/normals/`: `normals.exr` (RGB = unit normal, 0 where unknown), `albedo.exr`
 //! (RGB), `lights_used.exr` (one channel: number of lights photometric stereo used, 0 where it
@@ -24,13 +20,12 @@
 use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
-use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use super::projector_lights::ProjectorLights;
 use super::separate_stage::{direct_path, global_path, nayar_direct_path, white_path};
 use super::{Stage, StageContext, StageFailure};
-use mlsss_core::calibration::Calibration;
 use mlsss_core::capture::{CaptureManifest, truth};
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::geometry::point_normals::{PointNormalParams, fit_point_normals};
@@ -38,8 +33,8 @@ use mlsss_vision::photometry::normal_fusion::{
     FusionError, FusionParams, FusionSummary, fuse_normals, photometric_noise_proxy,
 };
 use mlsss_vision::photometry::photometric_stereo::{
-    LightModel, LightSample, Method, NormalMap, NormalMapStats, PhotometricStereoError, PsParams,
-    angular_errors, solve_images,
+    Method, NormalMap, NormalMapStats, PhotometricStereoError, PsParams, angular_errors,
+    solve_images,
 };
 use mlsss_vision::photometry::specular_ps::{SpecularParams, solve_specular};
 use mlsss_vision::photometry::transmission_ps::{TransmissionParams, solve_transmitted};
@@ -251,79 +246,6 @@ pub enum NormalsStageError {
         got: (u32, u32),
         expected: (u32, u32),
     },
-}
-
-/// Projectors as near point lights over a map of surface points.
-pub struct ProjectorLights {
-    pub centres: Vec<Point3<f64>>,
-    /// Unit optical axes, world frame.
-    pub axes: Vec<Vector3<f64>>,
-    /// Intensity scale per projector (see the module conventions).
-    pub scales: Vec<f64>,
-    pub camera_centre: Point3<f64>,
-    pub width: u32,
-    /// World point per camera pixel; zero or non-finite where unknown.
-    pub points: Vec<[f32; 3]>,
-}
-
-impl LightModel for ProjectorLights {
-    fn count(&self) -> usize {
-        self.centres.len()
-    }
-
-    fn at(&self, x: u32, y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>> {
-        let p = self.points.get((y * self.width + x) as usize)?;
-        if p.iter().any(|v| !v.is_finite()) || p.iter().all(|v| *v == 0.0) {
-            return None;
-        }
-        let point = Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        for (k, sample) in out.iter_mut().enumerate() {
-            let to_light = self.centres[k] - point;
-            let r2 = to_light.norm_squared();
-            let direction = to_light / r2.sqrt();
-            let cos_axis = (-direction).dot(&self.axes[k]);
-            let irradiance = if cos_axis > 0.0 && r2 > 0.0 {
-                self.scales[k] / (r2 * cos_axis.powi(3))
-            } else {
-                0.0
-            };
-            *sample = LightSample {
-                direction,
-                irradiance: [irradiance; 3],
-            };
-        }
-        (self.camera_centre - point).try_normalize(1e-12)
-    }
-}
-
-impl ProjectorLights {
-    /// The first `count` projectors of `calib` lighting the surface `points` (a `width`-wide map).
-    fn from_calibration(
-        calib: &Calibration,
-        count: usize,
-        width: u32,
-        points: &Rgb32FImage,
-    ) -> Self {
-        let projectors = &calib.projectors[..count];
-        Self {
-            centres: projectors
-                .iter()
-                .map(|p| p.device.extrinsics.centre())
-                .collect(),
-            axes: projectors
-                .iter()
-                .map(|p| p.device.extrinsics.device_to_world_dir(&Vector3::z()))
-                .collect(),
-            // See the module conventions: white at the origin facing a projector gets 1.
-            scales: projectors
-                .iter()
-                .map(|p| p.device.extrinsics.centre().coords.norm_squared())
-                .collect(),
-            camera_centre: calib.camera.extrinsics.centre(),
-            width,
-            points: points.pixels().map(|p| p.0).collect(),
-        }
-    }
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {

@@ -14,6 +14,8 @@
 //! changes); on light skin the direct light is a few percent of the total, so a chromaticity
 //! error of a fraction of a percent is already a large relative error of the direct part.
 
+use image::Rgb32FImage;
+
 use super::kernel_leak::{LeakFlag, LeakSeparation};
 
 /// Share of the separated pixels, darkest first, left out of the body-colour median (shadows and
@@ -52,16 +54,30 @@ pub fn body_colour(sep: &LeakSeparation) -> Option<[f32; 3]> {
     let mut levels: Vec<f32> = subsurface.iter().map(|(_, g)| sum(g)).collect();
     let cut = ((levels.len() as f64 * DARK_SHARE) as usize).min(levels.len() - 1);
     let threshold = *levels.select_nth_unstable_by(cut, f32::total_cmp).1;
-    let mut colour = [0.0f32; 3];
-    for (c, value) in colour.iter_mut().enumerate() {
-        let mut shares: Vec<f32> = subsurface
-            .iter()
-            .filter(|(_, g)| sum(g) >= threshold)
-            .map(|(_, g)| g[c] / sum(g))
-            .collect();
-        let mid = shares.len() / 2;
-        *value = *shares.select_nth_unstable_by(mid, f32::total_cmp).1;
+    let shares = subsurface
+        .iter()
+        .filter(|(_, g)| sum(g) >= threshold)
+        .map(|(_, g)| *g);
+    median_chromaticity(shares)
+}
+
+/// Per channel the median of `v / sum(v)` over `values` (each with a positive finite sum),
+/// normalised to sum 1; `None` without values.
+pub fn median_chromaticity(values: impl Iterator<Item = [f32; 3]>) -> Option<[f32; 3]> {
+    let mut shares: [Vec<f32>; 3] = Default::default();
+    for v in values {
+        let s: f32 = v.iter().sum();
+        for (c, share) in shares.iter_mut().enumerate() {
+            share.push(v[c] / s);
+        }
     }
+    if shares[0].is_empty() {
+        return None;
+    }
+    let colour: [f32; 3] = std::array::from_fn(|c| {
+        let mid = shares[c].len() / 2;
+        *shares[c].select_nth_unstable_by(mid, f32::total_cmp).1
+    });
     let total: f32 = colour.iter().sum();
     (total > 0.0).then(|| colour.map(|v| v / total))
 }
@@ -92,10 +108,7 @@ pub fn grey_coefficient(total: [f32; 3], rho: [f32; 3]) -> f32 {
 /// keeping each pixel's total. Returns the body colour used, `None` (and the separation
 /// unchanged) when it could not be read.
 pub fn dichromatic_direct(sep: &mut LeakSeparation, sigma_px: f64) -> Option<[f32; 3]> {
-    use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
     let rho = body_colour(sep)?;
-    let (w, h) = sep.direct.dimensions();
-    let (w, h) = (w as usize, h as usize);
     let direct = sep.direct.as_raw();
     let global = sep.global.as_raw();
     // Pixels the stripes could not split (kernel too narrow in some channel) still have their
@@ -108,11 +121,29 @@ pub fn dichromatic_direct(sep: &mut LeakSeparation, sigma_px: f64) -> Option<[f3
     let totals: Vec<[f32; 3]> = (0..ok.len())
         .map(|i| std::array::from_fn(|c| direct[i * 3 + c] + global[i * 3 + c]))
         .collect();
-    let mut grey: Vec<f32> = totals
+    let grey: Vec<f32> = totals
         .iter()
         .zip(&ok)
         .map(|(t, &ok)| if ok { grey_coefficient(*t, rho) } else { 0.0 })
         .collect();
+    set_grey_direct(&mut sep.direct, &mut sep.global, grey, &ok, sigma_px);
+    Some(rho)
+}
+
+/// Sets the `direct` part of a split of the pixels `ok` to the colourless `grey` (one value per
+/// pixel), averaged over such neighbours with a Gaussian of `sigma_px` camera px (0: per pixel)
+/// and clamped into each channel's total `direct + global`, which every pixel keeps; the rest
+/// of the pixels are left as they are.
+pub fn set_grey_direct(
+    direct: &mut Rgb32FImage,
+    global: &mut Rgb32FImage,
+    mut grey: Vec<f32>,
+    ok: &[bool],
+    sigma_px: f64,
+) {
+    use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
+    let (w, h) = direct.dimensions();
+    let (w, h) = (w as usize, h as usize);
     let mut weight: Vec<f32> = ok.iter().map(|&ok| f32::from(u8::from(ok))).collect();
     if sigma_px > 0.0 {
         let kernel = GaussianKernel::new(sigma_px as f32, 3.0, Normalisation::Outputs);
@@ -127,10 +158,10 @@ pub fn dichromatic_direct(sep: &mut LeakSeparation, sigma_px: f64) -> Option<[f3
             weight = smoothed_weight;
         }
     }
-    let direct = sep.direct.as_mut();
-    let global = sep.global.as_mut();
-    for (i, total) in totals.iter().enumerate() {
-        if !ok[i] {
+    let direct = direct.as_mut();
+    let global = global.as_mut();
+    for (i, &ok) in ok.iter().enumerate() {
+        if !ok {
             continue;
         }
         let d = if weight[i] > 1e-6 {
@@ -138,13 +169,13 @@ pub fn dichromatic_direct(sep: &mut LeakSeparation, sigma_px: f64) -> Option<[f3
         } else {
             0.0
         };
-        for (c, &t) in total.iter().enumerate() {
-            let kept = d.clamp(0.0, t.max(0.0));
+        for c in 0..3 {
+            let total = direct[i * 3 + c] + global[i * 3 + c];
+            let kept = d.clamp(0.0, total.max(0.0));
             direct[i * 3 + c] = kept;
-            global[i * 3 + c] = t - kept;
+            global[i * 3 + c] = total - kept;
         }
     }
-    Some(rho)
 }
 
 #[cfg(test)]

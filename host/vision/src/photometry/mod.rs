@@ -4,6 +4,7 @@
 pub mod dichromatic;
 pub mod image_set;
 pub mod kernel_leak;
+pub mod lobe_direct;
 pub mod mat_file;
 pub mod normal_fusion;
 pub mod photometric_stereo;

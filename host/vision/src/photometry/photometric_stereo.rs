@@ -97,7 +97,7 @@ impl Default for PsParams {
 }
 
 /// One light as seen from one pixel.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct LightSample {
     /// Unit direction from the surface point to the light.
     pub direction: Vector3<f64>,
