@@ -287,6 +287,10 @@ fn lobe_scale(views: &[ProjectorView], bands: &IncidenceBands, colours: &[[f32; 
     for view in views {
         for ((total, lobe), usable) in view.totals.iter().zip(view.lobes).zip(view.usable) {
             if let (Some(l), true) = (lobe, usable) {
+                // Clamped readings: the unclamped least squares read the scale 8 % lower on the
+                // quick type I heads (seeds 99, 113: direct error 0.078 -> 0.115, 0.075 ->
+                // 0.122), though it fits the analytic cap of the tests better (3 % against 15 %
+                // high).
                 let colour = grey_coefficient(*total, colours[bands.of(Some(*l))]);
                 dot += f64::from(colour) * f64::from(l.lobe);
                 norm += f64::from(l.lobe).powi(2);
@@ -333,4 +337,146 @@ fn combined_direct(
             (w * specular + (1.0 - w) * colour).clamp(0.0, floor)
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photometry::photometric_stereo::DirectionalLights;
+
+    const SIGMA: f64 = 2.0;
+    const ETA: f64 = 1.4;
+    const ALPHA: f64 = 0.35;
+
+    /// A cap of a sphere seen from +z under four distant lights, its skin's body colour redder
+    /// where light enters head-on and mottled pixel by pixel (freckles, vessels), its surface a
+    /// GGX lobe of scale [`SIGMA`]: light-skin proportions (the reflection a few percent of the
+    /// light).
+    struct Scene {
+        lights: DirectionalLights,
+        normals: Vec<[f32; 3]>,
+        width: u32,
+        /// Per light: totals and true direct parts.
+        totals: Vec<Vec<[f32; 3]>>,
+        direct: Vec<Vec<f32>>,
+    }
+
+    fn scene() -> Scene {
+        let view = Vector3::z();
+        let lights = DirectionalLights {
+            lights: [(-0.5, -0.3), (0.5, -0.3), (-0.5, 0.3), (0.5, 0.3)]
+                .iter()
+                .map(|&(x, y)| LightSample {
+                    direction: Vector3::new(x, y, 1.0).normalize(),
+                    irradiance: [1.0; 3],
+                })
+                .collect(),
+            view,
+        };
+        let width = 48u32;
+        let mut normals = Vec::new();
+        let mut mottle = Vec::new();
+        for y in 0..width {
+            for x in 0..width {
+                let (u, v) = (x as f64 / 47.0 * 1.4 - 0.7, y as f64 / 47.0 * 1.4 - 0.7);
+                let n = Vector3::new(u, v, 1.0).normalize();
+                normals.push([n.x as f32, n.y as f32, n.z as f32]);
+                // A deterministic per-pixel pattern: brightness and red share vary by a few
+                // percent, as skin's melanin and blood do.
+                let h = ((x * 7919 + y * 104_729) % 997) as f64 / 997.0;
+                let g = ((x * 613 + y * 331) % 101) as f64 / 101.0;
+                mottle.push((0.8 + 0.4 * h, 0.02 * (g - 0.5)));
+            }
+        }
+        let (mut totals, mut direct) = (Vec::new(), Vec::new());
+        for light in &lights.lights {
+            let (mut t, mut d) = (Vec::new(), Vec::new());
+            for (n, (brightness, red)) in normals.iter().zip(&mottle) {
+                let n = Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2]));
+                let cos = n.dot(&light.direction).max(0.0);
+                // Redder head-on, as the virtual booth's skin.
+                let rho = [0.48 + 0.02 * cos + red, 0.24 - 0.02 * cos - red, 0.28];
+                let reflection = SIGMA * specular_shading(&n, &light.direction, &view, ETA, ALPHA);
+                t.push(rho.map(|r| (reflection + 0.9 * brightness * cos * r) as f32));
+                d.push(reflection as f32);
+            }
+            totals.push(t);
+            direct.push(d);
+        }
+        Scene {
+            lights,
+            normals,
+            width,
+            totals,
+            direct,
+        }
+    }
+
+    fn relative_error(got: &[Vec<f32>], truth: &[Vec<f32>]) -> f64 {
+        let (mut err, mut norm) = (0.0f64, 0.0f64);
+        for (g, t) in got.iter().zip(truth) {
+            for (g, t) in g.iter().zip(t) {
+                err += f64::from(g - t).powi(2);
+                norm += f64::from(*t).powi(2);
+            }
+        }
+        (err / norm).sqrt()
+    }
+
+    #[test]
+    fn the_lobe_recovers_a_reflection_that_one_body_colour_cannot() {
+        let s = scene();
+        let lobes = lobe_samples(&s.lights, &s.normals, s.width, ETA, ALPHA);
+        let usable = vec![true; s.normals.len()];
+        let views: Vec<ProjectorView> = s
+            .totals
+            .iter()
+            .zip(&lobes)
+            .map(|(totals, lobes)| ProjectorView {
+                totals,
+                lobes,
+                usable: &usable,
+            })
+            .collect();
+        let fit = lobe_anchored_direct(&views, &LobeDirectParams::default()).unwrap();
+        let share: f64 = s
+            .direct
+            .iter()
+            .flatten()
+            .map(|d| f64::from(*d))
+            .sum::<f64>()
+            / s.totals
+                .iter()
+                .flatten()
+                .map(|t| t.iter().map(|v| f64::from(*v)).sum::<f64>() / 3.0)
+                .sum::<f64>();
+        assert!((0.01..0.1).contains(&share), "direct share {share}");
+        // One body colour for the image (`dichromatic`): the mottle and the incidence's colour
+        // shift are read as reflection.
+        let one_colour = median_chromaticity(s.totals.iter().flatten().copied()).unwrap();
+        let dichromatic: Vec<Vec<f32>> = s
+            .totals
+            .iter()
+            .map(|t| t.iter().map(|t| grey_coefficient(*t, one_colour)).collect())
+            .collect();
+        let lobe_error = relative_error(&fit.direct, &s.direct);
+        let colour_error = relative_error(&dichromatic, &s.direct);
+        assert!(
+            (fit.sigma / SIGMA - 1.0).abs() < 0.2,
+            "sigma {} against {SIGMA}",
+            fit.sigma
+        );
+        // Measured 0.15 (the scale 15 % high) against 0.77.
+        assert!(
+            lobe_error < 0.2,
+            "lobe {lobe_error}, one colour {colour_error}"
+        );
+        assert!(
+            colour_error > 0.5,
+            "lobe {lobe_error}, one colour {colour_error}"
+        );
+        // The head-on band is the reddest.
+        let bands = &fit.body_colours;
+        assert!(bands[bands.len() - 2][0] > bands[0][0], "{bands:?}");
+    }
 }
