@@ -237,23 +237,27 @@ pub fn fit_model(
     }
     let stats = fit_stats(&tiles, depth)?;
     let scales = pixel_amplitudes(surface, geometries, sweeps);
-    let model = LayerModel::from_fn(w, h, |i, c| {
-        if !lit_by_any(i) {
-            return Vec::new();
-        }
+    // Lit pixels as flags: the model's rows are made twice per channel (`LayerModel::from_fn`),
+    // and asking every projector's geometry each time was seconds at full size.
+    let mut lit_mask = vec![false; w * h];
+    for &i in &lit {
+        lit_mask[i] = true;
+    }
+    let tile_shape = |i: usize, c: usize| {
         let (x, y) = (i % w, i / w);
-        let Some(shape) = &tiles[(y / block) * bw + x / block][c] else {
-            return Vec::new();
-        };
-        let scale = scales[i][c];
-        shape
-            .layers
-            .iter()
-            .map(|l| SplatLayer {
+        tiles[(y / block) * bw + x / block][c].as_ref()
+    };
+    // Iterators, not a vector per row (millions of small allocations).
+    let scales_ref = &scales;
+    let model = LayerModel::from_fn(w, h, |i, c| {
+        let shape = if lit_mask[i] { tile_shape(i, c) } else { None };
+        shape.into_iter().flat_map(move |shape| {
+            let scale = scales_ref[i][c];
+            shape.layers.iter().map(move |l| SplatLayer {
                 weight: l.weight * scale,
                 ..*l
             })
-            .collect()
+        })
     });
     Ok(FitResult {
         model,

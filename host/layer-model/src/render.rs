@@ -84,8 +84,13 @@ pub fn extent<'a>(layers: impl IntoIterator<Item = &'a SplatLayer>) -> (f64, f64
 
 impl LayerModel {
     /// Builds the model from a function giving each pixel's layers per channel. Runs of pixels
-    /// are built in parallel and joined in pixel order, so the result does not depend on the
-    /// threads (a full-size model is ~10^7 rows: serial, this was seconds of one core).
+    /// are built in parallel, so the result does not depend on the threads (a full-size model is
+    /// ~10^7 rows: serial, this was seconds of one core). Two passes over `f`: the first counts
+    /// each row's layers, the second writes them straight into the model's one buffer. Why: the
+    /// single pass collected every run's layers and then copied them into the model, holding
+    /// the model twice at its peak (up to ~500 MB more at full size: a homogeneous model gives
+    /// every pixel a dozen layers) and copying it on one thread. `f` must give the same layers
+    /// on both calls (it is a pure function of the pixel everywhere).
     pub fn from_fn<I, F>(width: usize, height: usize, f: F) -> Self
     where
         I: IntoIterator<Item = SplatLayer>,
@@ -93,30 +98,55 @@ impl LayerModel {
     {
         const RUN: usize = 4096;
         let n = width * height;
-        // Per run: the end of each row within the run's layers, and the layers.
-        let runs: Vec<(Vec<u32>, Vec<SplatLayer>)> = (0..n.div_ceil(RUN))
+        let run_pixels = |r: usize| r * RUN..((r + 1) * RUN).min(n);
+        // Pass 1: per row, its layer count (the row's end within its run).
+        let run_ends: Vec<Vec<u32>> = (0..n.div_ceil(RUN))
             .into_par_iter()
             .map(|r| {
-                let pixels = r * RUN..((r + 1) * RUN).min(n);
-                let mut ends = Vec::with_capacity(pixels.len() * 3);
-                let mut layers = Vec::new();
-                for i in pixels {
+                let mut ends = Vec::with_capacity(run_pixels(r).len() * 3);
+                let mut count = 0u32;
+                for i in run_pixels(r) {
                     for c in 0..3 {
-                        layers.extend(f(i, c));
-                        ends.push(layers.len() as u32);
+                        count += f(i, c).into_iter().count() as u32;
+                        ends.push(count);
                     }
                 }
-                (ends, layers)
+                ends
             })
             .collect();
         let mut offsets = Vec::with_capacity(n * 3 + 1);
-        let mut layers = Vec::with_capacity(runs.iter().map(|r| r.1.len()).sum());
-        offsets.push(0);
-        for (ends, run) in runs {
-            let base = layers.len() as u32;
+        offsets.push(0u32);
+        for ends in &run_ends {
+            let base = offsets.last().copied().unwrap_or(0);
             offsets.extend(ends.iter().map(|e| base + e));
-            layers.extend(run);
         }
+        drop(run_ends);
+        let total = offsets.last().copied().unwrap_or(0) as usize;
+        // Pass 2: each run fills its own slice of the buffer.
+        const EMPTY: SplatLayer = SplatLayer {
+            index: 0,
+            weight: 0.0,
+            sigma_mm: 0.0,
+            depth_mm: 0.0,
+        };
+        let mut layers = vec![EMPTY; total];
+        let mut slices = Vec::with_capacity(n.div_ceil(RUN));
+        let mut rest = layers.as_mut_slice();
+        for r in 0..n.div_ceil(RUN) {
+            let pixels = run_pixels(r);
+            let len = (offsets[pixels.end * 3] - offsets[pixels.start * 3]) as usize;
+            let (run, tail) = std::mem::take(&mut rest).split_at_mut(len);
+            slices.push((pixels, run));
+            rest = tail;
+        }
+        slices.into_par_iter().for_each(|(pixels, run)| {
+            let produced = pixels
+                .flat_map(|i| (0..3).map(move |c| (i, c)))
+                .flat_map(|(i, c)| f(i, c));
+            for (slot, layer) in run.iter_mut().zip(produced) {
+                *slot = layer;
+            }
+        });
         Self {
             width,
             height,

@@ -81,19 +81,19 @@ impl SubsurfaceModel {
             buf.extend(v.iter().map(|&m| u8::from(m)));
         }
         members.write_full_chunks()?;
-        let put = |buf: &mut Vec<u8>, model: &LayerModel| match version {
+        let put = |members: &mut GzipMembers<'_, W>, model: &LayerModel| match version {
             1 => {
-                put_layers_v1(buf, model);
+                put_layers_v1(&mut members.pending, model);
                 Ok(())
             }
-            _ => put_layers(buf, model),
+            _ => put_layers(members, model),
         };
-        put(&mut members.pending, &self.layers)?;
+        put(members, &self.layers)?;
         members.write_full_chunks()?;
         match &self.dipole {
             Some(d) => {
                 members.pending.push(1);
-                put(&mut members.pending, d)?;
+                put(members, d)?;
             }
             None => members.pending.push(0),
         }
@@ -332,8 +332,15 @@ impl std::hash::Hasher for PaletteHasher {
 type Palette =
     std::collections::HashMap<PaletteKey, u32, std::hash::BuildHasherDefault<PaletteHasher>>;
 
-/// Writes the layer model section of format 2 (see the module doc).
-fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) -> Result<(), ModelFileError> {
+/// Writes the layer model section of format 2 (see the module doc) into `members`, letting
+/// whole chunks leave between its parts. Why: a full-size dipole model's section (~170 MB of
+/// ids and weights) was held whole before any of it was compressed, at the fit stage's peak;
+/// the members are cut at the same places either way (the same file).
+fn put_layers<W: Write>(
+    members: &mut GzipMembers<'_, W>,
+    model: &LayerModel,
+) -> Result<(), EncodeError> {
+    let buf = &mut members.pending;
     let (offsets, layers) = model.parts();
     for row in offsets.windows(2) {
         let count = u16::try_from(row[1] - row[0]).map_err(|_| {
@@ -353,6 +360,7 @@ fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) -> Result<(), ModelFileErro
             })
         })
         .collect();
+    drop(palette);
     put_u32(buf, entries.len() as u32);
     for &(index, sigma, depth) in &entries {
         buf.extend_from_slice(&index.to_le_bytes());
@@ -369,8 +377,12 @@ fn put_layers(buf: &mut Vec<u8>, model: &LayerModel) -> Result<(), ModelFileErro
     for id in ids {
         buf.extend_from_slice(&id.to_le_bytes()[..usize::from(id_bytes)]);
     }
+    members.write_full_chunks()?;
     for plane in 0..4 {
-        buf.extend(layers.iter().map(|l| l.weight.to_le_bytes()[plane]));
+        members
+            .pending
+            .extend(layers.iter().map(|l| l.weight.to_le_bytes()[plane]));
+        members.write_full_chunks()?;
     }
     Ok(())
 }

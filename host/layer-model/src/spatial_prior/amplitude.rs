@@ -11,7 +11,7 @@ pub(super) struct Amplitudes {
     /// The fit's own amplitude (the sum of the pixel's layer weights).
     pub(super) own: Vec<[f64; 3]>,
     /// Each training projector's estimate ([`projector_amplitudes`]; empty where `own` is 0).
-    pub(super) per_projector: Vec<[Vec<f64>; 3]>,
+    pub(super) per_projector: PerProjector,
     /// R, G, B.
     pub(super) stats: Vec<AmplitudeStats>,
 }
@@ -31,17 +31,12 @@ impl Amplitudes {
                 })
             })
             .collect();
-        let per_projector: Vec<[Vec<f64>; 3]> = (0..pixels)
-            .into_par_iter()
-            .map(|i| {
-                std::array::from_fn(|c| {
-                    if own[i][c] <= 0.0 {
-                        return Vec::new();
-                    }
-                    projector_amplitudes(i, c, geometries, sweeps)
-                })
-            })
-            .collect();
+        let per_projector = PerProjector::new(pixels, |i, c| {
+            if own[i][c] <= 0.0 {
+                return Vec::new();
+            }
+            projector_amplitudes(i, c, geometries, sweeps)
+        });
         let stats = channel_stats(&own, &per_projector);
         Self {
             own,
@@ -51,10 +46,55 @@ impl Amplitudes {
     }
 }
 
+/// Per pixel and channel, a list of estimates, stored as one buffer with row offsets. Why: a
+/// vector per pixel and channel was ~4 million small allocations at full size (~200 MB held
+/// while the prior and the dipole baseline build their models, the stage's peak).
+pub(super) struct PerProjector {
+    /// `offsets[i * 3 + c]..offsets[i * 3 + c + 1]` indexes `values` for pixel `i`, channel `c`.
+    offsets: Vec<u32>,
+    values: Vec<f64>,
+}
+
+impl PerProjector {
+    /// The lists `f(i, c)` of pixels `0..pixels`, runs of pixels made in parallel and joined
+    /// in pixel order.
+    fn new(pixels: usize, f: impl Fn(usize, usize) -> Vec<f64> + Sync) -> Self {
+        const RUN: usize = 4096;
+        let runs: Vec<(Vec<u32>, Vec<f64>)> = (0..pixels.div_ceil(RUN))
+            .into_par_iter()
+            .map(|r| {
+                let (mut ends, mut values) = (Vec::new(), Vec::new());
+                for i in r * RUN..((r + 1) * RUN).min(pixels) {
+                    for c in 0..3 {
+                        values.extend(f(i, c));
+                        ends.push(values.len() as u32);
+                    }
+                }
+                (ends, values)
+            })
+            .collect();
+        let mut offsets = Vec::with_capacity(pixels * 3 + 1);
+        offsets.push(0u32);
+        let mut values = Vec::with_capacity(runs.iter().map(|r| r.1.len()).sum());
+        for (ends, run) in runs {
+            let base = values.len() as u32;
+            offsets.extend(ends.iter().map(|e| base + e));
+            values.extend(run);
+        }
+        Self { offsets, values }
+    }
+
+    /// The estimates of pixel `i` in channel `c`.
+    pub(super) fn get(&self, i: usize, c: usize) -> &[f64] {
+        let k = i * 3 + c;
+        &self.values[self.offsets[k] as usize..self.offsets[k + 1] as usize]
+    }
+}
+
 /// Per channel, the subject mean of the fitted amplitudes, the variance components of the
 /// per-projector estimates and the cross-validated prior strength. Channels in parallel; each
 /// reads its column of the per-projector lists in place.
-fn channel_stats(own: &[[f64; 3]], per_projector: &[[Vec<f64>; 3]]) -> Vec<AmplitudeStats> {
+fn channel_stats(own: &[[f64; 3]], per_projector: &PerProjector) -> Vec<AmplitudeStats> {
     (0..3)
         .into_par_iter()
         .map(|c| {
@@ -64,7 +104,7 @@ fn channel_stats(own: &[[f64; 3]], per_projector: &[[Vec<f64>; 3]]) -> Vec<Ampli
             } else {
                 with.iter().sum::<f64>() / with.len() as f64
             };
-            let lists: Vec<&[f64]> = per_projector.iter().map(|p| p[c].as_slice()).collect();
+            let lists: Vec<&[f64]> = (0..own.len()).map(|i| per_projector.get(i, c)).collect();
             let mut st = amplitude_stats(&lists, mean);
             if let Some((kappa, mse)) = loo_kappa(&lists, mean) {
                 st.kappa = Some(kappa);

@@ -302,26 +302,32 @@ impl Prior<'_> {
         }
         let shape = self.shapes[self.tiles.of_pixel(i)][c].as_ref()?;
         let st = &a.stats[c];
-        let keep =
-            (self.shrink_amplitude && st.mean > 0.0).then(|| st.keep(a.per_projector[i][c].len()));
+        let keep = (self.shrink_amplitude && st.mean > 0.0)
+            .then(|| st.keep(a.per_projector.get(i, c).len()));
         Some((shape, keep))
     }
 
     /// `model` with the prior's shape and shrunk amplitude wherever both apply.
     fn apply(&self, model: &LayerModel, surface: &Surface) -> LayerModel {
+        // Iterators, not a vector per row: the rows are made twice (`LayerModel::from_fn`).
         LayerModel::from_fn(surface.width, surface.height, |i, c| {
-            let Some((shape, keep)) = self.of(i, c) else {
-                return model.layers(i, c).to_vec();
+            let (layers, target): (&[SplatLayer], Option<f64>) = match self.of(i, c) {
+                None => (model.layers(i, c), None),
+                Some((shape, keep)) => {
+                    let (amplitude, mean) =
+                        (self.amplitudes.own[i][c], self.amplitudes.stats[c].mean);
+                    let target =
+                        keep.map_or(amplitude, |k| mean * (1.0 + k * (amplitude / mean - 1.0)));
+                    (shape.as_slice(), Some(target))
+                }
             };
-            let (amplitude, mean) = (self.amplitudes.own[i][c], self.amplitudes.stats[c].mean);
-            let target = keep.map_or(amplitude, |k| mean * (1.0 + k * (amplitude / mean - 1.0)));
-            shape
-                .iter()
-                .map(|l| SplatLayer {
+            layers.iter().map(move |l| match target {
+                None => *l,
+                Some(target) => SplatLayer {
                     weight: (f64::from(l.weight) * target) as f32,
                     ..*l
-                })
-                .collect()
+                },
+            })
         })
     }
 
