@@ -154,14 +154,10 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let deposit_sum = deposit_sum + inside.select(deposit, zero);
     let optical_left = inside.select(zero, tau);
 
-    let active = U32s::load(lanes.active);
-    let counted = (inside & active).store();
-    for (total, lane_counted) in lanes.interactions.iter_mut().zip(counted) {
-        *total += u64::from(lane_counted & 1);
-    }
-    for events in &mut lanes.events {
-        *events = events.wrapping_add(1);
-    }
+    let active = lanes.active;
+    let inside_bits = inside.bitmask();
+    lanes.interactions += u64::from((inside_bits & active).count_ones());
+    lanes.steps = lanes.steps.wrapping_add(1);
     let light = weight.lt(F32s::splat(ROULETTE_THRESHOLD as f32));
     lanes.x = x.store();
     lanes.y = y.store();
@@ -173,8 +169,8 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     lanes.optical_left = optical_left.store();
     lanes.deposit = deposit_sum.store();
     StepOutcome {
-        at_boundary: (!inside & active).bitmask(),
-        light: (light & active).bitmask(),
+        at_boundary: !inside_bits & active,
+        light: light.bitmask() & active,
     }
 }
 

@@ -71,11 +71,15 @@ pub(crate) struct Lanes {
     hg_inv_two_g: Lane,
     /// Weight deposited in the current layer since the photon entered it.
     deposit: Lane,
-    /// All ones for a lane holding a photon, 0 for an idle one (at the end of a batch).
-    active: [u32; LANES],
-    /// Interaction events per lane, all photons together.
-    interactions: [u64; LANES],
-    events: [u32; LANES],
+    /// Bit `lane` set for a lane holding a photon, clear for an idle one (at the end of a batch).
+    active: u32,
+    /// Interaction events of all lanes, all photons together: a popcount per step, so the step
+    /// keeps no per-lane counter.
+    interactions: u64,
+    /// Vector steps this group has made (wrapping) and the count when each lane's photon was
+    /// launched: their difference is the photon's events, without a per-lane increment per step.
+    steps: u32,
+    launched_at: [u32; LANES],
     layer: [usize; LANES],
     /// Per-photon exits, summed into the batch moments when the photon ends.
     reflected: [f64; LANES],
@@ -106,9 +110,10 @@ impl Lanes {
             hg_two_g: zero,
             hg_inv_two_g: zero,
             deposit: zero,
-            active: [0; LANES],
-            interactions: [0; LANES],
-            events: [0; LANES],
+            active: 0,
+            interactions: 0,
+            steps: 0,
+            launched_at: [0; LANES],
             layer: [0; LANES],
             reflected: [0.0; LANES],
             transmitted: [0.0; LANES],
@@ -157,7 +162,7 @@ impl StepOutcome {
 /// photon ends (all its weight left, or it was lost).
 #[inline(always)]
 fn cross_boundary(geo: &Geometry, lanes: &mut Lanes, lane: usize, tally: &mut BatchTally) -> bool {
-    if lanes.events[lane] >= MAX_EVENTS_PER_PHOTON {
+    if lanes.steps.wrapping_sub(lanes.launched_at[lane]) >= MAX_EVENTS_PER_PHOTON {
         // Trapped by total internal reflection in a clear layer: drop it.
         return false;
     }
@@ -293,12 +298,12 @@ fn launch(geo: &Geometry, lanes: &mut Lanes, lane: usize, left: &mut u64, tally:
         [lanes.ux[lane], lanes.uy[lane], lanes.uz[lane]] = geo.entry_dir.map(|u| u as f32);
         lanes.weight[lane] = entering;
         lanes.optical_left[lane] = 0.0;
-        lanes.events[lane] = 0;
-        lanes.active[lane] = u32::MAX;
+        lanes.launched_at[lane] = lanes.steps;
+        lanes.active |= 1 << lane;
         lanes.enter_layer(geo, lane, 0);
         return;
     }
-    lanes.active[lane] = 0;
+    lanes.active &= !(1 << lane);
 }
 
 /// Scalar work for one lane after a vector step; ends and replaces its photon when it dies.
@@ -377,7 +382,7 @@ fn run_batch_lanes(
             launch(geo, lanes, lane, &mut left, &mut tally);
         }
     }
-    let busy = |lanes: &Lanes| lanes.active.iter().any(|&a| a != 0);
+    let busy = |lanes: &Lanes| lanes.active != 0;
     // Each group's scalar work runs after the NEXT group's vector step, not right after its own:
     // the scalar code reads single lanes of the vectors its step just stored and writes single
     // lanes its next step loads as vectors, and a load that overlaps a store still in flight but
@@ -406,7 +411,7 @@ fn run_batch_lanes(
         }
     }
     for lanes in &groups {
-        tally.interactions += lanes.interactions.iter().sum::<u64>();
+        tally.interactions += lanes.interactions;
     }
     tally
 }
@@ -417,7 +422,7 @@ fn run_batch_lanes(
 /// The CPU must support AVX2 and FMA (the `simd_avx2` intrinsics are only sound under this
 /// function).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
+#[target_feature(enable = "avx2,fma,popcnt,bmi1")]
 unsafe fn run_batch_avx2(geo: &Geometry, seed: u64, batch: u64, photons: u64) -> BatchTally {
     // A closure, not the fn item: closures inherit this function's target features, so the
     // intrinsics inline into it (the fn item's `Fn::call` shim would not have AVX2).
@@ -430,7 +435,7 @@ unsafe fn run_batch_avx2(geo: &Geometry, seed: u64, batch: u64, photons: u64) ->
 /// # Safety
 /// The CPU must support AVX-512 F.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
+#[target_feature(enable = "avx512f,popcnt,bmi1")]
 unsafe fn run_batch_avx512(geo: &Geometry, seed: u64, batch: u64, photons: u64) -> BatchTally {
     #[allow(clippy::redundant_closure)]
     run_batch_lanes(geo, seed, batch, photons, |lanes| avx512::interact(lanes))
@@ -449,10 +454,13 @@ impl Isa {
     pub(crate) fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx512f") {
+            let bits = std::arch::is_x86_feature_detected!("popcnt")
+                && std::arch::is_x86_feature_detected!("bmi1");
+            if bits && std::arch::is_x86_feature_detected!("avx512f") {
                 return Self::Avx512;
             }
-            if std::arch::is_x86_feature_detected!("avx2")
+            if bits
+                && std::arch::is_x86_feature_detected!("avx2")
                 && std::arch::is_x86_feature_detected!("fma")
             {
                 return Self::Avx2;
