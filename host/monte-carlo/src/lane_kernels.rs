@@ -12,25 +12,25 @@ pub(crate) struct LayerVectors {
     z_top: F32s,
     z_bottom: F32s,
     inv_mu_t: F32s,
-    absorb_fraction: F32s,
-    hg_one_minus_g2: F32s,
+    albedo: F32s,
+    hg_g: F32s,
     hg_one_minus_g: F32s,
     hg_two_g: F32s,
-    hg_inv_two_g: F32s,
+    hg_scale: F32s,
 }
 
 impl LayerVectors {
     #[inline(always)]
-    fn load(lanes: &Lanes) -> Self {
+    pub(crate) fn load(lanes: &Lanes) -> Self {
         Self {
             z_top: F32s::load(lanes.z_top),
             z_bottom: F32s::load(lanes.z_bottom),
             inv_mu_t: F32s::load(lanes.inv_mu_t),
-            absorb_fraction: F32s::load(lanes.absorb_fraction),
-            hg_one_minus_g2: F32s::load(lanes.hg_one_minus_g2),
+            albedo: F32s::load(lanes.albedo),
+            hg_g: F32s::load(lanes.hg_g),
             hg_one_minus_g: F32s::load(lanes.hg_one_minus_g),
             hg_two_g: F32s::load(lanes.hg_two_g),
-            hg_inv_two_g: F32s::load(lanes.hg_inv_two_g),
+            hg_scale: F32s::load(lanes.hg_scale),
         }
     }
 }
@@ -125,7 +125,6 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let uz = F32s::load(lanes.uz);
     let weight = F32s::load(lanes.weight);
     let optical_left = F32s::load(lanes.optical_left);
-    let deposit_sum = F32s::load(lanes.deposit);
     let layer = LayerVectors::load(lanes);
     let zero = F32s::splat(0.0);
     let sampled = -ln(units_open(next_bits(&mut lanes.rng)));
@@ -140,7 +139,6 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     // A NaN (infinite step along a clear layer) compares false, so it counts as a boundary hit.
     let inside = (step * uz.abs()).lt(depth_to_boundary);
 
-    let deposit = weight * layer.absorb_fraction;
     let (one_minus_cos_t, sin_t_sq) = henyey_greenstein(&layer, xi);
     let cos_t = F32s::splat(1.0) - one_minus_cos_t;
     let [nx, ny, nz] = spin([ux, uy, uz], cos_t, sin_t_sq, cos_p, sin_p);
@@ -150,8 +148,7 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let ux = inside.select(nx, ux);
     let uy = inside.select(ny, uy);
     let uz = inside.select(nz, uz);
-    let weight = inside.select(weight - deposit, weight);
-    let deposit_sum = deposit_sum + inside.select(deposit, zero);
+    let weight = inside.select(weight * layer.albedo, weight);
     let optical_left = inside.select(zero, tau);
 
     let active = lanes.active;
@@ -167,7 +164,6 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     lanes.uz = uz.store();
     lanes.weight = weight.store();
     lanes.optical_left = optical_left.store();
-    lanes.deposit = deposit_sum.store();
     StepOutcome {
         at_boundary: !inside_bits & active,
         light: light.bitmask() & active,
@@ -175,19 +171,20 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
 }
 
 /// Henyey-Greenstein scattering by inverse CDF for uniforms `xi` in [0, 1): (1 - cos theta,
-/// sin^2 theta). 1 - cos is formed directly, (t - (1 - g)) (t + (1 - g)) / 2g, not as 1 minus the
-/// cosine: forward scattering (cos near 1, the common case at g = 0.9) keeps f32's relative
-/// precision in sin theta.
+/// sin^2 theta).
+///
+/// The textbook inverse, cos = (1 + g^2 - t^2) / 2g with t = (1 - g^2) / (1 - g + 2 g xi), is
+/// rearranged (t - (1 - g) = 2 g (1 - g) (1 - xi) / d, t + (1 - g) = 2 (1 - g) (1 + g xi) / d) to
+/// 1 - cos = 2 (1 - g)^2 (1 - xi) (1 + g xi) / d^2, d = 1 - g + 2 g xi: the same function with no
+/// 1 / g (isotropic layers need no special case) and no cancellation, so forward scattering (cos
+/// near 1, the common case at g = 0.9) keeps f32's relative precision in 1 - cos and sin theta.
+/// Every factor is positive; the clamp only catches rounding above 2 at xi = 0.
 #[inline(always)]
-fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> (F32s, F32s) {
+pub(crate) fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> (F32s, F32s) {
     let c = F32s::splat;
-    let t = layer.hg_one_minus_g2 / layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
-    let anisotropic = (t - layer.hg_one_minus_g) * (t + layer.hg_one_minus_g) * layer.hg_inv_two_g;
-    let isotropic = layer.hg_inv_two_g.eq(c(0.0));
-    let one_minus_cos = isotropic
-        .select(c(2.0) - c(2.0) * xi, anisotropic)
-        .max(c(0.0))
-        .min(c(2.0));
+    let d = layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
+    let numerator = layer.hg_scale * ((c(1.0) - xi) * layer.hg_g.mul_add(xi, c(1.0)));
+    let one_minus_cos = (numerator / (d * d)).min(c(2.0));
     let sin_sq = one_minus_cos * (c(2.0) - one_minus_cos);
     (one_minus_cos, sin_sq)
 }

@@ -63,14 +63,15 @@ pub(crate) struct Lanes {
     z_top: Lane,
     z_bottom: Lane,
     inv_mu_t: Lane,
-    absorb_fraction: Lane,
-    hg_one_minus_g2: Lane,
+    albedo: Lane,
+    hg_g: Lane,
     hg_one_minus_g: Lane,
     hg_two_g: Lane,
-    /// 1 / (2 g), or 0 for an isotropic layer.
-    hg_inv_two_g: Lane,
-    /// Weight deposited in the current layer since the photon entered it.
-    deposit: Lane,
+    /// 2 (1 - g)^2.
+    hg_scale: Lane,
+    /// The lane's weight when its deposit was last flushed: what it lost since, to absorption in
+    /// its current layer, is this minus its weight now (see `flush_deposit`).
+    weight_at_flush: Lane,
     /// Bit `lane` set for a lane holding a photon, clear for an idle one (at the end of a batch).
     active: u32,
     /// Interaction events of all lanes, all photons together: a popcount per step, so the step
@@ -104,12 +105,12 @@ impl Lanes {
             z_top: zero,
             z_bottom: zero,
             inv_mu_t: zero,
-            absorb_fraction: zero,
-            hg_one_minus_g2: zero,
+            albedo: zero,
+            hg_g: zero,
             hg_one_minus_g: zero,
             hg_two_g: zero,
-            hg_inv_two_g: zero,
-            deposit: zero,
+            hg_scale: zero,
+            weight_at_flush: zero,
             active: 0,
             interactions: 0,
             steps: 0,
@@ -129,17 +130,22 @@ impl Lanes {
         self.z_top[lane] = layer.z_top as f32;
         self.z_bottom[lane] = layer.z_bottom as f32;
         self.inv_mu_t[lane] = layer.inv_mu_t as f32;
-        self.absorb_fraction[lane] = layer.absorb_fraction as f32;
-        self.hg_one_minus_g2[lane] = layer.hg.one_minus_g2 as f32;
+        self.albedo[lane] = layer.albedo as f32;
+        self.hg_g[lane] = layer.hg.g as f32;
         self.hg_one_minus_g[lane] = layer.hg.one_minus_g as f32;
         self.hg_two_g[lane] = layer.hg.two_g as f32;
-        self.hg_inv_two_g[lane] = layer.hg.inv_two_g as f32;
+        self.hg_scale[lane] = layer.hg.scale as f32;
     }
 
-    /// Moves the running deposit of `lane` into its per-layer absorption.
+    /// Adds the weight `lane` lost since the last flush to its current layer's absorption. Called
+    /// before anything but absorption changes the weight or the layer (boundaries, roulette) and
+    /// when the photon ends, so the vector step only scales the weight by the albedo. The
+    /// difference of two f32 is exact in f64: the deposits sum exactly to the weight lost.
+    #[inline(always)]
     fn flush_deposit(&mut self, lane: usize, layers: usize) {
-        self.absorbed[lane * layers + self.layer[lane]] += f64::from(self.deposit[lane]);
-        self.deposit[lane] = 0.0;
+        let lost = f64::from(self.weight_at_flush[lane]) - f64::from(self.weight[lane]);
+        self.absorbed[lane * layers + self.layer[lane]] += lost;
+        self.weight_at_flush[lane] = self.weight[lane];
     }
 }
 
@@ -214,6 +220,7 @@ fn escape_partially(
         None => 1.0,
         Some(cos_t) => reflectance_with_cos_t(layer.n, n_out, cos_i, cos_t),
     };
+    lanes.flush_deposit(lane, geo.layers.len());
     let weight = f64::from(lanes.weight[lane]);
     let escaping = weight * (1.0 - reflectance);
     if going_down {
@@ -225,6 +232,7 @@ fn escape_partially(
     }
     lanes.uz[lane] = -lanes.uz[lane];
     lanes.weight[lane] = (weight * reflectance) as f32;
+    lanes.weight_at_flush[lane] = lanes.weight[lane];
     lanes.weight[lane] > 0.0
 }
 
@@ -259,9 +267,11 @@ fn cross_internal(geo: &Geometry, lanes: &mut Lanes, lane: usize, going_down: bo
 }
 
 /// Russian roulette: survives with probability `ROULETTE_SURVIVAL` with its weight scaled up.
-fn survives_roulette(lanes: &mut Lanes, lane: usize) -> bool {
+fn survives_roulette(lanes: &mut Lanes, lane: usize, layers: usize) -> bool {
     if unit(lanes.rng.next_bits_of(lane)) < ROULETTE_SURVIVAL {
+        lanes.flush_deposit(lane, layers);
         lanes.weight[lane] = (f64::from(lanes.weight[lane]) / ROULETTE_SURVIVAL) as f32;
+        lanes.weight_at_flush[lane] = lanes.weight[lane];
         true
     } else {
         false
@@ -297,6 +307,7 @@ fn launch(geo: &Geometry, lanes: &mut Lanes, lane: usize, left: &mut u64, tally:
         lanes.z[lane] = 0.0;
         [lanes.ux[lane], lanes.uy[lane], lanes.uz[lane]] = geo.entry_dir.map(|u| u as f32);
         lanes.weight[lane] = entering;
+        lanes.weight_at_flush[lane] = entering;
         lanes.optical_left[lane] = 0.0;
         lanes.launched_at[lane] = lanes.steps;
         lanes.active |= 1 << lane;
@@ -318,7 +329,7 @@ fn settle_lane(
 ) {
     let mut alive = !at_boundary || cross_boundary(geo, lanes, lane, tally);
     if alive && f64::from(lanes.weight[lane]) < ROULETTE_THRESHOLD {
-        alive = survives_roulette(lanes, lane);
+        alive = survives_roulette(lanes, lane, geo.layers.len());
     }
     if !alive {
         finish_photon(lanes, lane, geo.layers.len(), tally);
@@ -501,7 +512,7 @@ pub(crate) fn run_batch(
 
 #[cfg(test)]
 mod tests {
-    use super::portable::{azimuth, next_bits, spin};
+    use super::portable::{LayerVectors, azimuth, henyey_greenstein, next_bits, spin};
     use super::*;
     use crate::simd::F32s;
 
@@ -585,6 +596,45 @@ mod tests {
                 // exp(-0.8) of them cross unabsorbed: the split is random, the sum is not.
                 assert!(tally.absorbed[0].mean_se(photons).0 > 0.0 || photons < 3);
             }
+        }
+    }
+
+    /// The sampled scattering cosines follow Henyey-Greenstein: on a fine midpoint grid of the
+    /// uniform, the mean cosine is g and the mean squared cosine (1 + 2 g^2) / 3 (the phase
+    /// function's first two Legendre moments are g and g^2), isotropic and backward layers
+    /// included; sin^2 + cos^2 = 1.
+    #[test]
+    fn scattering_cosines_have_the_henyey_greenstein_moments() {
+        use crate::{Layer, McConfig, Medium};
+        for g in [0.0, 0.5, 0.9, 0.95, -0.6] {
+            let medium = Medium::slab(Layer::from_albedo(0.9, 1.0, g, 1.4), 1.0, 1.0);
+            let geo = Geometry::new(&medium, &McConfig::new(1, 1));
+            let mut lanes = Lanes::new(1, LaneRng::for_batch(1, 0));
+            for lane in 0..LANES {
+                lanes.enter_layer(&geo, lane, 0);
+            }
+            let layer = LayerVectors::load(&lanes);
+            let cells = 1 << 16;
+            let (mut mean, mut mean_sq) = (0.0f64, 0.0f64);
+            for first in (0..cells).step_by(LANES) {
+                let xi = F32s(std::array::from_fn(|i| {
+                    ((first + i) as f32 + 0.5) / cells as f32
+                }));
+                let (one_minus_cos, sin_sq) = henyey_greenstein(&layer, xi);
+                for (omc, s2) in one_minus_cos.0.into_iter().zip(sin_sq.0) {
+                    let cos = 1.0 - f64::from(omc);
+                    assert!((cos * cos + f64::from(s2) - 1.0).abs() < 1e-6, "g {g}");
+                    mean += cos;
+                    mean_sq += cos * cos;
+                }
+            }
+            let (mean, mean_sq) = (mean / cells as f64, mean_sq / cells as f64);
+            assert!((mean - g).abs() < 2e-4, "g {g}: mean cosine {mean}");
+            let want = (1.0 + 2.0 * g * g) / 3.0;
+            assert!(
+                (mean_sq - want).abs() < 2e-4,
+                "g {g}: <cos^2> {mean_sq} vs {want}"
+            );
         }
     }
 

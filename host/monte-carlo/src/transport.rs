@@ -37,8 +37,9 @@ pub(crate) struct LayerConsts {
     pub(crate) mu_t: f64,
     /// 1 / mu_t, infinite for a clear layer (so a step in it never ends inside it).
     pub(crate) inv_mu_t: f64,
-    /// mu_a / mu_t: fraction of the weight deposited at each interaction.
-    pub(crate) absorb_fraction: f64,
+    /// mu_s / mu_t: fraction of the weight that scatters on at each interaction (the rest,
+    /// mu_a / mu_t, is deposited); 1 for a clear layer.
+    pub(crate) albedo: f64,
     pub(crate) hg: HenyeyGreenstein,
     pub(crate) n: f64,
     /// Index of the medium above and below this layer.
@@ -67,7 +68,7 @@ impl Geometry {
                 z_bottom: z + layer.thickness_mm,
                 mu_t,
                 inv_mu_t: 1.0 / mu_t,
-                absorb_fraction: if mu_t > 0.0 { layer.mu_a / mu_t } else { 0.0 },
+                albedo: if mu_t > 0.0 { layer.mu_s / mu_t } else { 1.0 },
                 hg: HenyeyGreenstein::new(layer.g),
                 n: layer.n,
                 n_up: if i == 0 {
@@ -107,24 +108,24 @@ impl Geometry {
     }
 }
 
-/// Henyey-Greenstein phase function constants for inverse-CDF sampling of the scattering cosine.
+/// Henyey-Greenstein phase function constants for inverse-CDF sampling of the scattering cosine
+/// (see `henyey_greenstein` in `lane_kernels.rs` for the formula they enter).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct HenyeyGreenstein {
-    pub(crate) one_minus_g2: f64,
+    pub(crate) g: f64,
     pub(crate) one_minus_g: f64,
     pub(crate) two_g: f64,
-    pub(crate) inv_two_g: f64,
+    /// 2 (1 - g)^2.
+    pub(crate) scale: f64,
 }
 
 impl HenyeyGreenstein {
     fn new(g: f64) -> Self {
-        // Below |g| = 1e-6 the inverse CDF loses precision; the isotropic law is then exact enough.
-        let isotropic = g.abs() < 1e-6;
         Self {
-            one_minus_g2: 1.0 - g * g,
+            g,
             one_minus_g: 1.0 - g,
             two_g: 2.0 * g,
-            inv_two_g: if isotropic { 0.0 } else { 0.5 / g },
+            scale: 2.0 * (1.0 - g) * (1.0 - g),
         }
     }
 }
