@@ -244,8 +244,15 @@ fn cross_internal(geo: &Geometry, lanes: &mut Lanes, lane: usize, going_down: bo
     let next = if going_down { index + 1 } else { index - 1 };
     let n_next = if going_down { layer.n_down } else { layer.n_up };
     let cos_i = f64::from(lanes.uz[lane]).abs();
+    let interface = &geo.interfaces[index][usize::from(going_down)];
+    let bound = interface.at(cos_i);
     let refracts = if layer.n == n_next {
         Some(cos_i)
+    } else if bound < 1.0 {
+        // Not totally reflected: the same draw as below, most often settled by the bound alone.
+        let u = unit(lanes.rng.next_bits_of(lane));
+        let cos_t = interface.refracted_cos(cos_i);
+        (u >= bound || u >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)).then_some(cos_t)
     } else {
         refracted_cos(layer.n, n_next, cos_i).filter(|&cos_t| {
             unit(lanes.rng.next_bits_of(lane))

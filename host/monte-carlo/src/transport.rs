@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::fresnel::{reflectance_with_cos_t, refracted_cos};
+use super::fresnel::{ReflectanceBound, reflectance_with_cos_t, refracted_cos};
 use super::photon_lanes::{self, Isa};
 use super::tally::{BatchTally, GridSpec, RadialSpec};
 use super::{McConfig, McResult, Medium};
@@ -49,6 +49,9 @@ pub(crate) struct LayerConsts {
 
 pub(crate) struct Geometry {
     pub(crate) layers: Vec<LayerConsts>,
+    /// Per layer, the reflectance bounds of its top and bottom interfaces seen from inside it,
+    /// `[up, down]`.
+    pub(crate) interfaces: Vec<[ReflectanceBound; 2]>,
     pub(crate) specular: f64,
     /// Entry direction after refraction: (sin theta_t, 0, cos theta_t).
     pub(crate) entry_dir: [f64; 3],
@@ -98,8 +101,18 @@ impl Geometry {
             }
             None => (1.0, [0.0, 0.0, 1.0]),
         };
+        let interfaces = layers
+            .iter()
+            .map(|l| {
+                [
+                    ReflectanceBound::new(l.n, l.n_up),
+                    ReflectanceBound::new(l.n, l.n_down),
+                ]
+            })
+            .collect();
         Self {
             layers,
+            interfaces,
             specular,
             entry_dir,
             grid: cfg.grid,
