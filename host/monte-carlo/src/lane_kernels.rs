@@ -139,9 +139,8 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     // A NaN (infinite step along a clear layer) compares false, so it counts as a boundary hit.
     let inside = (step * uz.abs()).lt(depth_to_boundary);
 
-    let (one_minus_cos_t, sin_t_sq) = henyey_greenstein(&layer, xi);
-    let cos_t = F32s::splat(1.0) - one_minus_cos_t;
-    let [nx, ny, nz] = spin([ux, uy, uz], cos_t, sin_t_sq, cos_p, sin_p);
+    let polar = henyey_greenstein(&layer, xi);
+    let [nx, ny, nz] = spin([ux, uy, uz], polar, cos_p, sin_p);
     let x = inside.select(step.mul_add(ux, x), x);
     let y = inside.select(step.mul_add(uy, y), y);
     let z = inside.select(step.mul_add(uz, z), z);
@@ -170,8 +169,15 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     }
 }
 
-/// Henyey-Greenstein scattering by inverse CDF for uniforms `xi` in [0, 1): (1 - cos theta,
-/// sin^2 theta).
+/// A polar scattering angle as the fraction 1 - cos theta = `numerator` / `denominator`, both
+/// positive, numerator <= 2 denominator: `spin` divides once for this and for its own ratio.
+pub(crate) struct PolarAngle {
+    pub(crate) numerator: F32s,
+    pub(crate) denominator: F32s,
+}
+
+/// Henyey-Greenstein scattering by inverse CDF for uniforms `xi` in [0, 1): 1 - cos theta as a
+/// `PolarAngle`.
 ///
 /// The textbook inverse, cos = (1 + g^2 - t^2) / 2g with t = (1 - g^2) / (1 - g + 2 g xi), is
 /// rearranged (t - (1 - g) = 2 g (1 - g) (1 - xi) / d, t + (1 - g) = 2 (1 - g) (1 + g xi) / d) to
@@ -180,13 +186,15 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
 /// near 1, the common case at g = 0.9) keeps f32's relative precision in 1 - cos and sin theta.
 /// Every factor is positive; the clamp only catches rounding above 2 at xi = 0.
 #[inline(always)]
-pub(crate) fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> (F32s, F32s) {
+pub(crate) fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> PolarAngle {
     let c = F32s::splat;
     let d = layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
+    let denominator = d * d;
     let numerator = layer.hg_scale * ((c(1.0) - xi) * layer.hg_g.mul_add(xi, c(1.0)));
-    let one_minus_cos = (numerator / (d * d)).min(c(2.0));
-    let sin_sq = one_minus_cos * (c(2.0) - one_minus_cos);
-    (one_minus_cos, sin_sq)
+    PolarAngle {
+        numerator: numerator.min(c(2.0) * denominator),
+        denominator,
+    }
 }
 
 /// (cos phi, sin phi) of a uniform azimuth: a uniform angle in [-pi/4, pi/4) from the top 23 bits,
@@ -202,18 +210,31 @@ pub(crate) fn azimuth(bits: U32s) -> (F32s, F32s) {
     (half_turn.select(-c, c), half_turn.select(-s, s))
 }
 
-/// Turns directions by polar angle (cos theta, sin^2 theta) and azimuth (cos_p, sin_p) about
-/// themselves (MCML's formulas). The sine of the old polar angle is taken from ux^2 + uy^2, not
-/// 1 - uz^2: in f32 the latter loses the small sines of near-vertical directions, and the new
-/// direction would then not be a unit vector. sin(theta) / sin(old) is one square root.
+/// Turns directions by a polar angle and azimuth (cos_p, sin_p) about themselves (MCML's
+/// formulas). The sine of the old polar angle is taken from ux^2 + uy^2, not 1 - uz^2: in f32 the
+/// latter loses the small sines of near-vertical directions, and the new direction would then not
+/// be a unit vector.
+///
+/// With 1 - cos theta = N / D and s = sin^2(old), both 1 - cos theta = N s q and the factor
+/// k = sin(theta) / sin(old) = sqrt(N (2D - N) / (D^2 s)) = q sqrt(N (2D - N) s) come from the one
+/// division q = 1 / (D s), and the square root does not wait for it: the scattering's chain of
+/// long-latency operations (the photon step's critical path) is one division and one square root
+/// deep instead of two divisions and a root.
 #[inline(always)]
-pub(crate) fn spin(dir: [F32s; 3], cos_t: F32s, sin_t_sq: F32s, cos_p: F32s, sin_p: F32s) -> [F32s; 3] {
+pub(crate) fn spin(dir: [F32s; 3], polar: PolarAngle, cos_p: F32s, sin_p: F32s) -> [F32s; 3] {
     let c = F32s::splat;
     let [ux, uy, uz] = dir;
+    let PolarAngle {
+        numerator: n,
+        denominator: d,
+    } = polar;
     let sin_old_sq = ux.mul_add(ux, uy * uy);
     let vertical = sin_old_sq.lt(c(NEAR_VERTICAL_SIN_SQ));
-    // Vertical lanes divide by 1, so that k is sin(theta) there.
-    let k = (sin_t_sq / vertical.select(c(1.0), sin_old_sq)).sqrt();
+    // Vertical lanes take s = 1, so that k is sin(theta) there.
+    let s = vertical.select(c(1.0), sin_old_sq);
+    let q = c(1.0) / (d * s);
+    let k = q * (n * d.mul_add(c(2.0), -n) * s).sqrt();
+    let cos_t = c(1.0) - n * s * q;
     let signed_cos_t = uz.lt(c(0.0)).select(-cos_t, cos_t);
     [
         vertical.select(

@@ -519,7 +519,7 @@ pub(crate) fn run_batch(
 
 #[cfg(test)]
 mod tests {
-    use super::portable::{LayerVectors, azimuth, henyey_greenstein, next_bits, spin};
+    use super::portable::{LayerVectors, PolarAngle, azimuth, henyey_greenstein, next_bits, spin};
     use super::*;
     use crate::simd::F32s;
 
@@ -609,7 +609,7 @@ mod tests {
     /// The sampled scattering cosines follow Henyey-Greenstein: on a fine midpoint grid of the
     /// uniform, the mean cosine is g and the mean squared cosine (1 + 2 g^2) / 3 (the phase
     /// function's first two Legendre moments are g and g^2), isotropic and backward layers
-    /// included; sin^2 + cos^2 = 1.
+    /// included; the fraction lies in [0, 2].
     #[test]
     fn scattering_cosines_have_the_henyey_greenstein_moments() {
         use crate::{Layer, McConfig, Medium};
@@ -627,10 +627,10 @@ mod tests {
                 let xi = F32s(std::array::from_fn(|i| {
                     ((first + i) as f32 + 0.5) / cells as f32
                 }));
-                let (one_minus_cos, sin_sq) = henyey_greenstein(&layer, xi);
-                for (omc, s2) in one_minus_cos.0.into_iter().zip(sin_sq.0) {
-                    let cos = 1.0 - f64::from(omc);
-                    assert!((cos * cos + f64::from(s2) - 1.0).abs() < 1e-6, "g {g}");
+                let polar = henyey_greenstein(&layer, xi);
+                for (n, d) in polar.numerator.0.into_iter().zip(polar.denominator.0) {
+                    assert!(n >= 0.0 && d > 0.0 && n <= 2.0 * d, "g {g}: {n} / {d}");
+                    let cos = 1.0 - f64::from(n) / f64::from(d);
                     mean += cos;
                     mean_sq += cos * cos;
                 }
@@ -671,26 +671,27 @@ mod tests {
         let v = F32s::splat;
         let cos_t = 0.3f32;
         let sin_t_sq = 1.0 - cos_t * cos_t;
+        // 1 - cos theta = 0.7 / 1 and = 1.4 / 2: the spin must read the fraction, not its parts.
+        let polar = |scale: f32| PolarAngle {
+            numerator: v((1.0 - cos_t) * scale),
+            denominator: v(scale),
+        };
         let (s, c) = (0.5f32.sin(), 0.5f32.cos());
         let tilt = 3e-4f32; // uz rounds to within 1 ulp of 1: 1 - uz^2 is ~1e-7 with 50 % error
         for dir in [[0.6f32, 0.0, 0.8], [tilt, 0.0, (1.0 - tilt * tilt).sqrt()]] {
-            let out = spin(
-                [v(dir[0]), v(dir[1]), v(dir[2])],
-                v(cos_t),
-                v(sin_t_sq),
-                v(c),
-                v(s),
-            );
-            let out = out.map(|d| f64::from(d.0[0]));
-            let dot: f64 = out.iter().zip(dir).map(|(o, d)| o * f64::from(d)).sum();
-            let norm_sq: f64 = out.iter().map(|v| v * v).sum();
-            assert!((norm_sq - 1.0).abs() < 1e-6, "{dir:?}: |u|^2 = {norm_sq}");
-            assert!(
-                (dot - f64::from(cos_t)).abs() < 1e-6,
-                "{dir:?}: cos = {dot}"
-            );
+            for scale in [1.0, 2.0] {
+                let out = spin([v(dir[0]), v(dir[1]), v(dir[2])], polar(scale), v(c), v(s));
+                let out = out.map(|d| f64::from(d.0[0]));
+                let dot: f64 = out.iter().zip(dir).map(|(o, d)| o * f64::from(d)).sum();
+                let norm_sq: f64 = out.iter().map(|v| v * v).sum();
+                assert!((norm_sq - 1.0).abs() < 1e-6, "{dir:?}: |u|^2 = {norm_sq}");
+                assert!(
+                    (dot - f64::from(cos_t)).abs() < 1e-6,
+                    "{dir:?}: cos = {dot}"
+                );
+            }
         }
-        let vertical = spin([v(0.0), v(0.0), v(-1.0)], v(cos_t), v(sin_t_sq), v(c), v(s));
+        let vertical = spin([v(0.0), v(0.0), v(-1.0)], polar(2.0), v(c), v(s));
         assert!((vertical[2].0[5] + cos_t).abs() < 1e-7);
         assert!((vertical[0].0[5] - sin_t_sq.sqrt() * c).abs() < 1e-7);
     }
