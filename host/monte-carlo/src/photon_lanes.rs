@@ -182,19 +182,18 @@ fn cross_boundary(geo: &Geometry, lanes: &mut Lanes, lane: usize, tally: &mut Ba
     } else {
         lanes.z_top[lane]
     };
-    let z = f64::from(lanes.z[lane]);
-    let depth_to_boundary = (f64::from(boundary) - z).abs();
-    let to_boundary = depth_to_boundary / f64::from(lanes.uz[lane]).abs();
+    // In f32, the lanes' precision: the vector step decided the hit in f32 too.
+    let to_boundary = (boundary - lanes.z[lane]).abs() / lanes.uz[lane].abs();
     if !to_boundary.is_finite() {
         // Travelling parallel to the layers in a clear layer: never comes back.
         return false;
     }
-    lanes.x[lane] = (f64::from(lanes.x[lane]) + to_boundary * f64::from(lanes.ux[lane])) as f32;
-    lanes.y[lane] = (f64::from(lanes.y[lane]) + to_boundary * f64::from(lanes.uy[lane])) as f32;
+    lanes.x[lane] = to_boundary.mul_add(lanes.ux[lane], lanes.x[lane]);
+    lanes.y[lane] = to_boundary.mul_add(lanes.uy[lane], lanes.y[lane]);
     lanes.z[lane] = boundary;
     if layer.mu_t > 0.0 {
-        let left = f64::from(lanes.optical_left[lane]) - to_boundary * layer.mu_t;
-        lanes.optical_left[lane] = left.max(0.0) as f32;
+        let left = (-to_boundary).mul_add(layer.mu_t as f32, lanes.optical_left[lane]);
+        lanes.optical_left[lane] = left.max(0.0);
     }
     let last = lanes.layer[lane] + 1 == geo.layers.len();
     let outer = (going_down && last) || (!going_down && lanes.layer[lane] == 0);
