@@ -128,7 +128,9 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let layer = LayerVectors::load(lanes);
     let zero = F32s::splat(0.0);
     let sampled = -ln(units_open(next_bits(&mut lanes.rng)));
-    let xi = units(next_bits(&mut lanes.rng));
+    let scatter_bits = next_bits(&mut lanes.rng);
+    lanes.scatter_bits = scatter_bits.store();
+    let xi = units(scatter_bits);
     let (cos_p, sin_p) = azimuth(next_bits(&mut lanes.rng));
 
     let resume = optical_left.eq(zero);

@@ -90,6 +90,11 @@ pub(crate) struct Lanes {
     /// Per-photon absorption, `absorbed[lane * layers + layer]`.
     absorbed: Vec<f64>,
     rng: LaneRng,
+    /// The 32 random bits of each lane's last scattering draw. A lane whose step stopped at a
+    /// boundary did not scatter, so its bits are fresh: the reflect-or-refract choice there takes
+    /// them instead of stepping the lane's stream in scalar code (whose single-lane writes the
+    /// next vector step would have to wait for).
+    scatter_bits: [u32; LANES],
 }
 
 impl Lanes {
@@ -122,6 +127,7 @@ impl Lanes {
             transmitted: [0.0; LANES],
             absorbed: vec![0.0; LANES * layers],
             rng,
+            scatter_bits: [0; LANES],
         }
     }
 
@@ -250,14 +256,13 @@ fn cross_internal(geo: &Geometry, lanes: &mut Lanes, lane: usize, going_down: bo
     let refracts = if layer.n == n_next {
         Some(cos_i)
     } else if bound < 1.0 {
-        // Not totally reflected: the same draw as below, most often settled by the bound alone.
-        let u = unit(lanes.rng.next_bits_of(lane));
+        // Not totally reflected: the same bits as below, most often settled by the bound alone.
+        let u = unit(lanes.scatter_bits[lane]);
         let cos_t = interface.refracted_cos(cos_i);
         (u >= bound || u >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)).then_some(cos_t)
     } else {
         refracted_cos(layer.n, n_next, cos_i).filter(|&cos_t| {
-            unit(lanes.rng.next_bits_of(lane))
-                >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)
+            unit(lanes.scatter_bits[lane]) >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)
         })
     };
     match refracts {
