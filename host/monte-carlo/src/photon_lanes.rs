@@ -17,9 +17,10 @@
 //!
 //! The physics is exactly that of the scalar walk it replaces (see `transport`): the same step
 //! sampling in optical depth, partial reflection at the outer surfaces, random reflection at
-//! internal interfaces, the same roulette. Each lane keeps a running sum of the weight deposited in
-//! its current layer and flushes it on a layer change, so the hot loop never scatters into a
-//! per-layer array; the constants of a lane's layer are copied into the lane when it enters it, so
+//! internal interfaces, the same roulette. The vector step only scales a lane's weight by the
+//! albedo; what the lane lost in its current layer is the difference from its weight at the last
+//! flush, added to the layer when the layer or the weight otherwise changes (`flush_deposit`), so
+//! the hot loop never scatters into a per-layer array; the constants of a lane's layer are copied into the lane when it enters it, so
 //! the hot loop never gathers either.
 //!
 //! The vector step (`lane_kernels.rs`) is compiled on portable array vectors (`simd`), on AVX2
