@@ -19,10 +19,10 @@
 //! direction cosines, weights >= 1e-5 of roulette), f32 resolves 6e-8 of each; positions within a
 //! 10 mm medium to 1e-6 mm. MCML's GPU port (Alerstam et al.; Lo et al., GPU-MCML) runs in f32.
 //! Sums that grow (per-layer absorption over a photon's ~1,300 events, the tallies) are kept in
-//! f64 except the running deposit of a photon in its current layer (f32, flushed to f64 on every
-//! layer change): its rounding, at most 1,300 f32 roundings of 6e-8 relative, is 1e-4 of the
-//! photon's deposit in the worst case and unbiased on average, far below the per-layer standard
-//! error of any run. The tests in `photon_lanes` and `transport` check the lanes against analytic
+//! f64. A photon's deposit in a layer is the exact (f64) difference of its f32 weights, so the
+//! deposits add up to the weight lost exactly; each interaction's f32 rounding of the weight
+//! (6e-8 relative, unbiased) moves a deposit by at most 6e-8 of the weight, far below the
+//! per-layer standard error of any run. The tests in `photon_lanes` and `transport` check the lanes against analytic
 //! answers and the race (`benches/mcml_race.py`) against MCML within 3 standard errors.
 //!
 //! They work on whole lane vectors. Neither handles zero, infinities, NaN or subnormals; the

@@ -12,25 +12,25 @@ pub(crate) struct LayerVectors {
     z_top: F32s,
     z_bottom: F32s,
     inv_mu_t: F32s,
-    absorb_fraction: F32s,
-    hg_one_minus_g2: F32s,
+    albedo: F32s,
+    hg_g: F32s,
     hg_one_minus_g: F32s,
     hg_two_g: F32s,
-    hg_inv_two_g: F32s,
+    hg_scale: F32s,
 }
 
 impl LayerVectors {
     #[inline(always)]
-    fn load(lanes: &Lanes) -> Self {
+    pub(crate) fn load(lanes: &Lanes) -> Self {
         Self {
             z_top: F32s::load(lanes.z_top),
             z_bottom: F32s::load(lanes.z_bottom),
             inv_mu_t: F32s::load(lanes.inv_mu_t),
-            absorb_fraction: F32s::load(lanes.absorb_fraction),
-            hg_one_minus_g2: F32s::load(lanes.hg_one_minus_g2),
+            albedo: F32s::load(lanes.albedo),
+            hg_g: F32s::load(lanes.hg_g),
             hg_one_minus_g: F32s::load(lanes.hg_one_minus_g),
             hg_two_g: F32s::load(lanes.hg_two_g),
-            hg_inv_two_g: F32s::load(lanes.hg_inv_two_g),
+            hg_scale: F32s::load(lanes.hg_scale),
         }
     }
 }
@@ -125,11 +125,12 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let uz = F32s::load(lanes.uz);
     let weight = F32s::load(lanes.weight);
     let optical_left = F32s::load(lanes.optical_left);
-    let deposit_sum = F32s::load(lanes.deposit);
     let layer = LayerVectors::load(lanes);
     let zero = F32s::splat(0.0);
     let sampled = -ln(units_open(next_bits(&mut lanes.rng)));
-    let xi = units(next_bits(&mut lanes.rng));
+    let scatter_bits = next_bits(&mut lanes.rng);
+    lanes.scatter_bits = scatter_bits.store();
+    let xi = units(scatter_bits);
     let (cos_p, sin_p) = azimuth(next_bits(&mut lanes.rng));
 
     let resume = optical_left.eq(zero);
@@ -140,28 +141,21 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     // A NaN (infinite step along a clear layer) compares false, so it counts as a boundary hit.
     let inside = (step * uz.abs()).lt(depth_to_boundary);
 
-    let deposit = weight * layer.absorb_fraction;
-    let (one_minus_cos_t, sin_t_sq) = henyey_greenstein(&layer, xi);
-    let cos_t = F32s::splat(1.0) - one_minus_cos_t;
-    let [nx, ny, nz] = spin([ux, uy, uz], cos_t, sin_t_sq, cos_p, sin_p);
+    let polar = henyey_greenstein(&layer, xi);
+    let [nx, ny, nz] = spin([ux, uy, uz], polar, cos_p, sin_p);
     let x = inside.select(step.mul_add(ux, x), x);
     let y = inside.select(step.mul_add(uy, y), y);
     let z = inside.select(step.mul_add(uz, z), z);
     let ux = inside.select(nx, ux);
     let uy = inside.select(ny, uy);
     let uz = inside.select(nz, uz);
-    let weight = inside.select(weight - deposit, weight);
-    let deposit_sum = deposit_sum + inside.select(deposit, zero);
+    let weight = inside.select(weight * layer.albedo, weight);
     let optical_left = inside.select(zero, tau);
 
-    let active = U32s::load(lanes.active);
-    let counted = (inside & active).store();
-    for (total, lane_counted) in lanes.interactions.iter_mut().zip(counted) {
-        *total += u64::from(lane_counted & 1);
-    }
-    for events in &mut lanes.events {
-        *events = events.wrapping_add(1);
-    }
+    let active = lanes.active;
+    let inside_bits = inside.bitmask();
+    lanes.interactions += u64::from((inside_bits & active).count_ones());
+    lanes.steps = lanes.steps.wrapping_add(1);
     let light = weight.lt(F32s::splat(ROULETTE_THRESHOLD as f32));
     lanes.x = x.store();
     lanes.y = y.store();
@@ -171,29 +165,38 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     lanes.uz = uz.store();
     lanes.weight = weight.store();
     lanes.optical_left = optical_left.store();
-    lanes.deposit = deposit_sum.store();
     StepOutcome {
-        at_boundary: (!inside & active).bitmask(),
-        light: (light & active).bitmask(),
+        at_boundary: !inside_bits & active,
+        light: light.bitmask() & active,
     }
 }
 
-/// Henyey-Greenstein scattering by inverse CDF for uniforms `xi` in [0, 1): (1 - cos theta,
-/// sin^2 theta). 1 - cos is formed directly, (t - (1 - g)) (t + (1 - g)) / 2g, not as 1 minus the
-/// cosine: forward scattering (cos near 1, the common case at g = 0.9) keeps f32's relative
-/// precision in sin theta.
+/// A polar scattering angle as the fraction 1 - cos theta = `numerator` / `denominator`, both
+/// positive, numerator <= 2 denominator: `spin` divides once for this and for its own ratio.
+pub(crate) struct PolarAngle {
+    pub(crate) numerator: F32s,
+    pub(crate) denominator: F32s,
+}
+
+/// Henyey-Greenstein scattering by inverse CDF for uniforms `xi` in [0, 1): 1 - cos theta as a
+/// `PolarAngle`.
+///
+/// The textbook inverse, cos = (1 + g^2 - t^2) / 2g with t = (1 - g^2) / (1 - g + 2 g xi), is
+/// rearranged (t - (1 - g) = 2 g (1 - g) (1 - xi) / d, t + (1 - g) = 2 (1 - g) (1 + g xi) / d) to
+/// 1 - cos = 2 (1 - g)^2 (1 - xi) (1 + g xi) / d^2, d = 1 - g + 2 g xi: the same function with no
+/// 1 / g (isotropic layers need no special case) and no cancellation, so forward scattering (cos
+/// near 1, the common case at g = 0.9) keeps f32's relative precision in 1 - cos and sin theta.
+/// Every factor is positive; the clamp only catches rounding above 2 at xi = 0.
 #[inline(always)]
-fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> (F32s, F32s) {
+pub(crate) fn henyey_greenstein(layer: &LayerVectors, xi: F32s) -> PolarAngle {
     let c = F32s::splat;
-    let t = layer.hg_one_minus_g2 / layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
-    let anisotropic = (t - layer.hg_one_minus_g) * (t + layer.hg_one_minus_g) * layer.hg_inv_two_g;
-    let isotropic = layer.hg_inv_two_g.eq(c(0.0));
-    let one_minus_cos = isotropic
-        .select(c(2.0) - c(2.0) * xi, anisotropic)
-        .max(c(0.0))
-        .min(c(2.0));
-    let sin_sq = one_minus_cos * (c(2.0) - one_minus_cos);
-    (one_minus_cos, sin_sq)
+    let d = layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
+    let denominator = d * d;
+    let numerator = layer.hg_scale * ((c(1.0) - xi) * layer.hg_g.mul_add(xi, c(1.0)));
+    PolarAngle {
+        numerator: numerator.min(c(2.0) * denominator),
+        denominator,
+    }
 }
 
 /// (cos phi, sin phi) of a uniform azimuth: a uniform angle in [-pi/4, pi/4) from the top 23 bits,
@@ -209,18 +212,31 @@ pub(crate) fn azimuth(bits: U32s) -> (F32s, F32s) {
     (half_turn.select(-c, c), half_turn.select(-s, s))
 }
 
-/// Turns directions by polar angle (cos theta, sin^2 theta) and azimuth (cos_p, sin_p) about
-/// themselves (MCML's formulas). The sine of the old polar angle is taken from ux^2 + uy^2, not
-/// 1 - uz^2: in f32 the latter loses the small sines of near-vertical directions, and the new
-/// direction would then not be a unit vector. sin(theta) / sin(old) is one square root.
+/// Turns directions by a polar angle and azimuth (cos_p, sin_p) about themselves (MCML's
+/// formulas). The sine of the old polar angle is taken from ux^2 + uy^2, not 1 - uz^2: in f32 the
+/// latter loses the small sines of near-vertical directions, and the new direction would then not
+/// be a unit vector.
+///
+/// With 1 - cos theta = N / D and s = sin^2(old), both 1 - cos theta = N s q and the factor
+/// k = sin(theta) / sin(old) = sqrt(N (2D - N) / (D^2 s)) = q sqrt(N (2D - N) s) come from the one
+/// division q = 1 / (D s), and the square root does not wait for it: the scattering's chain of
+/// long-latency operations (the photon step's critical path) is one division and one square root
+/// deep instead of two divisions and a root.
 #[inline(always)]
-pub(crate) fn spin(dir: [F32s; 3], cos_t: F32s, sin_t_sq: F32s, cos_p: F32s, sin_p: F32s) -> [F32s; 3] {
+pub(crate) fn spin(dir: [F32s; 3], polar: PolarAngle, cos_p: F32s, sin_p: F32s) -> [F32s; 3] {
     let c = F32s::splat;
     let [ux, uy, uz] = dir;
+    let PolarAngle {
+        numerator: n,
+        denominator: d,
+    } = polar;
     let sin_old_sq = ux.mul_add(ux, uy * uy);
     let vertical = sin_old_sq.lt(c(NEAR_VERTICAL_SIN_SQ));
-    // Vertical lanes divide by 1, so that k is sin(theta) there.
-    let k = (sin_t_sq / vertical.select(c(1.0), sin_old_sq)).sqrt();
+    // Vertical lanes take s = 1, so that k is sin(theta) there.
+    let s = vertical.select(c(1.0), sin_old_sq);
+    let q = c(1.0) / (d * s);
+    let k = q * (n * d.mul_add(c(2.0), -n) * s).sqrt();
+    let cos_t = c(1.0) - n * s * q;
     let signed_cos_t = uz.lt(c(0.0)).select(-cos_t, cos_t);
     [
         vertical.select(

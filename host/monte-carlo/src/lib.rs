@@ -48,7 +48,7 @@ pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
 /// while this stays the same and changes, within the noise, when it does: caches of Monte Carlo
 /// results must include it in their key.
 pub const RANDOM_STREAMS: &str =
-    "xoshiro128++, 2 groups x 16 lanes of 4096-photon batches, f32 lanes, v2";
+    "xoshiro128++, 3 groups x 16 lanes of 4096-photon batches, f32 lanes, v4";
 
 /// Errors of the Monte Carlo module.
 #[derive(Debug, thiserror::Error)]

@@ -17,9 +17,10 @@
 //!
 //! The physics is exactly that of the scalar walk it replaces (see `transport`): the same step
 //! sampling in optical depth, partial reflection at the outer surfaces, random reflection at
-//! internal interfaces, the same roulette. Each lane keeps a running sum of the weight deposited in
-//! its current layer and flushes it on a layer change, so the hot loop never scatters into a
-//! per-layer array; the constants of a lane's layer are copied into the lane when it enters it, so
+//! internal interfaces, the same roulette. The vector step only scales a lane's weight by the
+//! albedo; what the lane lost in its current layer is the difference from its weight at the last
+//! flush, added to the layer when the layer or the weight otherwise changes (`flush_deposit`), so
+//! the hot loop never scatters into a per-layer array; the constants of a lane's layer are copied into the lane when it enters it, so
 //! the hot loop never gathers either.
 //!
 //! The vector step (`lane_kernels.rs`) is compiled on portable array vectors (`simd`), on AVX2
@@ -45,8 +46,10 @@ type Lane = [f32; LANES];
 /// group (branches, divisions, single-lane loads waiting on the vector results) then overlaps the
 /// vector arithmetic of the other, and runs one vector step after its own group's (see
 /// `run_batch_lanes`): 2 groups ran the 7-layer skin 19 % faster settled that way than settled
-/// right after their own step (3 and 4 groups were no faster than 2).
-pub(crate) const GROUPS: usize = 2;
+/// right after their own step. Once the step's chain of long-latency operations was shortened
+/// (one division fewer in the scattering, the interface decision by table), 3 groups ran it 2.5 %
+/// faster than 2 and 4 groups 1.3 % slower than 3 (2026-11-25, seven_layer, alternated runs).
+pub(crate) const GROUPS: usize = 3;
 
 /// The photons in flight, lane-major.
 pub(crate) struct Lanes {
@@ -63,19 +66,24 @@ pub(crate) struct Lanes {
     z_top: Lane,
     z_bottom: Lane,
     inv_mu_t: Lane,
-    absorb_fraction: Lane,
-    hg_one_minus_g2: Lane,
+    albedo: Lane,
+    hg_g: Lane,
     hg_one_minus_g: Lane,
     hg_two_g: Lane,
-    /// 1 / (2 g), or 0 for an isotropic layer.
-    hg_inv_two_g: Lane,
-    /// Weight deposited in the current layer since the photon entered it.
-    deposit: Lane,
-    /// All ones for a lane holding a photon, 0 for an idle one (at the end of a batch).
-    active: [u32; LANES],
-    /// Interaction events per lane, all photons together.
-    interactions: [u64; LANES],
-    events: [u32; LANES],
+    /// 2 (1 - g)^2.
+    hg_scale: Lane,
+    /// The lane's weight when its deposit was last flushed: what it lost since, to absorption in
+    /// its current layer, is this minus its weight now (see `flush_deposit`).
+    weight_at_flush: Lane,
+    /// Bit `lane` set for a lane holding a photon, clear for an idle one (at the end of a batch).
+    active: u32,
+    /// Interaction events of all lanes, all photons together: a popcount per step, so the step
+    /// keeps no per-lane counter.
+    interactions: u64,
+    /// Vector steps this group has made (wrapping) and the count when each lane's photon was
+    /// launched: their difference is the photon's events, without a per-lane increment per step.
+    steps: u32,
+    launched_at: [u32; LANES],
     layer: [usize; LANES],
     /// Per-photon exits, summed into the batch moments when the photon ends.
     reflected: [f64; LANES],
@@ -83,6 +91,11 @@ pub(crate) struct Lanes {
     /// Per-photon absorption, `absorbed[lane * layers + layer]`.
     absorbed: Vec<f64>,
     rng: LaneRng,
+    /// The 32 random bits of each lane's last scattering draw. A lane whose step stopped at a
+    /// boundary did not scatter, so its bits are fresh: the reflect-or-refract choice there takes
+    /// them instead of stepping the lane's stream in scalar code (whose single-lane writes the
+    /// next vector step would have to wait for).
+    scatter_bits: [u32; LANES],
 }
 
 impl Lanes {
@@ -100,20 +113,22 @@ impl Lanes {
             z_top: zero,
             z_bottom: zero,
             inv_mu_t: zero,
-            absorb_fraction: zero,
-            hg_one_minus_g2: zero,
+            albedo: zero,
+            hg_g: zero,
             hg_one_minus_g: zero,
             hg_two_g: zero,
-            hg_inv_two_g: zero,
-            deposit: zero,
-            active: [0; LANES],
-            interactions: [0; LANES],
-            events: [0; LANES],
+            hg_scale: zero,
+            weight_at_flush: zero,
+            active: 0,
+            interactions: 0,
+            steps: 0,
+            launched_at: [0; LANES],
             layer: [0; LANES],
             reflected: [0.0; LANES],
             transmitted: [0.0; LANES],
             absorbed: vec![0.0; LANES * layers],
             rng,
+            scatter_bits: [0; LANES],
         }
     }
 
@@ -124,17 +139,22 @@ impl Lanes {
         self.z_top[lane] = layer.z_top as f32;
         self.z_bottom[lane] = layer.z_bottom as f32;
         self.inv_mu_t[lane] = layer.inv_mu_t as f32;
-        self.absorb_fraction[lane] = layer.absorb_fraction as f32;
-        self.hg_one_minus_g2[lane] = layer.hg.one_minus_g2 as f32;
+        self.albedo[lane] = layer.albedo as f32;
+        self.hg_g[lane] = layer.hg.g as f32;
         self.hg_one_minus_g[lane] = layer.hg.one_minus_g as f32;
         self.hg_two_g[lane] = layer.hg.two_g as f32;
-        self.hg_inv_two_g[lane] = layer.hg.inv_two_g as f32;
+        self.hg_scale[lane] = layer.hg.scale as f32;
     }
 
-    /// Moves the running deposit of `lane` into its per-layer absorption.
+    /// Adds the weight `lane` lost since the last flush to its current layer's absorption. Called
+    /// before anything but absorption changes the weight or the layer (boundaries, roulette) and
+    /// when the photon ends, so the vector step only scales the weight by the albedo. The
+    /// difference of two f32 is exact in f64: the deposits sum exactly to the weight lost.
+    #[inline(always)]
     fn flush_deposit(&mut self, lane: usize, layers: usize) {
-        self.absorbed[lane * layers + self.layer[lane]] += f64::from(self.deposit[lane]);
-        self.deposit[lane] = 0.0;
+        let lost = f64::from(self.weight_at_flush[lane]) - f64::from(self.weight[lane]);
+        self.absorbed[lane * layers + self.layer[lane]] += lost;
+        self.weight_at_flush[lane] = self.weight[lane];
     }
 }
 
@@ -157,7 +177,7 @@ impl StepOutcome {
 /// photon ends (all its weight left, or it was lost).
 #[inline(always)]
 fn cross_boundary(geo: &Geometry, lanes: &mut Lanes, lane: usize, tally: &mut BatchTally) -> bool {
-    if lanes.events[lane] >= MAX_EVENTS_PER_PHOTON {
+    if lanes.steps.wrapping_sub(lanes.launched_at[lane]) >= MAX_EVENTS_PER_PHOTON {
         // Trapped by total internal reflection in a clear layer: drop it.
         return false;
     }
@@ -169,19 +189,18 @@ fn cross_boundary(geo: &Geometry, lanes: &mut Lanes, lane: usize, tally: &mut Ba
     } else {
         lanes.z_top[lane]
     };
-    let z = f64::from(lanes.z[lane]);
-    let depth_to_boundary = (f64::from(boundary) - z).abs();
-    let to_boundary = depth_to_boundary / f64::from(lanes.uz[lane]).abs();
+    // In f32, the lanes' precision: the vector step decided the hit in f32 too.
+    let to_boundary = (boundary - lanes.z[lane]).abs() / lanes.uz[lane].abs();
     if !to_boundary.is_finite() {
         // Travelling parallel to the layers in a clear layer: never comes back.
         return false;
     }
-    lanes.x[lane] = (f64::from(lanes.x[lane]) + to_boundary * f64::from(lanes.ux[lane])) as f32;
-    lanes.y[lane] = (f64::from(lanes.y[lane]) + to_boundary * f64::from(lanes.uy[lane])) as f32;
+    lanes.x[lane] = to_boundary.mul_add(lanes.ux[lane], lanes.x[lane]);
+    lanes.y[lane] = to_boundary.mul_add(lanes.uy[lane], lanes.y[lane]);
     lanes.z[lane] = boundary;
     if layer.mu_t > 0.0 {
-        let left = f64::from(lanes.optical_left[lane]) - to_boundary * layer.mu_t;
-        lanes.optical_left[lane] = left.max(0.0) as f32;
+        let left = (-to_boundary).mul_add(layer.mu_t as f32, lanes.optical_left[lane]);
+        lanes.optical_left[lane] = left.max(0.0);
     }
     let last = lanes.layer[lane] + 1 == geo.layers.len();
     let outer = (going_down && last) || (!going_down && lanes.layer[lane] == 0);
@@ -209,6 +228,7 @@ fn escape_partially(
         None => 1.0,
         Some(cos_t) => reflectance_with_cos_t(layer.n, n_out, cos_i, cos_t),
     };
+    lanes.flush_deposit(lane, geo.layers.len());
     let weight = f64::from(lanes.weight[lane]);
     let escaping = weight * (1.0 - reflectance);
     if going_down {
@@ -220,6 +240,7 @@ fn escape_partially(
     }
     lanes.uz[lane] = -lanes.uz[lane];
     lanes.weight[lane] = (weight * reflectance) as f32;
+    lanes.weight_at_flush[lane] = lanes.weight[lane];
     lanes.weight[lane] > 0.0
 }
 
@@ -231,12 +252,18 @@ fn cross_internal(geo: &Geometry, lanes: &mut Lanes, lane: usize, going_down: bo
     let next = if going_down { index + 1 } else { index - 1 };
     let n_next = if going_down { layer.n_down } else { layer.n_up };
     let cos_i = f64::from(lanes.uz[lane]).abs();
+    let interface = &geo.interfaces[index][usize::from(going_down)];
+    let bound = interface.at(cos_i);
     let refracts = if layer.n == n_next {
         Some(cos_i)
+    } else if bound < 1.0 {
+        // Not totally reflected: the same bits as below, most often settled by the bound alone.
+        let u = unit(lanes.scatter_bits[lane]);
+        let cos_t = interface.refracted_cos(cos_i);
+        (u >= bound || u >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)).then_some(cos_t)
     } else {
         refracted_cos(layer.n, n_next, cos_i).filter(|&cos_t| {
-            unit(lanes.rng.next_bits_of(lane))
-                >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)
+            unit(lanes.scatter_bits[lane]) >= reflectance_with_cos_t(layer.n, n_next, cos_i, cos_t)
         })
     };
     match refracts {
@@ -254,9 +281,11 @@ fn cross_internal(geo: &Geometry, lanes: &mut Lanes, lane: usize, going_down: bo
 }
 
 /// Russian roulette: survives with probability `ROULETTE_SURVIVAL` with its weight scaled up.
-fn survives_roulette(lanes: &mut Lanes, lane: usize) -> bool {
+fn survives_roulette(lanes: &mut Lanes, lane: usize, layers: usize) -> bool {
     if unit(lanes.rng.next_bits_of(lane)) < ROULETTE_SURVIVAL {
+        lanes.flush_deposit(lane, layers);
         lanes.weight[lane] = (f64::from(lanes.weight[lane]) / ROULETTE_SURVIVAL) as f32;
+        lanes.weight_at_flush[lane] = lanes.weight[lane];
         true
     } else {
         false
@@ -292,13 +321,14 @@ fn launch(geo: &Geometry, lanes: &mut Lanes, lane: usize, left: &mut u64, tally:
         lanes.z[lane] = 0.0;
         [lanes.ux[lane], lanes.uy[lane], lanes.uz[lane]] = geo.entry_dir.map(|u| u as f32);
         lanes.weight[lane] = entering;
+        lanes.weight_at_flush[lane] = entering;
         lanes.optical_left[lane] = 0.0;
-        lanes.events[lane] = 0;
-        lanes.active[lane] = u32::MAX;
+        lanes.launched_at[lane] = lanes.steps;
+        lanes.active |= 1 << lane;
         lanes.enter_layer(geo, lane, 0);
         return;
     }
-    lanes.active[lane] = 0;
+    lanes.active &= !(1 << lane);
 }
 
 /// Scalar work for one lane after a vector step; ends and replaces its photon when it dies.
@@ -313,7 +343,7 @@ fn settle_lane(
 ) {
     let mut alive = !at_boundary || cross_boundary(geo, lanes, lane, tally);
     if alive && f64::from(lanes.weight[lane]) < ROULETTE_THRESHOLD {
-        alive = survives_roulette(lanes, lane);
+        alive = survives_roulette(lanes, lane, geo.layers.len());
     }
     if !alive {
         finish_photon(lanes, lane, geo.layers.len(), tally);
@@ -377,7 +407,7 @@ fn run_batch_lanes(
             launch(geo, lanes, lane, &mut left, &mut tally);
         }
     }
-    let busy = |lanes: &Lanes| lanes.active.iter().any(|&a| a != 0);
+    let busy = |lanes: &Lanes| lanes.active != 0;
     // Each group's scalar work runs after the NEXT group's vector step, not right after its own:
     // the scalar code reads single lanes of the vectors its step just stored and writes single
     // lanes its next step loads as vectors, and a load that overlaps a store still in flight but
@@ -406,7 +436,7 @@ fn run_batch_lanes(
         }
     }
     for lanes in &groups {
-        tally.interactions += lanes.interactions.iter().sum::<u64>();
+        tally.interactions += lanes.interactions;
     }
     tally
 }
@@ -417,7 +447,7 @@ fn run_batch_lanes(
 /// The CPU must support AVX2 and FMA (the `simd_avx2` intrinsics are only sound under this
 /// function).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
+#[target_feature(enable = "avx2,fma,popcnt,bmi1")]
 unsafe fn run_batch_avx2(geo: &Geometry, seed: u64, batch: u64, photons: u64) -> BatchTally {
     // A closure, not the fn item: closures inherit this function's target features, so the
     // intrinsics inline into it (the fn item's `Fn::call` shim would not have AVX2).
@@ -430,7 +460,7 @@ unsafe fn run_batch_avx2(geo: &Geometry, seed: u64, batch: u64, photons: u64) ->
 /// # Safety
 /// The CPU must support AVX-512 F.
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
+#[target_feature(enable = "avx512f,popcnt,bmi1")]
 unsafe fn run_batch_avx512(geo: &Geometry, seed: u64, batch: u64, photons: u64) -> BatchTally {
     #[allow(clippy::redundant_closure)]
     run_batch_lanes(geo, seed, batch, photons, |lanes| avx512::interact(lanes))
@@ -449,10 +479,13 @@ impl Isa {
     pub(crate) fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx512f") {
+            let bits = std::arch::is_x86_feature_detected!("popcnt")
+                && std::arch::is_x86_feature_detected!("bmi1");
+            if bits && std::arch::is_x86_feature_detected!("avx512f") {
                 return Self::Avx512;
             }
-            if std::arch::is_x86_feature_detected!("avx2")
+            if bits
+                && std::arch::is_x86_feature_detected!("avx2")
                 && std::arch::is_x86_feature_detected!("fma")
             {
                 return Self::Avx2;
@@ -493,7 +526,7 @@ pub(crate) fn run_batch(
 
 #[cfg(test)]
 mod tests {
-    use super::portable::{azimuth, next_bits, spin};
+    use super::portable::{LayerVectors, PolarAngle, azimuth, henyey_greenstein, next_bits, spin};
     use super::*;
     use crate::simd::F32s;
 
@@ -580,6 +613,45 @@ mod tests {
         }
     }
 
+    /// The sampled scattering cosines follow Henyey-Greenstein: on a fine midpoint grid of the
+    /// uniform, the mean cosine is g and the mean squared cosine (1 + 2 g^2) / 3 (the phase
+    /// function's first two Legendre moments are g and g^2), isotropic and backward layers
+    /// included; the fraction lies in [0, 2].
+    #[test]
+    fn scattering_cosines_have_the_henyey_greenstein_moments() {
+        use crate::{Layer, McConfig, Medium};
+        for g in [0.0, 0.5, 0.9, 0.95, -0.6] {
+            let medium = Medium::slab(Layer::from_albedo(0.9, 1.0, g, 1.4), 1.0, 1.0);
+            let geo = Geometry::new(&medium, &McConfig::new(1, 1));
+            let mut lanes = Lanes::new(1, LaneRng::for_batch(1, 0));
+            for lane in 0..LANES {
+                lanes.enter_layer(&geo, lane, 0);
+            }
+            let layer = LayerVectors::load(&lanes);
+            let cells = 1 << 16;
+            let (mut mean, mut mean_sq) = (0.0f64, 0.0f64);
+            for first in (0..cells).step_by(LANES) {
+                let xi = F32s(std::array::from_fn(|i| {
+                    ((first + i) as f32 + 0.5) / cells as f32
+                }));
+                let polar = henyey_greenstein(&layer, xi);
+                for (n, d) in polar.numerator.0.into_iter().zip(polar.denominator.0) {
+                    assert!(n >= 0.0 && d > 0.0 && n <= 2.0 * d, "g {g}: {n} / {d}");
+                    let cos = 1.0 - f64::from(n) / f64::from(d);
+                    mean += cos;
+                    mean_sq += cos * cos;
+                }
+            }
+            let (mean, mean_sq) = (mean / cells as f64, mean_sq / cells as f64);
+            assert!((mean - g).abs() < 2e-4, "g {g}: mean cosine {mean}");
+            let want = (1.0 + 2.0 * g * g) / 3.0;
+            assert!(
+                (mean_sq - want).abs() < 2e-4,
+                "g {g}: <cos^2> {mean_sq} vs {want}"
+            );
+        }
+    }
+
     #[test]
     fn azimuth_is_a_unit_vector_in_every_quadrant() {
         let mut rng = LaneRng::for_batch(3, 0);
@@ -606,26 +678,27 @@ mod tests {
         let v = F32s::splat;
         let cos_t = 0.3f32;
         let sin_t_sq = 1.0 - cos_t * cos_t;
+        // 1 - cos theta = 0.7 / 1 and = 1.4 / 2: the spin must read the fraction, not its parts.
+        let polar = |scale: f32| PolarAngle {
+            numerator: v((1.0 - cos_t) * scale),
+            denominator: v(scale),
+        };
         let (s, c) = (0.5f32.sin(), 0.5f32.cos());
         let tilt = 3e-4f32; // uz rounds to within 1 ulp of 1: 1 - uz^2 is ~1e-7 with 50 % error
         for dir in [[0.6f32, 0.0, 0.8], [tilt, 0.0, (1.0 - tilt * tilt).sqrt()]] {
-            let out = spin(
-                [v(dir[0]), v(dir[1]), v(dir[2])],
-                v(cos_t),
-                v(sin_t_sq),
-                v(c),
-                v(s),
-            );
-            let out = out.map(|d| f64::from(d.0[0]));
-            let dot: f64 = out.iter().zip(dir).map(|(o, d)| o * f64::from(d)).sum();
-            let norm_sq: f64 = out.iter().map(|v| v * v).sum();
-            assert!((norm_sq - 1.0).abs() < 1e-6, "{dir:?}: |u|^2 = {norm_sq}");
-            assert!(
-                (dot - f64::from(cos_t)).abs() < 1e-6,
-                "{dir:?}: cos = {dot}"
-            );
+            for scale in [1.0, 2.0] {
+                let out = spin([v(dir[0]), v(dir[1]), v(dir[2])], polar(scale), v(c), v(s));
+                let out = out.map(|d| f64::from(d.0[0]));
+                let dot: f64 = out.iter().zip(dir).map(|(o, d)| o * f64::from(d)).sum();
+                let norm_sq: f64 = out.iter().map(|v| v * v).sum();
+                assert!((norm_sq - 1.0).abs() < 1e-6, "{dir:?}: |u|^2 = {norm_sq}");
+                assert!(
+                    (dot - f64::from(cos_t)).abs() < 1e-6,
+                    "{dir:?}: cos = {dot}"
+                );
+            }
         }
-        let vertical = spin([v(0.0), v(0.0), v(-1.0)], v(cos_t), v(sin_t_sq), v(c), v(s));
+        let vertical = spin([v(0.0), v(0.0), v(-1.0)], polar(2.0), v(c), v(s));
         assert!((vertical[2].0[5] + cos_t).abs() < 1e-7);
         assert!((vertical[0].0[5] - sin_t_sq.sqrt() * c).abs() < 1e-7);
     }

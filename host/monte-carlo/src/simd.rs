@@ -126,12 +126,7 @@ impl F32s {
         Self(lanewise!(self.0, |x| x.abs()))
     }
 
-    /// Lane-wise maximum (`self` when the other is NaN, as x86's max does with this order).
-    #[inline(always)]
-    pub(crate) fn max(self, other: Self) -> Self {
-        Self(lanewise!(self.0, other.0, |x, y| if x > y { x } else { y }))
-    }
-
+    /// Lane-wise `if self < other { self } else { other }` (x86's `minps`, NaN included).
     #[inline(always)]
     pub(crate) fn min(self, other: Self) -> Self {
         Self(lanewise!(self.0, other.0, |x, y| if x < y { x } else { y }))
@@ -236,7 +231,6 @@ mod tests {
         let picked = lower.select(a, F32s::splat(-1.0));
         assert_eq!(picked.0[..6], [0.0, 1.0, 2.0, 3.0, -1.0, -1.0]);
         assert_eq!((a - b).abs().min(F32s::splat(1.0)).0[0], 1.0);
-        assert_eq!(a.max(b).0[7], 7.0);
         assert_eq!(
             U32s::splat(0x7fff_ffff).signed_to_f32().0[3],
             2_147_483_648.0

@@ -158,13 +158,6 @@ impl F32s {
         (self.to_bits() & U32s::splat(!SIGN)).as_f32_bits()
     }
 
-    /// Lane-wise `if self > other { self } else { other }`: exactly `vmaxps`'s definition,
-    /// NaN included, so the array version agrees.
-    #[inline(always)]
-    pub(crate) fn max(self, other: Self) -> Self {
-        per_register!(F32s, _mm256_max_ps, self, other)
-    }
-
     /// Lane-wise `if self < other { self } else { other }` (`vminps`).
     #[inline(always)]
     pub(crate) fn min(self, other: Self) -> Self {

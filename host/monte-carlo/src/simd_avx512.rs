@@ -119,13 +119,6 @@ impl F32s {
         (self.to_bits() & U32s::splat(!SIGN)).as_f32_bits()
     }
 
-    /// Lane-wise `if self > other { self } else { other }` (`vmaxps`, NaN included).
-    #[inline(always)]
-    pub(crate) fn max(self, other: Self) -> Self {
-        // SAFETY: see the module documentation.
-        Self(unsafe { _mm512_max_ps(self.0, other.0) })
-    }
-
     /// Lane-wise `if self < other { self } else { other }` (`vminps`).
     #[inline(always)]
     pub(crate) fn min(self, other: Self) -> Self {

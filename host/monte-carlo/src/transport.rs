@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::fresnel::{reflectance_with_cos_t, refracted_cos};
+use super::fresnel::{ReflectanceBound, reflectance_with_cos_t, refracted_cos};
 use super::photon_lanes::{self, Isa};
 use super::tally::{BatchTally, GridSpec, RadialSpec};
 use super::{McConfig, McResult, Medium};
@@ -37,8 +37,9 @@ pub(crate) struct LayerConsts {
     pub(crate) mu_t: f64,
     /// 1 / mu_t, infinite for a clear layer (so a step in it never ends inside it).
     pub(crate) inv_mu_t: f64,
-    /// mu_a / mu_t: fraction of the weight deposited at each interaction.
-    pub(crate) absorb_fraction: f64,
+    /// mu_s / mu_t: fraction of the weight that scatters on at each interaction (the rest,
+    /// mu_a / mu_t, is deposited); 1 for a clear layer.
+    pub(crate) albedo: f64,
     pub(crate) hg: HenyeyGreenstein,
     pub(crate) n: f64,
     /// Index of the medium above and below this layer.
@@ -48,6 +49,9 @@ pub(crate) struct LayerConsts {
 
 pub(crate) struct Geometry {
     pub(crate) layers: Vec<LayerConsts>,
+    /// Per layer, the reflectance bounds of its top and bottom interfaces seen from inside it,
+    /// `[up, down]`.
+    pub(crate) interfaces: Vec<[ReflectanceBound; 2]>,
     pub(crate) specular: f64,
     /// Entry direction after refraction: (sin theta_t, 0, cos theta_t).
     pub(crate) entry_dir: [f64; 3],
@@ -67,7 +71,7 @@ impl Geometry {
                 z_bottom: z + layer.thickness_mm,
                 mu_t,
                 inv_mu_t: 1.0 / mu_t,
-                absorb_fraction: if mu_t > 0.0 { layer.mu_a / mu_t } else { 0.0 },
+                albedo: if mu_t > 0.0 { layer.mu_s / mu_t } else { 1.0 },
                 hg: HenyeyGreenstein::new(layer.g),
                 n: layer.n,
                 n_up: if i == 0 {
@@ -97,8 +101,18 @@ impl Geometry {
             }
             None => (1.0, [0.0, 0.0, 1.0]),
         };
+        let interfaces = layers
+            .iter()
+            .map(|l| {
+                [
+                    ReflectanceBound::new(l.n, l.n_up),
+                    ReflectanceBound::new(l.n, l.n_down),
+                ]
+            })
+            .collect();
         Self {
             layers,
+            interfaces,
             specular,
             entry_dir,
             grid: cfg.grid,
@@ -107,24 +121,24 @@ impl Geometry {
     }
 }
 
-/// Henyey-Greenstein phase function constants for inverse-CDF sampling of the scattering cosine.
+/// Henyey-Greenstein phase function constants for inverse-CDF sampling of the scattering cosine
+/// (see `henyey_greenstein` in `lane_kernels.rs` for the formula they enter).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct HenyeyGreenstein {
-    pub(crate) one_minus_g2: f64,
+    pub(crate) g: f64,
     pub(crate) one_minus_g: f64,
     pub(crate) two_g: f64,
-    pub(crate) inv_two_g: f64,
+    /// 2 (1 - g)^2.
+    pub(crate) scale: f64,
 }
 
 impl HenyeyGreenstein {
     fn new(g: f64) -> Self {
-        // Below |g| = 1e-6 the inverse CDF loses precision; the isotropic law is then exact enough.
-        let isotropic = g.abs() < 1e-6;
         Self {
-            one_minus_g2: 1.0 - g * g,
+            g,
             one_minus_g: 1.0 - g,
             two_g: 2.0 * g,
-            inv_two_g: if isotropic { 0.0 } else { 0.5 / g },
+            scale: 2.0 * (1.0 - g) * (1.0 - g),
         }
     }
 }
