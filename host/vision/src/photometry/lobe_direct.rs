@@ -37,6 +37,11 @@ use super::dichromatic::{grey_coefficient, median_chromaticity};
 use super::photometric_stereo::{LightModel, LightSample};
 use super::specular_ps::specular_shading;
 
+/// Body colours are medians over every this many pixels: a quick head still gives each band
+/// thousands, and the medians over all pixels made the lobe 25 % of the separation's time at full
+/// size (1.5 of 7.4 CPU-s).
+const BODY_COLOUR_STRIDE: usize = 4;
+
 /// A pixel's specular lobe under one projector.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LobeSample {
@@ -258,6 +263,7 @@ impl IncidenceBands {
                 .iter()
                 .zip(view.lobes)
                 .zip(view.usable)
+                .step_by(BODY_COLOUR_STRIDE)
                 .filter(|(_, u)| **u)
             {
                 if total.iter().sum::<f32>() < floor {
