@@ -191,11 +191,20 @@ mod tests {
     /// (this path) against `solve_pixel` (the general f64 solver) for each pixel.
     fn compare(seed: u64, lights: usize, pixels: usize) -> Result<usize, TestCaseError> {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        // Spread around the view axis (random lights can be too ill-conditioned to solve).
         let samples: Vec<LightSample> = (0..lights)
-            .map(|_| LightSample {
-                direction: Vector3::new(rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8), 1.0)
-                    .normalize(),
-                irradiance: [0, 1, 2].map(|_| rng.gen_range(0.3..2.0)),
+            .map(|k| {
+                let azimuth =
+                    std::f64::consts::TAU * k as f64 / lights as f64 + rng.gen_range(-0.3..0.3);
+                let tilt: f64 = rng.gen_range(0.4..0.9);
+                LightSample {
+                    direction: Vector3::new(
+                        tilt.sin() * azimuth.cos(),
+                        tilt.sin() * azimuth.sin(),
+                        tilt.cos(),
+                    ),
+                    irradiance: [0, 1, 2].map(|_| rng.gen_range(0.3..2.0)),
+                }
             })
             .collect();
         let view = Vector3::z();
