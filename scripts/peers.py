@@ -13,13 +13,16 @@
   components.
 
 Run through `scripts/peers.sh` (builds the binaries, makes the venv). Times are the best of
---repeats runs, ours and the peer alternated; the load average is printed beside them.
+--repeats wall times, ours and the peer alternated, and beside them the mean CPU seconds (all
+threads: ours may use both cores, numpy's BLAS may too) of the same runs; the load average is
+printed with them.
 Needs numpy, scipy, scikit-learn, opencv-contrib-python-headless, OpenEXR; never a dependency of mlsss.
 """
 import argparse
 import glob
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -36,12 +39,19 @@ WHITE_THRESHOLD, BLACK_THRESHOLD = 5, 40  # OpenCV GrayCodePattern defaults
 
 
 def best_of(repeats, run):
-    times, result = [], None
+    """Best wall seconds, mean CPU seconds (this process, all threads) and the last result."""
+    times, cpu, result = [], 0.0, None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         result = run()
         times.append(time.perf_counter() - t0)
-    return min(times), result
+        cpu += time.process_time() - c0
+    return min(times), cpu / repeats, result
+
+
+def children_cpu():
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def gray_to_binary(bits):
@@ -77,23 +87,28 @@ def read_pngs(folder):
 def decode_section(args):
     captures = sorted(glob.glob(os.path.join(args.procam, "capture_*")))
     ours_total = ours_decode = peer_total = peer_decode = 0.0
+    ours_total_cpu = ours_decode_cpu = peer_total_cpu = peer_decode_cpu = 0.0
     ours_pixels = peer_pixels = both = agree = 0
     for c in captures:
         out = os.path.join(args.work, "decode", os.path.basename(c))
         cmd = [args.mlsss, "decode", c, "--layout", "opencv", "--projector", "%dx%d" % PROJECTOR, "--out", out, "--json"]
         best_total, best_dec, best_peer_total, best_peer_dec = [], [], [], []
         for _ in range(args.repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), children_cpu()
             report = json.loads(subprocess.run(cmd, capture_output=True, text=True, check=True).stdout)
             best_total.append(time.perf_counter() - t0)
+            ours_total_cpu += (children_cpu() - c0) / args.repeats
             best_dec.append(report["timing_s"]["decode"])
-            t0 = time.perf_counter()
+            ours_decode_cpu += report.get("timing_cpu_s", {}).get("decode") or 0.0
+            t0, c0 = time.perf_counter(), time.process_time()
             frames = read_pngs(c)
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             x, y, valid = opencv_decode(frames)
-            t2 = time.perf_counter()
+            t2, c2 = time.perf_counter(), time.process_time()
             best_peer_total.append(t2 - t0)
             best_peer_dec.append(t2 - t1)
+            peer_total_cpu += (c2 - c0) / args.repeats
+            peer_decode_cpu += (c2 - c1) / args.repeats
         ours_total += min(best_total)
         ours_decode += min(best_dec)
         peer_total += min(best_peer_total)
@@ -109,8 +124,10 @@ def decode_section(args):
         agree += int((m & (ux == x) & (uy == y)).sum())
     return [
         {"stage": "decode (load + decode, %d captures)" % len(captures), "ours_s": ours_total, "peer_s": peer_total,
+         "ours_cpu_s": ours_total_cpu, "peer_cpu_s": peer_total_cpu,
          "peer": "OpenCV GrayCodePattern logic, numpy"},
         {"stage": "decode (decoding alone)", "ours_s": ours_decode, "peer_s": peer_decode,
+         "ours_cpu_s": ours_decode_cpu / args.repeats, "peer_cpu_s": peer_decode_cpu,
          "peer": "OpenCV GrayCodePattern logic, numpy",
          "accuracy": {"ours_pixels": ours_pixels, "peer_pixels": peer_pixels,
                       "agree_on_both_decoded": agree / max(both, 1)}},
@@ -135,11 +152,12 @@ def separation_section(args):
         bad = np.any(lmax >= saturation, axis=-1, keepdims=True)
         return np.where(bad, 0, np.maximum(direct, 0)), np.where(bad, 0, np.maximum(glob_, 0))
 
-    peer_s, (d_peer, g_peer) = best_of(args.repeats, nayar)
+    peer_s, peer_cpu_s, (d_peer, g_peer) = best_of(args.repeats, nayar)
     d_true, g_true = np.load(os.path.join(out, "direct_truth.npy")), np.load(os.path.join(out, "global_truth.npy"))
     d_ours, g_ours = np.load(os.path.join(out, "direct_ours.npy")), np.load(os.path.join(out, "global_ours.npy"))
     mae = lambda a, b: float(np.mean(np.abs(a - b)))  # noqa: E731
     return [{"stage": "separation (Nayar, 6 frames 1379x1029)", "ours_s": ours["best_s"], "peer_s": peer_s,
+             "ours_cpu_s": ours.get("cpu_mean_s"), "peer_cpu_s": peer_cpu_s,
              "peer": "numpy max/min",
              "accuracy": {"direct_mae_ours": mae(d_ours, d_true), "direct_mae_peer": mae(d_peer, d_true),
                           "global_mae_ours": mae(g_ours, g_true), "global_mae_peer": mae(g_peer, g_true)}}]
@@ -163,7 +181,7 @@ def ps_section(args):
         n[mask] = (g / np.maximum(norm, 1e-12)).T
         return n
 
-    peer_s, normals_peer = best_of(args.repeats, least_squares)
+    peer_s, peer_cpu_s, normals_peer = best_of(args.repeats, least_squares)
 
     def angular(n):
         solved = mask & (np.linalg.norm(n, axis=-1) > 0)
@@ -172,7 +190,7 @@ def ps_section(args):
         return {"mean_deg": float(deg.mean()), "median_deg": float(np.median(deg)), "solved": int(solved.sum())}
 
     return [{"stage": "photometric stereo (4 lights, least squares, 1379x1029)", "ours_s": ours["best_s"],
-             "peer_s": peer_s, "peer": "numpy pinv",
+             "peer_s": peer_s, "ours_cpu_s": ours.get("cpu_mean_s"), "peer_cpu_s": peer_cpu_s, "peer": "numpy pinv",
              "accuracy": {"ours": angular(normals_ours), "peer": angular(normals_peer), "mask": int(mask.sum())}}]
 
 
@@ -206,17 +224,24 @@ def main():
         rows += sections[name](args)
     for r in rows:
         r["ratio_peer_over_ours"] = r["peer_s"] / r["ours_s"] if r["ours_s"] > 0 else float("inf")
+        if r.get("ours_cpu_s") and r.get("peer_cpu_s"):
+            r["cpu_ratio_peer_over_ours"] = r["peer_cpu_s"] / r["ours_cpu_s"]
     meta = {"loadavg": os.getloadavg(), "cpus": os.cpu_count(), "numpy": np.__version__, "opencv": cv2.__version__}
     if args.json:
         print(json.dumps({"meta": meta, "rows": rows}, indent=1))
         return
     print("load average %.2f %.2f %.2f, %d CPUs" % (*meta["loadavg"], meta["cpus"]))
-    print("%-58s %10s %10s %8s  %s" % ("stage", "ours s", "peer s", "ratio", "peer"))
+    print("%-58s %9s %9s %8s %9s %9s %8s  %s" % ("stage", "ours s", "peer s", "ratio", "ours cpu", "peer cpu",
+                                                  "cpu rat.", "peer"))
     for r in rows:
-        print("%-58s %10.4f %10.4f %7.2fx  %s" % (r["stage"], r["ours_s"], r["peer_s"], r["ratio_peer_over_ours"], r["peer"]))
+        cpu = ("%9.4f %9.4f %7.2fx" % (r["ours_cpu_s"], r["peer_cpu_s"], r["cpu_ratio_peer_over_ours"])
+               if "cpu_ratio_peer_over_ours" in r else "%9s %9s %8s" % ("-", "-", "-"))
+        print("%-58s %9.4f %9.4f %7.2fx %s  %s" % (r["stage"], r["ours_s"], r["peer_s"], r["ratio_peer_over_ours"], cpu,
+                                                  r["peer"]))
         if "accuracy" in r:
             print("    accuracy: " + json.dumps(r["accuracy"]))
-    print("ratio = peer time / our time (above 1: ours is faster); target >= 5")
+    print("ratio = peer wall time / our wall time (best of the repeats; above 1: ours is faster), cpu rat. the same\n"
+          "for the mean CPU seconds of all threads; target >= 5")
 
 
 if __name__ == "__main__":

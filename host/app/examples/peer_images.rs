@@ -1,7 +1,7 @@
 //! Our separation and photometric stereo on synthetic full-size inputs (the booth camera's
 //! 1379x1029), for `scripts/peers.py`, which runs the numpy peers on the same arrays in the same
 //! run. Writes the inputs, the truth and our outputs as `.npy` into DIR and prints our timings
-//! (best and median wall seconds over the repeats) and outcome counts as JSON.
+//! (best and median wall seconds, mean CPU seconds of all threads, over the repeats) and outcome counts as JSON.
 //!
 //! `peer_images separation DIR [REPEATS]`: Nayar's max/min separation (6 shifted 3-px stripe
 //! frames, no blur correction) of a known direct and global image with noise.
@@ -19,6 +19,7 @@ use mlsss::photometry::photometric_stereo::{
 };
 use mlsss::photometry::ps_scene::{self, SceneParams};
 use mlsss::photometry::separation::{SeparationParams, separate};
+use mlsss::resources::cpu_seconds;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 
@@ -42,21 +43,37 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Best and median of `repeats` wall times of `run`, and its last result.
+/// Best and median wall times and mean CPU seconds (all threads; `/proc/self/stat`, 10 ms ticks,
+/// hence the mean over the repeats) of `repeats` runs of `run`, and its last result.
+struct Timed<T> {
+    best_s: f64,
+    median_s: f64,
+    cpu_mean_s: Option<f64>,
+    result: T,
+}
+
 fn timed<T>(
     repeats: usize,
     mut run: impl FnMut() -> anyhow::Result<T>,
-) -> anyhow::Result<(f64, f64, T)> {
+) -> anyhow::Result<Timed<T>> {
     let mut times = Vec::new();
     let mut last = None;
+    let cpu_start = cpu_seconds();
     for _ in 0..repeats.max(1) {
         let start = Instant::now();
         last = Some(run()?);
         times.push(start.elapsed().as_secs_f64());
     }
+    let cpu_mean_s = cpu_start
+        .zip(cpu_seconds())
+        .map(|(a, b)| (b - a) / times.len() as f64);
     times.sort_by(f64::total_cmp);
-    let result = last.context("no run")?;
-    Ok((times[0], times[times.len() / 2], result))
+    Ok(Timed {
+        best_s: times[0],
+        median_s: times[times.len() / 2],
+        cpu_mean_s,
+        result: last.context("no run")?,
+    })
 }
 
 fn separation(dir: &Path, repeats: usize) -> anyhow::Result<serde_json::Value> {
@@ -91,7 +108,12 @@ fn separation(dir: &Path, repeats: usize) -> anyhow::Result<serde_json::Value> {
         })
         .collect::<anyhow::Result<_>>()?;
     let refs: Vec<&Rgb32FImage> = frames.iter().collect();
-    let (best, median, result) = timed(repeats, || Ok(separate(&refs, &params)?))?;
+    let Timed {
+        best_s,
+        median_s,
+        cpu_mean_s,
+        result,
+    } = timed(repeats, || Ok(separate(&refs, &params)?))?;
     write_npy(
         &dir.join("frames.npy"),
         &[shifts, HEIGHT as usize, WIDTH as usize, 3],
@@ -113,8 +135,9 @@ fn separation(dir: &Path, repeats: usize) -> anyhow::Result<serde_json::Value> {
         "size": [WIDTH, HEIGHT],
         "frames": shifts,
         "threads": rayon::current_num_threads(),
-        "best_s": best,
-        "median_s": median,
+        "best_s": best_s,
+        "median_s": median_s,
+        "cpu_mean_s": cpu_mean_s,
         "stats": result.stats,
     }))
 }
@@ -145,7 +168,12 @@ fn photometric_stereo(dir: &Path, repeats: usize) -> anyhow::Result<serde_json::
         ..PsParams::default()
     };
     let refs: Vec<&Rgb32FImage> = scene.images.iter().collect();
-    let (best, median, map) = timed(repeats, || {
+    let Timed {
+        best_s,
+        median_s,
+        cpu_mean_s,
+        result: map,
+    } = timed(repeats, || {
         Ok(ps::solve_images(
             &refs,
             &lights,
@@ -196,8 +224,9 @@ fn photometric_stereo(dir: &Path, repeats: usize) -> anyhow::Result<serde_json::
         "size": [WIDTH, HEIGHT],
         "lights": refs.len(),
         "threads": rayon::current_num_threads(),
-        "best_s": best,
-        "median_s": median,
+        "best_s": best_s,
+        "median_s": median_s,
+        "cpu_mean_s": cpu_mean_s,
         "stats": map.stats(),
     }))
 }

@@ -9,6 +9,7 @@ use anyhow::{Context, bail};
 use mlsss::geometry::code_frames;
 use mlsss::geometry::gray_code::{DecodeParams, decode};
 use mlsss::pipeline::{self, CalibrationSource, Pipeline};
+use mlsss::resources::cpu_seconds;
 use serde_json::json;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -99,14 +100,23 @@ fn decode_opencv(args: &Args) -> anyhow::Result<serde_json::Value> {
     let params: DecodeParams =
         serde_json::from_value(params_json(args, DecodeParams::for_8_bit())?)?;
     let start = Instant::now();
+    let cpu_start = cpu_seconds();
     let frames = code_frames::from_opencv_dir(&args.capture, size)?;
     let loaded = start.elapsed().as_secs_f64();
+    let cpu_loaded = cpu_seconds();
     let decoded = decode(&frames, size, &params)
         .with_context(|| format!("decoding {}", args.capture.display()))?;
     let decoding = start.elapsed().as_secs_f64() - loaded;
+    let cpu_decoded = cpu_seconds();
+    // CPU seconds of all threads (10 ms ticks); null where the platform has no probe.
+    let cpu = |from: Option<f64>, to: Option<f64>| from.zip(to).map(|(a, b)| b - a);
     pipeline::decode_stage::write_decode(&args.out, 0, &decoded)?;
     Ok(json!({
         "projectors": [pipeline::decode_stage::projector_report(0, &decoded, None)],
         "timing_s": { "load": loaded, "decode": decoding },
+        "timing_cpu_s": {
+            "load": cpu(cpu_start, cpu_loaded),
+            "decode": cpu(cpu_loaded, cpu_decoded),
+        },
     }))
 }

@@ -260,6 +260,7 @@ impl ContrastTable {
 struct BandExtremes {
     lmax: Vec<f32>,
     lmin: Vec<f32>,
+    /// Per-value sums over the shifts (empty without blur correction).
     sum: Vec<f32>,
     finite: Vec<bool>,
     /// Real and imaginary parts of the first DFT coefficient per pixel (empty without blur
@@ -275,7 +276,7 @@ impl BandExtremes {
         let mut band = Self {
             lmax: vec![f32::NEG_INFINITY; values],
             lmin: vec![f32::INFINITY; values],
-            sum: vec![0.0; values],
+            sum: vec![0.0; if phase { values } else { 0 }],
             finite: vec![true; values],
             re: vec![0.0; if phase { pixels } else { 0 }],
             im: vec![0.0; if phase { pixels } else { 0 }],
@@ -286,15 +287,17 @@ impl BandExtremes {
                 .lmax
                 .iter_mut()
                 .zip(band.lmin.iter_mut())
-                .zip(band.sum.iter_mut())
                 .zip(band.finite.iter_mut());
-            for ((((lmax, lmin), sum), finite), &v) in accumulators.zip(frame) {
+            for (((lmax, lmin), finite), &v) in accumulators.zip(frame) {
                 *lmax = lmax.max(v);
                 *lmin = lmin.min(v);
-                *sum += v;
                 *finite &= v.is_finite();
             }
             if phase {
+                // The sums serve only the blur correction's global part.
+                for (sum, &v) in band.sum.iter_mut().zip(frame) {
+                    *sum += v;
+                }
                 let coefficient = band.re.iter_mut().zip(band.im.iter_mut());
                 for ((re, im), rgb) in coefficient.zip(frame.chunks_exact(3)) {
                     let grey: f32 = rgb.iter().sum();
