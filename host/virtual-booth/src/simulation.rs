@@ -483,10 +483,13 @@ pub fn simulate_calibration(
 
 /// Largest budget for the buffers of one render batch (flux, direct, exitance and the frames
 /// built from them: about [`BATCH_BYTES_PER_PIXEL_FRAME`] per pixel and frame). Every batch
-/// gathers the subsurface pairs once (the bulk of a frame's cost), so a projector's frames are
-/// best rendered in one batch: 3 GiB holds the 67 frames of one projector of a full-size capture
-/// (1379 x 1029). Never more than half the memory the system reports available.
-const BATCH_BUDGET_BYTES: usize = 3 << 30;
+/// gathers the subsurface pairs once (the bulk of a frame's cost), so fewer batches are faster;
+/// but the batch is most of the peak: 3 GiB held the 67 frames of one projector of a full-size
+/// capture (1379 x 1029) in one batch at 4.1-4.2 GB peak, above the 4 GB the booth's host is
+/// given; 2 GiB renders them in two (34 and 33 frames): 3.2 GB peak for 27 % more CPU (full-size
+/// type I head from an empty cache, idle machine: 2 min 38 s against 2 min 10 s wall). Never
+/// more than half the memory the system reports available.
+const BATCH_BUDGET_BYTES: usize = 2 << 30;
 /// Smallest batch budget, whatever the system reports.
 const MIN_BATCH_BUDGET_BYTES: usize = 256 << 20;
 /// Peak bytes per pixel and frame of a render batch: direct 4 and exitance 12 while the frames
@@ -508,7 +511,9 @@ fn batch_size(pixels: usize, frames: usize, budget: usize) -> usize {
 
 /// The batch budget on this machine: [`BATCH_BUDGET_BYTES`], or half the memory the system
 /// reports available when that is less (Linux `MemAvailable`; the full budget elsewhere).
-/// Only speed depends on it: frames do not depend on how they are batched.
+/// Speed and memory depend on it, the frames hardly: batched differently, a few hundred pixels
+/// of a frame can round to the next 12-bit code (full-size type I head, seed 96, 3 GiB against
+/// 2 GiB: 28 of 268 frames, up to 641 pixels each, by one code).
 fn batch_budget() -> usize {
     let available = std::fs::read_to_string("/proc/meminfo")
         .ok()
