@@ -25,6 +25,8 @@ const CONTROLLER_SILENCE_LIMIT: Duration = Duration::from_secs(10);
 const RUN_STALL_LIMIT: Duration = Duration::from_secs(60);
 /// After `Done`, how long to keep collecting the per-projector timing reports.
 const AFTER_DONE_QUIET: Duration = Duration::from_millis(300);
+/// After `Done`, the longest the host collects timing reports, however chatty the controller.
+const AFTER_DONE_LIMIT: Duration = Duration::from_secs(3);
 /// Attempts of the handshake (the controller may still be booting).
 const HELLO_ATTEMPTS: u32 = 10;
 const HELLO_TIMEOUT: Duration = Duration::from_millis(500);
@@ -380,12 +382,35 @@ impl<L: ByteLink> Session<L> {
     }
 
     fn collect_after_done(&mut self, run: &mut RunState) -> Result<(), RigError> {
-        while let Some(message) = self.link.recv(AFTER_DONE_QUIET)? {
-            if let ControllerMessage::ProjectorTiming(timing) = message {
-                run.projector_timing.insert(timing.projector, timing);
-            }
+        collect_timings(&mut self.link, &mut run.projector_timing)
+    }
+}
+
+/// Collects the per-projector timing reports that follow `Done`, until none has come for
+/// [`AFTER_DONE_QUIET`] and never past [`AFTER_DONE_LIMIT`]. Only a timing report extends the
+/// wait: the controller's heartbeats go on after `Done`, and under QEMU's warped idle clock they
+/// came more often than the quiet interval, so waiting for silence never ended (a clean-clone
+/// test run hung 10 minutes in `disconnect_then_abort_keeps_every_frame_already_captured`).
+fn collect_timings<L: ByteLink>(
+    link: &mut ControllerLink<L>,
+    timings: &mut BTreeMap<u8, ProjectorTiming>,
+) -> Result<(), RigError> {
+    let limit = Instant::now() + AFTER_DONE_LIMIT;
+    let mut quiet_until = Instant::now() + AFTER_DONE_QUIET;
+    loop {
+        let until = quiet_until.min(limit);
+        let now = Instant::now();
+        if now >= until {
+            return Ok(());
         }
-        Ok(())
+        match link.recv(until - now)? {
+            Some(ControllerMessage::ProjectorTiming(timing)) => {
+                timings.insert(timing.projector, timing);
+                quiet_until = Instant::now() + AFTER_DONE_QUIET;
+            }
+            Some(_) => {}
+            None => return Ok(()),
+        }
     }
 }
 
@@ -525,7 +550,7 @@ impl RunState {
 mod tests {
     use super::*;
     use mlsss_shared::framing::{ControllerEncoder, HostDecoder, MAX_WIRE_FRAME_LEN};
-    use mlsss_shared::message::Board;
+    use mlsss_shared::message::{Board, ControllerHeartbeat, ControllerState};
     use std::io;
 
     /// A controller that answers every Hello with `reply` and ignores everything else.
@@ -591,6 +616,56 @@ mod tests {
     fn open_against(reply: HelloReply) -> Result<HelloReply, RigError> {
         let link = ControllerLink::new(ScriptedController::new(reply));
         Session::open(link).map(|session| *session.controller())
+    }
+
+    /// A controller that sends a heartbeat on every read, forever (QEMU's warped clock).
+    struct ChattyController {
+        encoder: ControllerEncoder,
+        timings_left: u8,
+    }
+
+    impl ByteLink for ChattyController {
+        fn send_bytes(&mut self, _bytes: &[u8]) -> io::Result<()> {
+            Ok(())
+        }
+
+        fn recv_bytes(&mut self, buf: &mut [u8], _timeout: Duration) -> io::Result<usize> {
+            let message = if self.timings_left > 0 {
+                self.timings_left -= 1;
+                ControllerMessage::ProjectorTiming(ProjectorTiming {
+                    projector: self.timings_left,
+                    vsync_count: 10,
+                    period_ns: 16_666_667,
+                })
+            } else {
+                ControllerMessage::Heartbeat(ControllerHeartbeat {
+                    timestamp_us: 0,
+                    state: ControllerState::Idle,
+                })
+            };
+            let mut frame = [0u8; MAX_WIRE_FRAME_LEN];
+            let (_, bytes) = self
+                .encoder
+                .encode(&message, &mut frame)
+                .map_err(|e| io::Error::other(format!("{e:?}")))?;
+            buf[..bytes.len()].copy_from_slice(bytes);
+            Ok(bytes.len())
+        }
+    }
+
+    #[test]
+    fn collecting_timings_after_done_ends_though_heartbeats_never_stop() {
+        let mut link = ControllerLink::new(ChattyController {
+            encoder: ControllerEncoder::new(),
+            timings_left: 4,
+        });
+        let mut timings = BTreeMap::new();
+        let start = Instant::now();
+        collect_timings(&mut link, &mut timings).unwrap();
+        // The quiet interval after the last timing report, not the limit: heartbeats do not
+        // extend the wait (before the fix this loop never returned).
+        assert!(start.elapsed() < AFTER_DONE_LIMIT, "{:?}", start.elapsed());
+        assert_eq!(timings.len(), 4);
     }
 
     #[test]
