@@ -113,7 +113,7 @@ impl Default for SeparateParams {
             // cosine, VI 0.126/0.135 against 0.108/0.062; see the README).
             leak_reading: LeakReading::Harmonics,
             // Quick heads seed 99 (direct / global error): type I 0.80 / 0.053 with the
-            // dichromatic part, 0.10 / 0.02 with the lobe; VI 0.073 / 0.134 and 0.055 / 0.12.
+            // dichromatic part, 0.078 / 0.012 with the lobe; VI 0.073 / 0.134 and 0.024 / 0.066.
             direct_model: DirectModel::Lobe,
         }
     }
@@ -195,7 +195,7 @@ pub struct LobeReport {
     /// Body colour (chromaticity) per band of incidence cosine, grazing first, then over all
     /// pixels.
     pub body_colours: Vec<[f32; 3]>,
-    /// Share of the separated pixels with a lobe (geometry and a reliable normal).
+    /// Share of the separated pixels with a lobe (a surface point and a fitted normal).
     pub lobe_coverage: f64,
 }
 
