@@ -221,7 +221,12 @@ pub fn fitted_head() -> &'static (PathBuf, serde_json::Value) {
                 .arg(&capture)
                 .args(["--calib", "truth", "--until", "fit", "--json"])
                 .args(["--components", "4", "--block", "8"])
-                .args(["--holdout", "3", "--compare-slit-variants"])
+                .args([
+                    "--holdout",
+                    "3",
+                    "--heldout-check",
+                    "--compare-slit-variants",
+                ])
                 .args(["--direct", "none"])
                 .arg("--out")
                 .arg(&out),

@@ -53,9 +53,72 @@ pub fn release_free_memory() {
     }
 }
 
+/// Buffers at least this large are advised onto huge pages (numpy's threshold, 4 MiB).
+const HUGE_PAGE_ADVICE_BYTES: usize = 4 << 20;
+
+/// An empty vector with room for `capacity` values, whose memory the kernel is asked to back with
+/// transparent huge pages before anything touches it (`madvise(MADV_HUGEPAGE)`, what numpy does
+/// for every array of 4 MiB or more). Why: a fresh full-size output is tens of MB; on 4 KiB pages
+/// filling 68 MB took 35 ms of CPU, mostly page faults, against 8 ms on 2 MiB pages (measured on
+/// the 2-core host with THP in `madvise` mode). Fill it with `extend`/rayon's `par_extend`, which
+/// write in place. A no-op off Linux, for small buffers, or where the kernel declines.
+pub fn vec_on_huge_pages<T>(capacity: usize) -> Vec<T> {
+    let buffer: Vec<T> = Vec::with_capacity(capacity);
+    advise_huge_pages(
+        buffer.as_ptr() as usize,
+        capacity.saturating_mul(std::mem::size_of::<T>()),
+    );
+    buffer
+}
+
+/// `len` zeros on huge pages ([`vec_on_huge_pages`]): the allocation comes zeroed and untouched
+/// from the system (`calloc`), so the advice takes effect at the first write.
+pub fn zeros_on_huge_pages(len: usize) -> Vec<f32> {
+    let buffer = vec![0.0f32; len];
+    advise_huge_pages(buffer.as_ptr() as usize, len.saturating_mul(4));
+    buffer
+}
+
+/// Advises the whole pages inside `[start, start + bytes)` onto huge pages.
+fn advise_huge_pages(start: usize, bytes: usize) {
+    #[cfg(target_os = "linux")]
+    {
+        if bytes < HUGE_PAGE_ADVICE_BYTES {
+            return;
+        }
+        const PAGE: usize = 4096;
+        let first = start.div_ceil(PAGE) * PAGE;
+        let end = (start + bytes) / PAGE * PAGE;
+        if end > first {
+            // SAFETY: the range holds only whole pages inside one live allocation of the caller;
+            // MADV_HUGEPAGE changes how the kernel backs them, never their contents, and a
+            // refusal (kernel without THP) leaves them as they were, so the result is ignored.
+            unsafe {
+                libc::madvise(first as *mut libc::c_void, end - first, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (start, bytes, HUGE_PAGE_ADVICE_BYTES);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The advice changes nothing visible: the buffers hold and keep what is written.
+    #[test]
+    fn huge_page_buffers_behave_as_ordinary_vectors() {
+        let mut values: Vec<u64> = vec_on_huge_pages(1 << 20);
+        assert!(values.is_empty() && values.capacity() >= 1 << 20);
+        values.extend(0..1 << 20);
+        assert_eq!((values[12_345], values.len()), (12_345, 1 << 20));
+        let zeros = zeros_on_huge_pages(3 << 20);
+        assert_eq!(zeros.len(), 3 << 20);
+        assert!(zeros.iter().all(|&z| z == 0.0));
+        let small: Vec<u8> = vec_on_huge_pages(10);
+        assert!(small.capacity() >= 10);
+    }
 
     #[test]
     fn parses_user_and_system_time_after_the_command_name() {

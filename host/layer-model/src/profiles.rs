@@ -235,7 +235,147 @@ pub fn slit_distance_px(coord: f64, width: u32, period: u32, offset: u32) -> f64
 }
 
 /// One checked slit frame: width, period, offset (projector px) and the global image.
-type SweepFrame<'a> = (u32, u32, u32, &'a [[f32; 3]]);
+type SweepFrame<'a> = (u32, u32, u32, SweepImage<'a>);
+
+/// Where a sweep reads a slit frame's global light: a camera-sized image, or frame `j` of a
+/// [`SlitStack`].
+#[derive(Debug, Clone, Copy)]
+enum SweepImage<'a> {
+    Dense(&'a [[f32; 3]]),
+    Stacked(&'a SlitStack, usize),
+}
+
+impl SweepImage<'_> {
+    /// Channel `c` of pixel `i`; `None` for a pixel the stack does not hold.
+    #[inline]
+    fn value(&self, i: usize, c: usize) -> Option<f32> {
+        match *self {
+            SweepImage::Dense(img) => Some(img[i][c]),
+            SweepImage::Stacked(stack, j) => stack.value(i, j, c),
+        }
+    }
+}
+
+/// The global slit light of one projector's sweep at the pixels that can have a profile only
+/// (those with projector coordinates: about 40 % of a full-size frame), all frames of a pixel
+/// side by side. Why: the fit holds every training projector's slits until the spatial prior
+/// and the dipole baseline are done, and as camera-sized images they were 1 GB of the fit's
+/// peak at full size; a profile also reads its samples from one place instead of one image per
+/// slit. The values are the images' own, so profiles are bit for bit those of the images.
+#[derive(Debug, Clone, Default)]
+pub struct SlitStack {
+    patterns: Vec<Pattern>,
+    /// Per camera pixel: its row in `values`, or [`SlitStack::NO_ROW`].
+    rows: Vec<u32>,
+    /// Row `r`, frame `j`, channel `c` at `(r * frames + j) * 3 + c`.
+    values: Vec<f32>,
+}
+
+impl SlitStack {
+    const NO_ROW: u32 = u32::MAX;
+
+    /// The `frames` (camera-sized, `pixels` each) at the pixels `keep` accepts.
+    pub fn new(
+        frames: &[SlitFrame],
+        pixels: usize,
+        keep: impl Fn(usize) -> bool,
+    ) -> Result<Self, ProfileError> {
+        for f in frames {
+            if f.global.len() != pixels {
+                return Err(ProfileError::SizeMismatch {
+                    what: "slit frame",
+                    got: f.global.len(),
+                    want: pixels,
+                });
+            }
+        }
+        let mut rows = vec![Self::NO_ROW; pixels];
+        let mut kept = 0u32;
+        for (i, row) in rows.iter_mut().enumerate() {
+            if keep(i) && kept < Self::NO_ROW {
+                *row = kept;
+                kept += 1;
+            }
+        }
+        let n = frames.len();
+        let mut values = vec![0.0f32; kept as usize * n * 3];
+        // Row by row (in parallel): each row gathers its pixel from every frame.
+        let kept_pixels: Vec<usize> = (0..pixels).filter(|&i| rows[i] != Self::NO_ROW).collect();
+        values
+            .par_chunks_mut((n * 3).max(1))
+            .zip(kept_pixels.par_iter())
+            .for_each(|(row, &i)| {
+                for (j, f) in frames.iter().enumerate() {
+                    row[j * 3..j * 3 + 3].copy_from_slice(&f.global[i]);
+                }
+            });
+        Ok(Self {
+            patterns: frames.iter().map(|f| f.pattern).collect(),
+            rows,
+            values,
+        })
+    }
+
+    /// The stack at the pixels it holds that `keep` accepts too (the same values).
+    pub fn restrict(&self, keep: impl Fn(usize) -> bool) -> Self {
+        let n = self.patterns.len() * 3;
+        let mut rows = vec![Self::NO_ROW; self.rows.len()];
+        let mut values = Vec::new();
+        let mut kept = 0u32;
+        for (i, (new, &old)) in rows.iter_mut().zip(&self.rows).enumerate() {
+            if old != Self::NO_ROW && keep(i) {
+                *new = kept;
+                kept += 1;
+                let start = old as usize * n;
+                values.extend_from_slice(&self.values[start..start + n]);
+            }
+        }
+        Self {
+            patterns: self.patterns.clone(),
+            rows,
+            values,
+        }
+    }
+
+    /// Frame `j` as a camera-sized image, zero at the pixels the stack does not hold (`None`
+    /// past the last frame).
+    pub fn frame(&self, j: usize) -> Option<Vec<[f32; 3]>> {
+        if j >= self.patterns.len() {
+            return None;
+        }
+        Some(
+            self.rows
+                .par_iter()
+                .enumerate()
+                .map(|(i, _)| {
+                    let at = |c| self.value(i, j, c).unwrap_or(0.0);
+                    [at(0), at(1), at(2)]
+                })
+                .collect(),
+        )
+    }
+
+    /// The frames' patterns, in the order given.
+    pub fn patterns(&self) -> &[Pattern] {
+        &self.patterns
+    }
+
+    /// Camera pixels the stack was made for.
+    pub fn pixels(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Channel `c` of frame `j` at camera pixel `i`; `None` where the stack holds no row.
+    #[inline]
+    pub fn value(&self, i: usize, j: usize, c: usize) -> Option<f32> {
+        let row = *self.rows.get(i)?;
+        if row == Self::NO_ROW {
+            return None;
+        }
+        let n = self.patterns.len();
+        self.values.get((row as usize * n + j) * 3 + c).copied()
+    }
+}
 
 /// The slit frames of one projector, checked, split by axis.
 #[derive(Debug, Clone)]
@@ -247,20 +387,7 @@ pub struct SlitSweep<'a> {
 
 impl<'a> SlitSweep<'a> {
     pub fn new(frames: &[SlitFrame<'a>], pixels: usize) -> Result<Self, ProfileError> {
-        let mut out: [Vec<_>; 2] = Default::default();
-        for (index, f) in frames.iter().enumerate() {
-            let Pattern::Slit {
-                axis,
-                width,
-                period,
-                offset,
-            } = f.pattern
-            else {
-                return Err(ProfileError::NotASlit {
-                    index,
-                    label: f.pattern.label(),
-                });
-            };
+        for f in frames {
             if f.global.len() != pixels {
                 return Err(ProfileError::SizeMismatch {
                     what: "slit frame",
@@ -268,11 +395,55 @@ impl<'a> SlitSweep<'a> {
                     want: pixels,
                 });
             }
+        }
+        Self::from_images(
+            frames
+                .iter()
+                .map(|f| (f.pattern, SweepImage::Dense(f.global))),
+        )
+    }
+
+    /// The sweep over the frames of `stack` (a pixel it does not hold has no profile), with
+    /// the same profiles as [`SlitSweep::new`] of its frames wherever it holds the pixel.
+    pub fn from_stack(stack: &'a SlitStack, pixels: usize) -> Result<Self, ProfileError> {
+        if stack.pixels() != pixels {
+            return Err(ProfileError::SizeMismatch {
+                what: "slit stack",
+                got: stack.pixels(),
+                want: pixels,
+            });
+        }
+        Self::from_images(
+            stack
+                .patterns()
+                .iter()
+                .enumerate()
+                .map(|(j, p)| (*p, SweepImage::Stacked(stack, j))),
+        )
+    }
+
+    fn from_images(
+        frames: impl Iterator<Item = (Pattern, SweepImage<'a>)>,
+    ) -> Result<Self, ProfileError> {
+        let mut out: [Vec<_>; 2] = Default::default();
+        for (index, (pattern, image)) in frames.enumerate() {
+            let Pattern::Slit {
+                axis,
+                width,
+                period,
+                offset,
+            } = pattern
+            else {
+                return Err(ProfileError::NotASlit {
+                    index,
+                    label: pattern.label(),
+                });
+            };
             let a = match axis {
                 Axis::X => 0,
                 Axis::Y => 1,
             };
-            out[a].push((width, period, offset, f.global));
+            out[a].push((width, period, offset, image));
         }
         Ok(Self {
             frames: out,
@@ -296,13 +467,15 @@ impl<'a> SlitSweep<'a> {
         let &(width, period, _, _) = frames.first()?;
         let ax = geo.axes[a];
         let coord = if a == 0 { geo.coords.0 } else { geo.coords.1 };
-        let samples = frames
-            .iter()
-            .map(|&(w, p, o, img)| Sample {
+        // Sized up front: a collect into `Option<Vec>` knows no size and grows the vector
+        // three times (a measurable part of the shading regression, which builds every pixel's).
+        let mut samples = Vec::with_capacity(frames.len());
+        for &(w, p, o, img) in frames {
+            samples.push(Sample {
                 s: slit_distance_px(coord, w, p, o) / ax.px_per_mm,
-                y: f64::from(img[i][c]),
-            })
-            .collect();
+                y: f64::from(img.value(i, c)?),
+            });
+        }
         Some(Profile {
             noise: self.noise,
             samples,
@@ -322,8 +495,8 @@ impl<'a> SlitSweep<'a> {
         let px_per_mm = geo.axes[a].px_per_mm;
         let total: f64 = frames
             .iter()
-            .map(|&(_, _, _, img)| f64::from(img[i][c]).max(0.0))
-            .sum();
+            .map(|&(_, _, _, img)| img.value(i, c).map(|v| f64::from(v).max(0.0)))
+            .sum::<Option<f64>>()?;
         let period_mm = f64::from(period) / px_per_mm;
         Some((
             total / frames.len() as f64 * period_mm,
@@ -411,6 +584,89 @@ mod tests {
             assert_eq!(sweep.flux(2, c, 0, &geo), Some((p.flux(), p.slit_width)));
         }
         assert_eq!(sweep.flux(2, 0, 1, &geo), None, "no slit along y");
+    }
+
+    #[test]
+    fn stacked_sweep_gives_the_dense_sweeps_profiles_bit_for_bit_where_it_holds_the_pixel() {
+        let n = 6;
+        // Two axes, interleaved as a capture orders them; values that differ per frame, pixel
+        // and channel (and a negative one, which the flux clamps).
+        let images: Vec<Vec<[f32; 3]>> = (0..8)
+            .map(|j| {
+                (0..n)
+                    .map(|i| {
+                        let v = (j * 7 + i * 3) as f32 * 0.013 - 0.05;
+                        [v, v * 1.7 + 0.001, -v]
+                    })
+                    .collect()
+            })
+            .collect();
+        let frames: Vec<SlitFrame> = images
+            .iter()
+            .enumerate()
+            .map(|(j, g)| SlitFrame {
+                pattern: Pattern::Slit {
+                    axis: if j % 2 == 0 { Axis::X } else { Axis::Y },
+                    width: 3,
+                    period: 12,
+                    offset: 3 * (j / 2) as u32,
+                },
+                global: g,
+            })
+            .collect();
+        let keep = |i: usize| i % 3 != 1;
+        let stack = SlitStack::new(&frames, n, keep).unwrap();
+        let dense = SlitSweep::new(&frames, n).unwrap();
+        let stacked = SlitSweep::from_stack(&stack, n).unwrap();
+        let axis = AxisGeometry {
+            px_per_mm: 1.3,
+            shift_per_depth: 0.2,
+        };
+        let geo = PixelGeometry {
+            coords: (7.4, 2.2),
+            irradiance: 0.6,
+            axes: [axis; 2],
+            shift: Vector3::zeros(),
+        };
+        for i in 0..n {
+            for c in 0..3 {
+                for a in 0..2 {
+                    let (d, s) = (dense.profile(i, c, a, &geo), stacked.profile(i, c, a, &geo));
+                    if keep(i) {
+                        let (d, s) = (d.unwrap(), s.unwrap());
+                        assert_eq!(d.samples.len(), 4);
+                        for (x, y) in d.samples.iter().zip(&s.samples) {
+                            assert_eq!(
+                                (x.s.to_bits(), x.y.to_bits()),
+                                (y.s.to_bits(), y.y.to_bits())
+                            );
+                        }
+                        assert_eq!(dense.flux(i, c, a, &geo), stacked.flux(i, c, a, &geo));
+                    } else {
+                        assert!(d.is_some() && s.is_none(), "pixel {i} is not in the stack");
+                        assert_eq!(stacked.flux(i, c, a, &geo), None);
+                    }
+                }
+            }
+        }
+        assert!(SlitSweep::from_stack(&stack, n + 1).is_err());
+        // Frames back as images: the values where held, zero elsewhere.
+        for (j, image) in images.iter().enumerate() {
+            let back = stack.frame(j).unwrap();
+            for i in 0..n {
+                let want = if keep(i) { image[i] } else { [0.0; 3] };
+                assert_eq!(back[i], want, "frame {j} pixel {i}");
+            }
+        }
+        assert!(stack.frame(images.len()).is_none());
+        // Restricted: the pixels both keep, with their values.
+        let even = stack.restrict(|i| i % 2 == 0);
+        for i in 0..n {
+            for (j, image) in images.iter().enumerate() {
+                let want = (keep(i) && i % 2 == 0).then_some(image[i][1]);
+                assert_eq!(even.value(i, j, 1), want, "pixel {i} frame {j}");
+            }
+        }
     }
 
     #[test]

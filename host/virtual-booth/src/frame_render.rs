@@ -120,6 +120,11 @@ impl<'a> ProjectorTransport<'a> {
             .zip(flux.par_chunks_mut(frames))
             .enumerate()
             .for_each(|(i, (d, phi))| {
+                // Written before they are read: a fresh zeroed allocation read first maps the
+                // shared zero page, and the first write then copies it and flushes the other
+                // core's TLB, page by page (a fifth of a calibration pose's CPU time).
+                d.fill(0.0);
+                phi.fill(0.0);
                 let Some(first) = emissions.first() else {
                     return;
                 };

@@ -72,8 +72,99 @@ pub struct MaterialMaps {
     spots: Vec<Spot>,
     redness: Vec<Spot>,
     vessels: Vec<VesselSegment>,
+    /// Where each of `spots`, `redness`, `vessels` is not zero.
+    spot_grid: ReachGrid,
+    redness_grid: ReachGrid,
+    vessel_grid: ReachGrid,
     stubble: StubbleRegion,
     stubble_seed: u64,
+}
+
+/// Side of a [`ReachGrid`] cell, mm.
+const REACH_GRID_MM: f64 = 4.0;
+
+/// For every square cell of the plane, the items (in their order) whose bounding box meets it:
+/// a point's non-zero items are among those of its cell. Evaluating those alone gives the same
+/// maxima and (items in order, zeros left out) the same sums, bit for bit, as evaluating every
+/// item, for a few items instead of hundreds.
+#[derive(Debug, Clone, Default)]
+struct ReachGrid {
+    origin: [f64; 2],
+    width: usize,
+    height: usize,
+    items: Vec<Vec<u32>>,
+}
+
+impl ReachGrid {
+    /// The grid of the bounding boxes `[x_min, x_max, y_min, y_max]`, in item order.
+    fn new(boxes: &[[f64; 4]]) -> Self {
+        let Some(bounds) = boxes.iter().copied().reduce(|a, b| {
+            [
+                a[0].min(b[0]),
+                a[1].max(b[1]),
+                a[2].min(b[2]),
+                a[3].max(b[3]),
+            ]
+        }) else {
+            return Self::default();
+        };
+        let origin = [bounds[0], bounds[2]];
+        let cells = |lo: f64, hi: f64| ((hi - lo) / REACH_GRID_MM).floor() as usize + 1;
+        let (width, height) = (cells(bounds[0], bounds[1]), cells(bounds[2], bounds[3]));
+        let mut items = vec![Vec::new(); width * height];
+        for (i, b) in boxes.iter().enumerate() {
+            let col = |x: f64| ((x - origin[0]) / REACH_GRID_MM).floor() as usize;
+            let row = |y: f64| ((y - origin[1]) / REACH_GRID_MM).floor() as usize;
+            for r in row(b[2])..=row(b[3]).min(height - 1) {
+                for c in col(b[0])..=col(b[1]).min(width - 1) {
+                    items[r * width + c].push(i as u32);
+                }
+            }
+        }
+        Self {
+            origin,
+            width,
+            height,
+            items,
+        }
+    }
+
+    /// The items whose bounding box may hold (x, y).
+    fn at(&self, x: f64, y: f64) -> &[u32] {
+        let (fx, fy) = (
+            (x - self.origin[0]) / REACH_GRID_MM,
+            (y - self.origin[1]) / REACH_GRID_MM,
+        );
+        if !(fx >= 0.0 && fy >= 0.0) {
+            return &[];
+        }
+        let (c, r) = (fx.floor() as usize, fy.floor() as usize);
+        if c >= self.width || r >= self.height {
+            return &[];
+        }
+        &self.items[r * self.width + c]
+    }
+}
+
+impl Spot {
+    /// Where the spot is not zero (`r < 1`).
+    fn bounding_box(&self) -> [f64; 4] {
+        let r = self.radius_mm;
+        [self.x - r, self.x + r, self.y - r, self.y + r]
+    }
+}
+
+impl VesselSegment {
+    /// Where the segment is not zero (within `sqrt(12)` half-widths, 3.47 < 3.5).
+    fn bounding_box(&self) -> [f64; 4] {
+        let reach = 3.5 * self.half_width_mm;
+        [
+            self.a[0].min(self.b[0]) - reach,
+            self.a[0].max(self.b[0]) + reach,
+            self.a[1].min(self.b[1]) - reach,
+            self.a[1].max(self.b[1]) + reach,
+        ]
+    }
 }
 
 /// Where stubble grows.
@@ -116,6 +207,9 @@ impl MaterialMaps {
             spots: Vec::new(),
             redness: Vec::new(),
             vessels: Vec::new(),
+            spot_grid: ReachGrid::default(),
+            redness_grid: ReachGrid::default(),
+            vessel_grid: ReachGrid::default(),
             stubble: StubbleRegion::None,
             stubble_seed: 0,
         }
@@ -129,7 +223,17 @@ impl MaterialMaps {
         let spots = pigment_spots(&mut rng, subject, extent);
         let redness = redness_blobs(&mut rng, subject, extent);
         let vessels = vessel_network(&mut rng, extent);
+        let boxes_of_spots =
+            |spots: &[Spot]| spots.iter().map(Spot::bounding_box).collect::<Vec<_>>();
         Self {
+            spot_grid: ReachGrid::new(&boxes_of_spots(&spots)),
+            redness_grid: ReachGrid::new(&boxes_of_spots(&redness)),
+            vessel_grid: ReachGrid::new(
+                &vessels
+                    .iter()
+                    .map(VesselSegment::bounding_box)
+                    .collect::<Vec<_>>(),
+            ),
             spots,
             redness,
             vessels,
@@ -141,16 +245,23 @@ impl MaterialMaps {
     /// Weights `[melanin, blood, stubble]` at (x, y).
     pub fn weights(&self, x: f64, y: f64) -> [f64; 3] {
         let melanin = self
-            .spots
+            .spot_grid
+            .at(x, y)
             .iter()
-            .map(|s| s.eval(x, y))
+            .map(|&i| self.spots[i as usize].eval(x, y))
             .fold(0.0, f64::max)
             .min(1.0);
-        let blood_red = self.redness.iter().map(|s| s.eval(x, y)).sum::<f64>();
-        let blood_vessel = self
-            .vessels
+        let blood_red = self
+            .redness_grid
+            .at(x, y)
             .iter()
-            .map(|v| v.eval(x, y))
+            .map(|&i| self.redness[i as usize].eval(x, y))
+            .sum::<f64>();
+        let blood_vessel = self
+            .vessel_grid
+            .at(x, y)
+            .iter()
+            .map(|&i| self.vessels[i as usize].eval(x, y))
             .fold(0.0, f64::max);
         let blood = blood_red.max(blood_vessel).min(1.0);
         let stubble = self.stubble_at(x, y);
@@ -366,6 +477,40 @@ mod tests {
             differs |= wa != c.weights(x, y);
         }
         assert!(differs, "a different seed must give different maps");
+    }
+
+    #[test]
+    fn the_reach_grid_gives_what_every_item_gives() {
+        let maps = MaterialMaps::generate(SubjectKind::Head, [-80.0, 80.0, -110.0, 100.0], 3);
+        let (mut spots, mut reds, mut vessels) = (0, 0, 0);
+        for i in 0..200_000 {
+            // A dense scatter over (and beyond) the extent.
+            let (x, y) = (
+                -90.0 + 180.0 * ((i as f64 * 0.618_034) % 1.0),
+                -120.0 + 240.0 * ((i as f64 * 0.414_214) % 1.0),
+            );
+            let melanin = maps.spots.iter().map(|s| s.eval(x, y)).fold(0.0, f64::max);
+            let red = maps.redness.iter().map(|s| s.eval(x, y)).sum::<f64>();
+            let vessel = maps
+                .vessels
+                .iter()
+                .map(|v| v.eval(x, y))
+                .fold(0.0, f64::max);
+            let blood = red.max(vessel).min(1.0);
+            let stubble = maps.stubble_at(x, y);
+            let (m, b) = (melanin.min(1.0), blood);
+            let sum = m + b + stubble;
+            let scale = if sum > 1.0 { 1.0 / sum } else { 1.0 };
+            let every_item = [m * scale, b * scale, stubble * scale];
+            assert_eq!(maps.weights(x, y), every_item, "at ({x}, {y})");
+            spots += usize::from(melanin > 0.0);
+            reds += usize::from(red > 0.0);
+            vessels += usize::from(vessel > 0.0);
+        }
+        assert!(
+            spots > 1000 && reds > 1000 && vessels > 1000,
+            "{spots} {reds} {vessels}"
+        );
     }
 
     #[test]

@@ -25,7 +25,7 @@ use super::material_maps::MaterialMaps;
 use super::metering::meter_projector;
 use super::projector::ProjectorModel;
 use super::response_cache::{CacheStats, McSettings, ResponseCache};
-use super::scene::GeometryBuffer;
+use super::scene::{CameraRays, GeometryBuffer};
 use super::skin_optics::{CHANNEL_WAVELENGTHS_NM, SkinPreset};
 use super::subjects::{Chessboard, Subject, SubjectKind};
 use super::subsurface_transport::{ResponseSet, SubsurfaceKernel};
@@ -160,10 +160,26 @@ pub struct SimulationReport {
 
 fn build_scene(booth: &Booth, subject: Subject, ss: u32) -> Scene {
     let camera = CameraModel::new(booth);
+    let geometry = GeometryBuffer::trace(&camera, &subject, ss);
+    scene_of(booth, camera, subject, geometry)
+}
+
+/// [`build_scene`] along the camera's precomputed rays.
+fn build_scene_along(booth: &Booth, subject: Subject, rays: &CameraRays) -> Scene {
+    let camera = CameraModel::new(booth);
+    let geometry = GeometryBuffer::trace_rays(&camera, &subject, rays);
+    scene_of(booth, camera, subject, geometry)
+}
+
+fn scene_of(
+    booth: &Booth,
+    camera: CameraModel,
+    subject: Subject,
+    geometry: GeometryBuffer,
+) -> Scene {
     let projectors = (0..booth.projectors.len())
         .filter_map(|k| ProjectorModel::new(booth, k))
         .collect();
-    let geometry = GeometryBuffer::trace(&camera, &subject, ss);
     Scene {
         camera,
         projectors,
@@ -423,14 +439,12 @@ pub fn simulate_calibration(
     let mut captures = Vec::new();
     let mut sheet = Vec::new();
     let mut cov = 0.0;
+    // The camera does not move between poses: its rays are computed once.
+    let rays = CameraRays::new(&CameraModel::new(booth), opts.supersampling);
     for pose in 0..poses {
         progress.stage(&format!("pose {}/{poses}: tracing", pose + 1), 1);
         let board = board_for_pose(booth, pose, opts.seed);
-        let scene = build_scene(
-            booth,
-            Subject::Chessboard(board.clone()),
-            opts.supersampling,
-        );
+        let scene = build_scene_along(booth, Subject::Chessboard(board.clone()), &rays);
         cov += coverage(&scene) / poses as f64;
         progress.advance(1);
         let mut manifest =

@@ -232,3 +232,44 @@ fn the_stripe_sweep_scores_both_separations_against_the_period_over_kernel_width
     let html = std::fs::read_to_string(out.path().join("stripe_sweep.html")).unwrap();
     assert!(html.contains("<img"), "the page embeds the plots");
 }
+
+#[test]
+fn the_separation_race_scores_every_variant_and_the_lobe_beats_the_papers_chain() {
+    let capture = quick_capture("head", 1);
+    let out = tempfile::tempdir().unwrap();
+    let report = run_json(
+        mlsss()
+            .arg("bench")
+            .arg("--separation-race")
+            .arg(&capture)
+            .args(["--rounds", "1", "--json", "--out"])
+            .arg(out.path()),
+    );
+    let rows = report["separation_race"].as_array().expect("rows");
+    let names: Vec<&str> = rows
+        .iter()
+        .map(|r| r["variant"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["paper", "dichromatic", "lobe_with_leak", "lobe"]);
+    let value = |name: &str, key: &str| {
+        rows.iter()
+            .find(|r| r["variant"] == name)
+            .and_then(|r| r[key].as_f64())
+            .unwrap_or_else(|| panic!("{key} of {name} in {report}"))
+    };
+    for name in names {
+        assert!(value(name, "median_cpu_s") > 0.0, "{report}");
+    }
+    // The lobe's split against the paper's (Nayar) on the truth; reading the leak changes
+    // nothing with the lobe.
+    assert!(value("lobe", "direct_rel_rmse") < 0.2 * value("paper", "direct_rel_rmse"));
+    assert!(value("lobe", "global_rel_rmse") < 0.2 * value("paper", "global_rel_rmse"));
+    let same = |key: &str| (value("lobe", key) - value("lobe_with_leak", key)).abs() < 1e-4;
+    assert!(
+        same("direct_rel_rmse") && same("global_rel_rmse"),
+        "{report}"
+    );
+    assert!(value("lobe", "normals_mean_error_deg") < value("paper", "normals_mean_error_deg"));
+    assert_eq!(value("paper", "cpu_ratio_to_baseline"), 1.0);
+    assert!(out.path().join("separation_race.csv").is_file());
+}

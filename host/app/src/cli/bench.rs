@@ -7,8 +7,10 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use mlsss::booth::Booth;
 use mlsss::demo::{CalibrationMode, DemoOptions, DemoProgress, run_demo};
+use mlsss::evaluate::separation_race;
 use mlsss::evaluate::skin_types::{self, row_from_demo};
 use mlsss::evaluate::stripe_sweep;
+use mlsss::pipeline::separate_stage::SeparateParams;
 use mlsss::pipeline::{CalibrationSource, Pipeline};
 use mlsss::quality_sweep::{SweepInputs, plan, run_sweep, summary, write_outputs};
 use mlsss::virtual_booth::{
@@ -50,6 +52,20 @@ pub struct Args {
     /// and OUT/stripe_sweep.html (both plots and the table).
     #[arg(long, conflicts_with = "skin_types")]
     stripe_sweep: bool,
+    /// Instead of the quality sweep: race the separate and normals stages' variants on CAPTURE
+    /// (`paper`: Nayar and Lambertian photometric stereo, the baseline; `dichromatic`;
+    /// `lobe_with_leak`; `lobe`, the default), alternated over --rounds, each in its own folder
+    /// under OUT/separation-race; prints the median CPU and wall seconds of the two stages, their
+    /// ratios to the baseline and the errors against the truth, writes
+    /// OUT/separation_race.csv. A simulated capture (`--calib truth`) or `--calib FILE`.
+    #[arg(long, value_name = "CAPTURE", conflicts_with_all = ["skin_types", "stripe_sweep"])]
+    separation_race: Option<PathBuf>,
+    /// Rounds of --separation-race.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
+    rounds: u32,
+    /// Calibration of --separation-race: `truth` (the simulator's) or a calibration file.
+    #[arg(long, default_value = "truth")]
+    calib: String,
     /// Skin types of --stripe-sweep (default: all six; I and VI with --minimal).
     #[arg(long, value_enum, value_delimiter = ',')]
     skins: Vec<SkinPreset>,
@@ -132,6 +148,45 @@ fn run_skin_types(args: &Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The separate and normals stages' variants raced on `capture` (`evaluate::separation_race`).
+fn run_separation_race(args: &Args, capture: &Path) -> anyhow::Result<()> {
+    let calibration = match args.calib.as_str() {
+        "truth" => CalibrationSource::Truth,
+        file => CalibrationSource::File(PathBuf::from(file)),
+    };
+    let out = args.out.join("separation-race");
+    let variants = separation_race::variants();
+    let runs = separation_race::race(
+        capture,
+        &out,
+        &calibration,
+        &variants,
+        args.rounds as usize,
+        &|run| {
+            let cpu = run.cpu_s.map_or("-".into(), |c| format!("{c:.2}"));
+            eprintln!(
+                "round {} {:<15} separate+normals {cpu} CPU-s, {:.2} s wall",
+                run.round, run.variant, run.wall_s
+            );
+        },
+    )?;
+    let summary = separation_race::summarise(&runs);
+    let csv_text = separation_race::to_csv(&summary);
+    let csv = args.out.join("separation_race.csv");
+    mlsss_core::atomic_file::write_bytes_atomically(&csv, &csv_text)
+        .with_context(|| format!("writing {}", csv.display()))?;
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({ "separation_race": summary, "runs": runs, "csv": csv })
+        );
+    } else {
+        eprint!("{csv_text}");
+        eprintln!("wrote {}", csv.display());
+    }
+    Ok(())
+}
+
 /// The separation-versus-kernel-width sweep (`evaluate::stripe_sweep`): a capture per skin type
 /// and stripe width, separated against the truth.
 fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
@@ -184,7 +239,14 @@ fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
                     .with_context(|| format!("simulating {}", dir.display()))?;
             }
             let processed = args.out.join("stripe-sweep").join(format!("{name}-out"));
-            let report = Pipeline::new(&dir, &processed, &CalibrationSource::Truth)?
+            let mut pipeline = Pipeline::new(&dir, &processed, &CalibrationSource::Truth)?;
+            // The leak's figures need the slit sweep, which the lobe alone does not read.
+            let separate = SeparateParams {
+                leak_with_lobe: true,
+                ..SeparateParams::default()
+            };
+            pipeline.set_params("separate", serde_json::to_value(&separate)?);
+            let report = pipeline
                 .run_until("separate")
                 .with_context(|| format!("separating {}", dir.display()))?;
             let separate = report
@@ -193,7 +255,7 @@ fn run_stripe_sweep(args: &Args) -> anyhow::Result<()> {
             let period = stripe_sweep::stripe_period_mm(&booth, stripe);
             rows.push(
                 stripe_sweep::row(skin.label(), stripe, period, width, &separate)
-                    .context("the capture has no truth to score the separation against")?,
+                    .context("the separation gave no truth comparison or no kernel leak")?,
             );
         }
     }
@@ -236,6 +298,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if args.stripe_sweep {
         return run_stripe_sweep(&args);
+    }
+    if let Some(capture) = &args.separation_race {
+        return run_separation_race(&args, capture);
     }
     let factors = if args.minimal {
         vec![args.scale_down]

@@ -6,5 +6,6 @@ pub mod backscatter;
 pub mod calibration_error;
 pub mod holdout;
 pub mod metrics;
+pub mod separation_race;
 pub mod skin_types;
 pub mod stripe_sweep;

@@ -106,7 +106,8 @@ fn interquartile_width(density: &[f64]) -> f64 {
     quantile(0.75) - quantile(0.25)
 }
 
-/// The row of one capture's separation report (`None` when it has no truth comparison).
+/// The row of one capture's separation report (`None` when it has no truth comparison or no
+/// kernel leak).
 pub fn row(
     skin: &str,
     stripe_px: u32,
@@ -120,15 +121,14 @@ pub fn row(
         global_rel_rmse: report.nayar_global_rel_rmse?,
         total_rel_rmse: report.nayar_total_rel_rmse?,
     };
-    let projectors = report.projectors.len().max(1) as f64;
-    let leak_mean = std::array::from_fn(|c| {
-        report
-            .projectors
-            .iter()
-            .map(|p| p.leak_mean[c])
-            .sum::<f64>()
-            / projectors
-    });
+    // The separation must have read the leak (`SeparateParams::leak_with_lobe` with the lobe).
+    let leaks: Vec<[f64; 3]> = report
+        .projectors
+        .iter()
+        .map(|p| p.leak.as_ref().map(|l| l.leak_mean))
+        .collect::<Option<_>>()?;
+    let projectors = leaks.len().max(1) as f64;
+    let leak_mean = std::array::from_fn(|c| leaks.iter().map(|l| l[c]).sum::<f64>() / projectors);
     Some(StripeSweepRow {
         skin: skin.to_owned(),
         stripe_px,

@@ -5,6 +5,10 @@
 //! - `depth.exr`: one channel, camera-frame depth z in mm, 0 where not measured (as
 //!   `truth/depth.exr`).
 //! - `points.exr`: RGB = world-frame X, Y, Z in mm (as `truth/points.exr`).
+//! - `point_normals.exr`: RGB = the points' plane-fit unit normals, world frame, 0 where no
+//!   point (`geometry::point_normals`); `point_normals_reliable.exr`: one channel, 1 where the
+//!   fit is reliable. Fitted once here for the separate stage's lobe and the normals stage's
+//!   fusion, which both read them.
 //! - `mesh.ply`: binary PLY of the pixel-grid mesh, world frame, mm.
 //! - `shaded.png`: Lambert-shaded preview of the surface.
 //!
@@ -12,7 +16,7 @@
 //! with ground truth `depth_rmse_mm`, `depth_p95_abs_mm`, `depth_mean_abs_mm`, `coverage`,
 //! `spurious_fraction`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
@@ -23,6 +27,7 @@ use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::truth;
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::geometry::grid_mesh::{GridMesh, GridMeshError, shaded_preview};
+use mlsss_vision::geometry::point_normals::{PointNormalParams, PointNormals, fit_point_normals};
 use mlsss_vision::geometry::triangulation::{
     DecodedProjector, DepthErrors, DepthMap, TriangulationParams, triangulate,
 };
@@ -30,7 +35,8 @@ use mlsss_vision::geometry::triangulation::{
 /// The geometry stage.
 pub const STAGE: Stage = Stage {
     name: "geometry",
-    version: 1,
+    // 2: the points' plane-fit normals.
+    version: 2,
     inputs: &["decode"],
     uses_calibration: true,
     run,
@@ -44,6 +50,8 @@ pub struct GeometryParams {
     pub triangulation: TriangulationParams,
     /// Longest mesh edge, mm (longer edges are depth discontinuities).
     pub max_edge_mm: f32,
+    /// The plane fits of the points' normals.
+    pub point_normals: PointNormalParams,
 }
 
 impl Default for GeometryParams {
@@ -51,6 +59,7 @@ impl Default for GeometryParams {
         Self {
             triangulation: TriangulationParams::default(),
             max_edge_mm: 3.0,
+            point_normals: PointNormalParams::default(),
         }
     }
 }
@@ -99,6 +108,74 @@ pub enum GeometryStageError {
     /// The mesh could not be written.
     #[error(transparent)]
     Mesh(#[from] GridMeshError),
+}
+
+/// Errors of reading the geometry stage's artefacts (and point maps like them).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GeometryReadError {
+    /// A file could not be read.
+    #[error(transparent)]
+    Image(#[from] ImageIoError),
+    /// A file is not the size the caller's images are.
+    #[error("{path} is {got:?}, the images are {expected:?}")]
+    Size {
+        path: PathBuf,
+        got: (u32, u32),
+        expected: (u32, u32),
+    },
+}
+
+/// Path of the surface points in the geometry stage's folder `dir`.
+pub fn points_path(dir: &Path) -> PathBuf {
+    dir.join("points.exr")
+}
+
+/// Path of the points' normals in the geometry stage's folder `dir`.
+pub fn point_normals_path(dir: &Path) -> PathBuf {
+    dir.join("point_normals.exr")
+}
+
+/// Path of the points' normal reliability flags in the geometry stage's folder `dir`.
+pub fn point_normals_reliable_path(dir: &Path) -> PathBuf {
+    dir.join("point_normals_reliable.exr")
+}
+
+/// `Size` unless `got` is `expected`.
+fn check_size(path: &Path, got: (u32, u32), expected: (u32, u32)) -> Result<(), GeometryReadError> {
+    if got == expected {
+        Ok(())
+    } else {
+        Err(GeometryReadError::Size {
+            path: path.to_owned(),
+            got,
+            expected,
+        })
+    }
+}
+
+/// The point map (RGB = world X, Y, Z in mm) at `path`, checked to be `size`: the geometry
+/// stage's [`points_path`] or the simulator's `truth/points.exr`.
+pub fn load_points_file(path: &Path, size: (u32, u32)) -> Result<Rgb32FImage, GeometryReadError> {
+    let points = imageio::read_exr_rgb(path)?;
+    check_size(path, points.dimensions(), size)?;
+    Ok(points)
+}
+
+/// The points' plane-fit normals the geometry stage in `dir` wrote, checked to be `size`.
+pub fn load_point_normals(dir: &Path, size: (u32, u32)) -> Result<PointNormals, GeometryReadError> {
+    let path = point_normals_path(dir);
+    let normals = imageio::read_exr_rgb(&path)?;
+    check_size(&path, normals.dimensions(), size)?;
+    let path = point_normals_reliable_path(dir);
+    let reliable = imageio::read_exr_gray(&path)?;
+    check_size(&path, (reliable.width, reliable.height), size)?;
+    Ok(PointNormals {
+        width: size.0,
+        height: size.1,
+        normals: normals.pixels().map(|p| p.0).collect(),
+        reliable: reliable.data.iter().map(|&r| r > 0.5).collect(),
+    })
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
@@ -151,12 +228,16 @@ fn run_geometry(
         .collect();
     let map = triangulate(&calib.camera, &views, &params.triangulation);
     let mesh = GridMesh::from_depth_map(&map, params.max_edge_mm);
-    write_artefacts(
-        ctx,
-        &map,
-        &mesh,
-        calib.camera.extrinsics.centre().coords.into(),
-    )?;
+    let camera_centre = calib.camera.extrinsics.centre();
+    let normals = fit_point_normals(
+        &map.points,
+        map.width,
+        map.height,
+        camera_centre,
+        &params.point_normals,
+    );
+    write_artefacts(ctx, &map, &mesh, camera_centre.coords.into())?;
+    write_point_normals(&ctx.dir(), &normals)?;
 
     let truth = match ctx.truth_dir() {
         Some(t) => {
@@ -182,6 +263,25 @@ fn report(map: &DepthMap, triangles: usize, truth: Option<DepthErrors>) -> Geome
     }
 }
 
+fn write_point_normals(dir: &Path, normals: &PointNormals) -> Result<(), ImageIoError> {
+    let (width, height) = (normals.width, normals.height);
+    let data = normals.normals.iter().flatten().copied().collect();
+    // One normal per pixel by construction; an empty image if that ever broke.
+    let image = Rgb32FImage::from_raw(width, height, data)
+        .unwrap_or_else(|| Rgb32FImage::new(width, height));
+    imageio::write_exr_rgb(&point_normals_path(dir), &image)?;
+    let reliable = GrayF32 {
+        width,
+        height,
+        data: normals
+            .reliable
+            .iter()
+            .map(|&r| f32::from(u8::from(r)))
+            .collect(),
+    };
+    imageio::write_exr_gray(&point_normals_reliable_path(dir), &reliable)
+}
+
 fn write_artefacts(
     ctx: &StageContext,
     map: &DepthMap,
@@ -198,7 +298,7 @@ fn write_artefacts(
     let points = Rgb32FImage::from_fn(map.width, map.height, |x, y| {
         image::Rgb(map.points[(y * map.width + x) as usize])
     });
-    imageio::write_exr_rgb(&dir.join("points.exr"), &points)?;
+    imageio::write_exr_rgb(&points_path(&dir), &points)?;
     mesh.write_ply(&dir.join("mesh.ply"))?;
     let path = dir.join("shaded.png");
     imageio::write_png(&path, &shaded_preview(map, camera_centre))?;

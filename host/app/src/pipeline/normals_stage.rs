@@ -23,6 +23,8 @@ use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use super::geometry_stage::{GeometryReadError, load_point_normals, load_points_file, points_path};
+use super::phase_clock::{PhaseClock, PhaseTimes};
 use super::projector_lights::ProjectorLights;
 use super::separate_stage::{direct_path, global_path, nayar_direct_path, white_path};
 use super::{Stage, StageContext, StageFailure};
@@ -42,7 +44,8 @@ use mlsss_vision::photometry::transmission_ps::{TransmissionParams, solve_transm
 /// The photometric-stereo stage.
 pub const STAGE: Stage = Stage {
     name: "normals",
-    version: 8,
+    // 9: the fusion reads the geometry stage's point normals.
+    version: 9,
     inputs: &["separate", "geometry"],
     uses_calibration: true,
     run,
@@ -95,8 +98,6 @@ pub struct NormalsParams {
     pub model: ShadingModel,
     /// What the stage's normals are.
     pub source: NormalSource,
-    /// The plane fits of the points' normals (with [`NormalSource::Fused`]).
-    pub point_normals: PointNormalParams,
     pub fusion: FusionParams,
 }
 
@@ -138,7 +139,6 @@ impl Default for NormalsParams {
             method: Method::Robust,
             model: ShadingModel::Specular,
             source: NormalSource::Fused,
-            point_normals: PointNormalParams::default(),
             fusion: FusionParams::default(),
         }
     }
@@ -167,6 +167,10 @@ pub struct NormalsReport {
     /// With ground truth: angular errors over the solved pixels of the truth mask.
     #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
     pub truth: Option<NormalErrors>,
+    /// Where the stage's time went: `read` (images and points), `photometric_stereo`, `fusion`,
+    /// `write`, `truth`.
+    #[serde(flatten, default)]
+    pub timing: PhaseTimes,
 }
 
 fn lambertian() -> ShadingModel {
@@ -216,6 +220,7 @@ impl NormalsReport {
             source: params.source,
             fusion: None,
             truth: None,
+            timing: PhaseTimes::default(),
         }
     }
 }
@@ -239,13 +244,9 @@ pub enum NormalsStageError {
     /// The photometric and geometric normals could not be combined.
     #[error(transparent)]
     Fusion(#[from] FusionError),
-    /// Points and images differ in size.
-    #[error("{path} is {got:?}, the images are {expected:?}")]
-    Size {
-        path: PathBuf,
-        got: (u32, u32),
-        expected: (u32, u32),
-    },
+    /// The points or their normals could not be read or differ from the images in size.
+    #[error(transparent)]
+    Geometry(#[from] GeometryReadError),
 }
 
 fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
@@ -268,9 +269,11 @@ fn run_normals(
             captured,
         });
     }
+    let mut clock = PhaseClock::start();
     let images = read_images(ctx, params.input, captured)?;
     let (width, height) = images.first().map_or((0, 0), |i| i.dimensions());
     let points = read_points(ctx, params.points, (width, height))?;
+    clock.lap("read");
     let lights = ProjectorLights::from_calibration(calib, captured, width, &points);
     let ps_params = PsParams {
         method: params.method,
@@ -291,21 +294,27 @@ fn run_normals(
             solve_specular(&refs, &lights, None, &ps_params, &SpecularParams::default())?
         }
     };
+    clock.lap("photometric_stereo");
     let photometric = map.normal_image();
     let mut report = NormalsReport::new(&map.stats(), params);
     imageio::write_exr_rgb(&photometric_normals_path(&ctx.dir()), &photometric)?;
+    clock.lap("write");
     let normals = match params.source {
         NormalSource::Photometric => photometric,
         NormalSource::Fused => {
-            let (normals, counts) = fused_normals(&map, &lights, params)?;
+            let (normals, counts) = fused_normals(ctx, &map, &lights, params)?;
             report.fusion = Some(counts);
             normals
         }
     };
+    clock.lap("fusion");
     write_artefacts(&ctx.dir(), &map, &normals)?;
+    clock.lap("write");
     if let Some(t) = ctx.truth_dir() {
         report.truth = truth_errors(&t, &normals)?;
     }
+    clock.lap("truth");
+    report.timing = clock.finish();
     Ok(report)
 }
 
@@ -320,19 +329,27 @@ pub fn photometric_normals_path(dir: &Path) -> PathBuf {
 }
 
 /// Photometric stereo's normals `map` combined with the normals of the surface points of
-/// `lights` (`photometry::normal_fusion`), as an image, with where each came from.
+/// `lights` (`photometry::normal_fusion`), as an image, with where each came from. The
+/// geometry's points come with their normals fitted by the geometry stage; the truth's are
+/// fitted here, as the geometry stage would.
 fn fused_normals(
+    ctx: &StageContext,
     map: &NormalMap,
     lights: &ProjectorLights,
     params: &NormalsParams,
 ) -> Result<(Rgb32FImage, FusionSummary), NormalsStageError> {
-    let geometry = fit_point_normals(
-        &lights.points,
-        map.width,
-        map.height,
-        lights.camera_centre,
-        &params.point_normals,
-    );
+    let geometry = match params.points {
+        PointSource::Geometry => {
+            load_point_normals(&ctx.stage_dir("geometry"), (map.width, map.height))?
+        }
+        PointSource::Truth => fit_point_normals(
+            &lights.points,
+            map.width,
+            map.height,
+            lights.camera_centre,
+            &PointNormalParams::default(),
+        ),
+    };
     let photometric: Vec<[f32; 3]> = map.pixels.iter().map(|p| p.normal).collect();
     let noise = photometric_noise_proxy(map, lights);
     let fused = fuse_normals(&photometric, &noise, &geometry, &params.fusion)?;
@@ -370,23 +387,15 @@ fn read_points(
     source: PointSource,
     size: (u32, u32),
 ) -> Result<Rgb32FImage, NormalsStageError> {
-    let points_path = match source {
-        PointSource::Geometry => ctx.stage_dir("geometry").join("points.exr"),
+    let path = match source {
+        PointSource::Geometry => points_path(&ctx.stage_dir("geometry")),
         PointSource::Truth => ctx
             .truth_dir()
             .map(|t| truth::points(&t))
             .filter(|p| p.is_file())
             .ok_or(NormalsStageError::NoTruthPoints)?,
     };
-    let points = imageio::read_exr_rgb(&points_path)?;
-    if points.dimensions() != size {
-        return Err(NormalsStageError::Size {
-            path: points_path,
-            got: points.dimensions(),
-            expected: size,
-        });
-    }
-    Ok(points)
+    Ok(load_points_file(&path, size)?)
 }
 
 /// Writes `normals.exr`, `albedo.exr`, `lights_used.exr` and the `normals.png` preview to `dir`.

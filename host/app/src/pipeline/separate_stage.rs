@@ -4,8 +4,11 @@
 //! - `kernel` (default, ours): the kernel-aware split of `photometry::kernel_leak`, with each
 //!   pixel's kernel leak at the stripe frequency measured from the x slit sweep
 //!   (`photometry::slit_leak`, `leak_reading`), the direct part then re-read by `direct_model`
-//!   (default the dichromatic fit of `photometry::dichromatic`) and averaged over
-//!   `direct_smoothing_px`;
+//!   and averaged over `direct_smoothing_px`. The default model, the surface's specular lobe
+//!   (`photometry::lobe_direct`), replaces every direct part the leak corrects, so with it the
+//!   slit sweep is not read (leak 0) unless `leak_with_lobe` asks; the dichromatic fit
+//!   (`photometry::dichromatic`) stands in, on the leak-corrected split, where the lobe cannot
+//!   run;
 //! - `nayar`: Nayar et al. 2006 with the blur correction (`photometry::separation`), the
 //!   baseline.
 //!
@@ -19,7 +22,9 @@
 //!   direct and global (same exposure), at half the camera's resolution (2x2 means).
 //!
 //! Report fragment: `method`, per projector counts (`projectors[k]`: flagged pixels by reason,
-//! mean leak per channel), the black levels used and where they came from, and with ground truth
+//! and where the leak was read its counters and mean per channel), the black levels used and
+//! where they came from, `phase_s`/`phase_cpu_s` (where the stage's time went), with the lobe
+//! `lobe`, and with ground truth
 //! `direct_rel_rmse`, `global_rel_rmse`, `total_rel_rmse` of the method run (relative RMS error
 //! over the truth mask, all projectors and channels: sqrt(sum err^2 / sum truth^2)) and the same
 //! three for the Nayar baseline under `nayar_*` (with `method: nayar` they equal the first three).
@@ -31,15 +36,17 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use super::geometry_stage::{GeometryReadError, load_point_normals, load_points_file, points_path};
+use super::phase_clock::{PhaseClock, PhaseTimes};
 use super::projector_lights::ProjectorLights;
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::calibration::Calibration;
 use mlsss_core::capture::{Axis, CaptureError, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
-use mlsss_vision::geometry::point_normals::{PointNormalParams, fit_point_normals};
 use mlsss_vision::photometry::dichromatic::{dichromatic_direct, set_grey_direct};
 use mlsss_vision::photometry::kernel_leak::{
-    LeakFlag, LeakParams, colourless_smoothed_direct, separate_with_leak,
+    LeakFlag, LeakParams, LeakSeparation, LeakStats, colourless_smoothed_direct,
+    separate_with_leak, stripe_totals,
 };
 use mlsss_vision::photometry::lobe_direct::{
     LobeDirectParams, ProjectorView, lobe_anchored_direct, lobe_samples,
@@ -54,8 +61,9 @@ use mlsss_vision::photometry::specular_ps::SpecularParams;
 /// The separation stage.
 pub const STAGE: Stage = Stage {
     name: "separate",
-    // 5: harmonics leak reading and dichromatic direct part by default; 6: the lobe.
-    version: 6,
+    // 5: harmonics leak reading and dichromatic direct part by default; 6: the lobe; 7: the
+    // geometry stage's point normals, no slit sweep with the lobe.
+    version: 7,
     inputs: &["geometry"],
     uses_calibration: true,
     run,
@@ -79,6 +87,11 @@ pub struct SeparateParams {
     pub leak_reading: LeakReading,
     /// `kernel` method: how the direct part is read from the leak-corrected split.
     pub direct_model: DirectModel,
+    /// `kernel` method with the lobe: also read the kernel leak from the slit sweep. The lobe
+    /// replaces every direct part the leak corrects (each pixel's total and flags do not depend
+    /// on it), so by default the slit frames are not read (full-size booth: 40 of the stage's
+    /// 68 frames); the stripe sweep turns this on for its leak figures.
+    pub leak_with_lobe: bool,
 }
 
 /// How the `kernel` method reads its direct part from the per-channel split.
@@ -115,6 +128,7 @@ impl Default for SeparateParams {
             // Quick heads seed 99 (direct / global error): type I 0.80 / 0.053 with the
             // dichromatic part, 0.078 / 0.012 with the lobe; VI 0.073 / 0.134 and 0.024 / 0.066.
             direct_model: DirectModel::Lobe,
+            leak_with_lobe: false,
         }
     }
 }
@@ -153,6 +167,10 @@ pub struct SeparateReport {
     pub nayar_global_rel_rmse: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub nayar_total_rel_rmse: Option<f64>,
+    /// Where the stage's time went: `read` (frames and stray light), `split` (the chosen
+    /// method), `nayar` (the baseline), `lobe`, `write` (images), `truth` (errors, preview).
+    #[serde(flatten, default)]
+    pub timing: PhaseTimes,
 }
 
 /// One projector's entry of [`SeparateReport`].
@@ -166,23 +184,27 @@ pub struct SeparateProjectorReport {
     pub saturated_pixels: u64,
     pub non_finite_pixels: u64,
     pub clamped_negative: u64,
-    /// `kernel`: pixels whose kernel is too narrow for the stripes in some channel (all their
-    /// light reported global there).
-    #[serde(default)]
+    /// The kernel leak's counters: absent with the `nayar` method, and with the lobe unless
+    /// `leak_with_lobe` asked for them (the slit sweep is not read then).
+    #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
+    pub leak: Option<LeakCounters>,
+}
+
+/// The kernel leak's counters of one projector ([`SeparateProjectorReport::leak`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LeakCounters {
+    /// Pixels whose kernel is too narrow for the stripes in some channel (all their light
+    /// reported global there).
     pub narrow_kernel_pixels: u64,
-    /// `kernel`: pixels whose slit profile is flat over the sweep (kernel wider than the slit
-    /// period; leak 0).
-    #[serde(default)]
+    /// Pixels whose slit profile is flat over the sweep (kernel wider than the slit period;
+    /// leak 0).
     pub wide_kernel_pixels: u64,
-    /// `kernel`: pixels with no slit light (leak 0).
-    #[serde(default)]
+    /// Pixels with no slit light (leak 0).
     pub no_profile_pixels: u64,
-    /// `kernel`: the slits are not finer than the stripes, so the leak is the stripes' own
-    /// contrast and the direct part comes out near 0 (the full-size booth).
-    #[serde(default)]
+    /// The slits are not finer than the stripes, so the leak is the stripes' own contrast and
+    /// the direct part comes out near 0 (the full-size booth).
     pub coarse_slits: bool,
-    /// `kernel`: mean leak per channel over the pixels with a profile.
-    #[serde(default)]
+    /// Mean leak per channel over the pixels with a profile.
     pub leak_mean: [f64; 3],
 }
 
@@ -229,13 +251,10 @@ pub enum SeparateStageError {
     /// The calibration has fewer projectors than the capture.
     #[error("the calibration has {calibrated} projectors, the capture {captured}")]
     ProjectorCount { calibrated: usize, captured: usize },
-    /// The geometry stage's points do not match the frames.
-    #[error("{path}: {got:?} points, the frames are {expected:?}")]
-    PointsSize {
-        path: PathBuf,
-        got: (u32, u32),
-        expected: (u32, u32),
-    },
+    /// The geometry stage's points or their normals could not be read or do not match the
+    /// frames.
+    #[error(transparent)]
+    Geometry(#[from] GeometryReadError),
 }
 
 /// Path of projector `k`'s direct image in the stage folder.
@@ -379,7 +398,10 @@ fn run_separate(
         })
         .collect();
     let black: Vec<f64> = responses.iter().map(|b| b.unwrap_or(0.0)).collect();
-    let with_slits = params.method == SeparationMethod::Kernel;
+    let mut clock = PhaseClock::start();
+    let kernel = params.method == SeparationMethod::Kernel;
+    let lobe_runs = kernel && params.direct_model == DirectModel::Lobe && calib.is_some();
+    let with_slits = kernel && (!lobe_runs || params.leak_with_lobe);
     let frames = (0..captured)
         .into_par_iter()
         .map(|k| projector_frames(ctx, k, with_slits))
@@ -400,6 +422,7 @@ fn run_separate(
     for (k, frames) in frames.into_iter().enumerate() {
         let offset = stray.as_ref().map(|s| &s[k]);
         let cleaned = CleanFrames::new(frames, offset);
+        clock.lap("read");
         let setup = ProjectorSetup {
             k,
             black_level: responses[k],
@@ -409,30 +432,48 @@ fn run_separate(
                 0.0
             },
         };
-        let (entry, split) = separate_projector(params, &setup, &cleaned)?;
+        let (entry, split) = separate_projector(params, &setup, &cleaned, lobe_runs)?;
+        clock.lap("split");
         // The baseline on the same frames: for the report's comparison and the normals stage.
         let nayar = match params.method {
             SeparationMethod::Nayar => split.clone(),
             SeparationMethod::Kernel => nayar_split(&setup, &cleaned)?,
         };
+        clock.lap("nayar");
         imageio::write_exr_rgb(&nayar_direct_path(&dir, k), &nayar.direct)?;
         if truth_dir.is_some() {
             baseline.push(nayar);
         }
         imageio::write_exr_rgb(&white_path(&dir, k), &cleaned.white)?;
+        clock.lap("write");
         per_projector.push(entry);
         outputs.push(split);
     }
-    let lobe = match (params.method, params.direct_model, calib) {
-        (SeparationMethod::Kernel, DirectModel::Lobe, Some(calib)) => {
-            lobe_direct_parts(ctx, calib, &mut outputs, params.direct_smoothing_px)?
-        }
-        _ => None,
+    let lobe = match calib.filter(|_| lobe_runs) {
+        Some(calib) => lobe_direct_parts(ctx, calib, &mut outputs, params.direct_smoothing_px)?,
+        None => None,
     };
+    if lobe_runs && lobe.is_none() && !with_slits {
+        // The lobe found no body colour: the colour rule stands in, on the leak-corrected
+        // split, so the slit sweep is needed after all.
+        let with_leak = SeparateParams {
+            leak_with_lobe: true,
+            ..params.clone()
+        };
+        return run_separate(ctx, &with_leak);
+    }
+    if lobe.is_none() {
+        // No lobe (or it found no body colour): the colour rule stands in.
+        for split in &mut outputs {
+            split.read_deferred_direct(params.direct_model, params.direct_smoothing_px);
+        }
+    }
+    clock.lap("lobe");
     for (k, split) in outputs.iter().enumerate() {
         imageio::write_exr_rgb(&direct_path(&dir, k), &split.direct)?;
         imageio::write_exr_rgb(&global_path(&dir, k), &split.global)?;
     }
+    clock.lap("write");
     let mut report = SeparateReport {
         method: params.method,
         projectors: per_projector,
@@ -442,6 +483,7 @@ fn run_separate(
         nayar_direct_rel_rmse: None,
         nayar_global_rel_rmse: None,
         nayar_total_rel_rmse: None,
+        timing: PhaseTimes::default(),
     };
     let truth_images = match truth_dir {
         Some(t) => {
@@ -461,6 +503,8 @@ fn run_separate(
         &outputs,
         truth_images.as_deref(),
     )?;
+    clock.lap("truth");
+    report.timing = clock.finish();
     Ok(report)
 }
 
@@ -502,6 +546,41 @@ struct Split {
     global: Rgb32FImage,
     /// Per pixel: separated (not flagged).
     ok: Vec<bool>,
+    /// A kernel split whose direct part is still the stripes' (the colour rule deferred until
+    /// the lobe has had its chance): its flags, for [`Split::read_deferred_direct`].
+    deferred: Option<Vec<LeakFlag>>,
+}
+
+impl Split {
+    /// Reads a deferred kernel split's direct part by colour, as `model` says when no lobe
+    /// replaced it; no-op on other splits.
+    fn read_deferred_direct(&mut self, model: DirectModel, smoothing_px: f64) {
+        let Some(flags) = self.deferred.take() else {
+            return;
+        };
+        let mut sep = LeakSeparation {
+            direct: std::mem::take(&mut self.direct),
+            global: std::mem::take(&mut self.global),
+            flags,
+            stats: LeakStats::default(),
+        };
+        read_direct_by_colour(&mut sep, model, smoothing_px);
+        (self.direct, self.global) = (sep.direct, sep.global);
+    }
+}
+
+/// The direct part of a kernel split by colour: the colourless mean of the channels, or the
+/// dichromatic fit (also the lobe's stand-in), which falls back to the colourless mean without
+/// a body colour (no separated pixel).
+fn read_direct_by_colour(sep: &mut LeakSeparation, model: DirectModel, smoothing_px: f64) {
+    match model {
+        DirectModel::Colourless => colourless_smoothed_direct(sep, smoothing_px),
+        DirectModel::Dichromatic | DirectModel::Lobe => {
+            if dichromatic_direct(sep, smoothing_px).is_none() {
+                colourless_smoothed_direct(sep, smoothing_px);
+            }
+        }
+    }
 }
 
 /// The Nayar baseline on projector `setup.k`'s frames, with its counters.
@@ -529,6 +608,7 @@ fn nayar_separation(
         ok: sep.flags.iter().map(|f| *f == SeparationFlag::Ok).collect(),
         direct: sep.direct,
         global: sep.global,
+        deferred: None,
     };
     Ok((split, entry))
 }
@@ -542,22 +622,28 @@ fn kernel_separation(
     params: &SeparateParams,
     setup: &ProjectorSetup,
     frames: &CleanFrames,
+    defer_direct: bool,
 ) -> Result<(Split, SeparateProjectorReport), SeparateStageError> {
     let black = setup.black_level.unwrap_or(0.0) as f32;
-    let white = pixels(&frames.white);
-    let slit_pixels: Vec<Vec<[f32; 3]>> = frames.slits.iter().map(pixels).collect();
-    let slit_refs: Vec<&[[f32; 3]]> = slit_pixels.iter().map(|s| s.as_slice()).collect();
-    let (leak, leak_stats) = leak_from_slits(
-        &slit_refs,
-        &white,
-        &SweepGeometry {
-            slit_width_px: frames.slit_width_px,
-            stripe_px: frames.stripe_px,
-            black_level: black,
-            blur_px: setup.blur_px,
-        },
-        params.leak_reading,
-    );
+    // Without slit frames (the lobe's default) the leak is 0: the lobe replaces the direct part
+    // it would correct.
+    let (leak, leak_stats) = if frames.slits.is_empty() {
+        (Vec::new(), None)
+    } else {
+        let slit_refs: Vec<&[[f32; 3]]> = frames.slits.iter().map(rgb_pixels).collect();
+        let (leak, stats) = leak_from_slits(
+            &slit_refs,
+            rgb_pixels(&frames.white),
+            &SweepGeometry {
+                slit_width_px: frames.slit_width_px,
+                stripe_px: frames.stripe_px,
+                black_level: black,
+                blur_px: setup.blur_px,
+            },
+            params.leak_reading,
+        );
+        (leak, Some(stats))
+    };
     let refs: Vec<&Rgb32FImage> = frames.stripes.iter().collect();
     let leak_params = LeakParams {
         black_level: black,
@@ -565,31 +651,33 @@ fn kernel_separation(
         stripe_px: frames.stripe_px,
         ..LeakParams::default()
     };
-    let mut sep = separate_with_leak(&refs, &leak, &leak_params).map_err(|source| {
-        SeparateStageError::Separation {
-            projector: setup.k,
-            source,
-        }
+    // Without the leak the stripes' harmonics only place the direct part the lobe replaces:
+    // their totals and flags are all it needs.
+    let split = if leak_stats.is_some() {
+        separate_with_leak(&refs, &leak, &leak_params)
+    } else {
+        stripe_totals(&refs, &leak_params)
+    };
+    let mut sep = split.map_err(|source| SeparateStageError::Separation {
+        projector: setup.k,
+        source,
     })?;
-    match params.direct_model {
-        DirectModel::Colourless => colourless_smoothed_direct(&mut sep, params.direct_smoothing_px),
-        // The lobe replaces this part once every projector is split (`lobe_direct_parts`).
-        DirectModel::Dichromatic | DirectModel::Lobe => {
-            // Without a body colour (no separated pixel) the colourless mean stands in.
-            if dichromatic_direct(&mut sep, params.direct_smoothing_px).is_none() {
-                colourless_smoothed_direct(&mut sep, params.direct_smoothing_px);
-            }
-        }
+    // The lobe replaces the colour rule's direct part once every projector is split
+    // (`lobe_direct_parts`), so the rule waits for the lobe, which needs a calibration.
+    if !defer_direct {
+        read_direct_by_colour(&mut sep, params.direct_model, params.direct_smoothing_px);
     }
     let mut entry = projector_entry(setup);
     entry.saturated_pixels = sep.stats.saturated_pixels;
     entry.non_finite_pixels = sep.stats.non_finite_pixels;
     entry.clamped_negative = sep.stats.clamped;
-    entry.narrow_kernel_pixels = sep.stats.narrow_kernel_pixels;
-    entry.wide_kernel_pixels = leak_stats.wide_kernel_pixels;
-    entry.no_profile_pixels = leak_stats.no_profile_pixels;
-    entry.coarse_slits = leak_stats.coarse_slits;
-    entry.leak_mean = mean_leak(&leak, &sep.flags);
+    entry.leak = leak_stats.map(|stats| LeakCounters {
+        narrow_kernel_pixels: sep.stats.narrow_kernel_pixels,
+        wide_kernel_pixels: stats.wide_kernel_pixels,
+        no_profile_pixels: stats.no_profile_pixels,
+        coarse_slits: stats.coarse_slits,
+        leak_mean: mean_leak(&leak, &sep.flags),
+    });
     // Every pixel with an output counts in the errors: a pixel flagged for a narrow kernel
     // carries its light as global (or, with the dichromatic direct part, split by colour), and
     // leaving them out hid a quarter of a dark head (type VI, seed 97: global 0.30 over the rest,
@@ -602,6 +690,7 @@ fn kernel_separation(
             .collect(),
         direct: sep.direct,
         global: sep.global,
+        deferred: defer_direct.then_some(sep.flags),
     };
     Ok((split, entry))
 }
@@ -618,23 +707,10 @@ fn lobe_direct_parts(
     let Some((width, height)) = splits.first().map(|s| s.direct.dimensions()) else {
         return Ok(None);
     };
-    let points_path = ctx.stage_dir("geometry").join("points.exr");
-    let points = imageio::read_exr_rgb(&points_path)?;
-    if points.dimensions() != (width, height) {
-        return Err(SeparateStageError::PointsSize {
-            path: points_path,
-            got: points.dimensions(),
-            expected: (width, height),
-        });
-    }
+    let geometry = ctx.stage_dir("geometry");
+    let points = load_points_file(&points_path(&geometry), (width, height))?;
     let lights = ProjectorLights::from_calibration(calib, splits.len(), width, &points);
-    let normals = fit_point_normals(
-        &lights.points,
-        width,
-        height,
-        lights.camera_centre,
-        &PointNormalParams::default(),
-    );
+    let normals = load_point_normals(&geometry, (width, height))?;
     // Every fitted normal, reliable or not: where the window leaves the image or the head the
     // plane is fitted to fewer points but still follows the surface, and the colour estimate
     // that stands in without a lobe is poor on light skin (virtual booth, quick type I head,
@@ -717,8 +793,10 @@ fn mean_leak(leak: &[[f32; 3]], flags: &[LeakFlag]) -> [f64; 3] {
     sum.map(|s| if count > 0 { s / count as f64 } else { 0.0 })
 }
 
-fn pixels(img: &Rgb32FImage) -> Vec<[f32; 3]> {
-    img.pixels().map(|p| p.0).collect()
+/// `img`'s pixels as RGB triples, without a copy (the slit sweep alone is 40 full-size frames).
+fn rgb_pixels(img: &Rgb32FImage) -> &[[f32; 3]] {
+    // An RGB buffer holds 3 values per pixel, so nothing is left over.
+    img.as_raw().as_chunks::<3>().0
 }
 
 /// A report entry with the setup filled in and every counter at 0.
@@ -735,11 +813,7 @@ fn projector_entry(setup: &ProjectorSetup) -> SeparateProjectorReport {
         saturated_pixels: 0,
         non_finite_pixels: 0,
         clamped_negative: 0,
-        narrow_kernel_pixels: 0,
-        wide_kernel_pixels: 0,
-        no_profile_pixels: 0,
-        coarse_slits: false,
-        leak_mean: [0.0; 3],
+        leak: None,
     }
 }
 
@@ -749,10 +823,11 @@ fn separate_projector(
     params: &SeparateParams,
     setup: &ProjectorSetup,
     frames: &CleanFrames,
+    defer_direct: bool,
 ) -> Result<(SeparateProjectorReport, Split), SeparateStageError> {
     let (split, entry) = match params.method {
         SeparationMethod::Nayar => nayar_separation(setup, frames)?,
-        SeparationMethod::Kernel => kernel_separation(params, setup, frames)?,
+        SeparationMethod::Kernel => kernel_separation(params, setup, frames, defer_direct)?,
     };
     Ok((entry, split))
 }

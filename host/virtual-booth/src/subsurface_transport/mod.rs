@@ -254,7 +254,7 @@ impl<'k> SubsurfaceOperator<'k> {
     /// Exitance at every pixel for `frames` flux images (`flux[pixel * frames + f]`); returns
     /// `exitance[(pixel * 3 + c) * frames + f]`.
     pub fn apply(&self, flux: &[f32], frames: usize) -> Vec<f32> {
-        let mut out = vec![0.0f32; self.width * self.height * 3 * frames];
+        let mut out = zeroed_by_writing(self.width * self.height * 3 * frames);
         for (level, cells) in self.kernel.levels.iter().zip(&self.levels) {
             if level.scale == 1 {
                 // Pixel cells are the output pixels: summed in place (no second full-size
@@ -262,7 +262,7 @@ impl<'k> SubsurfaceOperator<'k> {
                 level.evaluate_into(cells, flux, None, frames, &mut out);
             } else {
                 let (sum, mf, ms) = self.cell_moments(level.scale, cells, flux, frames);
-                let mut result = vec![0.0f32; cells.width * cells.height * 3 * frames];
+                let mut result = zeroed_by_writing(cells.width * cells.height * 3 * frames);
                 level.evaluate_into(cells, &sum, Some((&mf, &ms)), frames, &mut result);
                 level.interpolate_into(cells, &result, frames, self.width, self.height, &mut out);
             }
@@ -280,7 +280,11 @@ impl<'k> SubsurfaceOperator<'k> {
         frames: usize,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let n = grid.width * grid.height * frames;
-        let (mut sum, mut mf, mut ms) = (vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]);
+        let (mut sum, mut mf, mut ms) = (
+            zeroed_by_writing(n),
+            zeroed_by_writing(n),
+            zeroed_by_writing(n),
+        );
         sum.par_chunks_mut(frames)
             .zip(mf.par_chunks_mut(frames))
             .zip(ms.par_chunks_mut(frames))
@@ -310,6 +314,15 @@ impl<'k> SubsurfaceOperator<'k> {
             });
         (sum, mf, ms)
     }
+}
+
+/// A zeroed buffer whose pages were written (in parallel) rather than only mapped: sums added
+/// into a fresh zeroed allocation read the shared zero page first, and the first write then
+/// copies it and flushes the other core's TLB, page by page.
+fn zeroed_by_writing(len: usize) -> Vec<f32> {
+    let mut v = vec![0.0f32; len];
+    v.par_chunks_mut(1 << 16).for_each(|chunk| chunk.fill(0.0));
+    v
 }
 
 /// Adds `sum over pairs of K * flux(source)` (minus the first-moment correction
@@ -477,6 +490,23 @@ fn angle_interpolation(angles: &[f64], angle: f64) -> (u16, f32) {
     ((angles.len() - 2) as u16, 1.0)
 }
 
+/// Half-width of the search window's row `dy` cells from the output cell: the window is the
+/// disc of cells that can hold a source within reach, not the whole square of radius `rad`.
+/// `rad - 1` cells bound the reach (see [`SubsurfaceKernel::new`]) and two cell points `d`
+/// cells apart along an axis are at least `|d| - 1` cells apart on it: a cell whose
+/// `(|dx| - 1, |dy| - 1)` lies outside the radius `rad - 1` is out of reach (the distance test
+/// would reject it), so the disc finds the same pairs in the same order as the square.
+#[inline(always)]
+fn disc_half_width(rad: isize, dy: isize) -> isize {
+    let ey = (dy.abs() - 1).max(0);
+    let r = (rad - 1).max(0);
+    let room = r * r - ey * ey;
+    if room < 0 {
+        return -1;
+    }
+    ((room as f64).sqrt().floor() as isize + 1).min(rad)
+}
+
 /// One source cell's contribution to an output cell: the band response at their offset and,
 /// for aggregated cells, its derivatives along the source's forward and side axes.
 #[derive(Debug, Clone, Copy)]
@@ -508,6 +538,15 @@ fn avx2_available() -> bool {
         false
     }
 }
+
+/// Output cells whose pairs are gathered together, offset by offset (see
+/// [`KernelLevel::gather_tile`]): a tile's pair lists (a few hundred 40-byte pairs per cell)
+/// stay in the core's cache while they are summed.
+const TILE_CELLS: usize = 16;
+
+/// Scratch of one worker: the pair list of every output cell of a tile.
+#[derive(Default)]
+struct TilePairs(Vec<Vec<Pair>>);
 
 /// Frames are summed in blocks of this many: the block's accumulators stay in registers while
 /// every source of an output cell is visited, instead of a read-modify-write of every frame's
@@ -545,7 +584,7 @@ impl KernelLevel {
         let avx2 = avx2_available();
         out.par_chunks_mut(w * 3 * frames)
             .enumerate()
-            .for_each_init(Vec::new, |pairs, (oy, row)| {
+            .for_each_init(TilePairs::default, |pairs, (oy, row)| {
                 #[cfg(target_arch = "x86_64")]
                 if avx2 {
                     // SAFETY: AVX2 was detected on this CPU.
@@ -558,19 +597,21 @@ impl KernelLevel {
     }
 
     /// Output row `oy` of [`Self::evaluate_into`] (`row` = its cells' accumulators; `pairs`
-    /// is scratch).
+    /// is scratch), [`TILE_CELLS`] output cells at a time.
     #[inline(always)]
-    fn evaluate_row(&self, rows: &RowInputs, oy: usize, row: &mut [f32], pairs: &mut Vec<Pair>) {
+    fn evaluate_row(&self, rows: &RowInputs, oy: usize, row: &mut [f32], pairs: &mut TilePairs) {
         let (grid, frames) = (rows.grid, rows.frames);
         let w = grid.width;
-        for ox in 0..w {
-            let Some(o) = &grid.cells[oy * w + ox] else {
-                continue;
-            };
-            pairs.clear();
-            self.gather_pairs(grid, rows.lit, o, [ox, oy], rows.moments.is_some(), pairs);
-            let acc = &mut row[ox * 3 * frames..(ox + 1) * 3 * frames];
-            sum_pairs(pairs, rows.flux, rows.moments, frames, acc);
+        for first in (0..w).step_by(TILE_CELLS) {
+            let tile = first..(first + TILE_CELLS).min(w);
+            self.gather_tile(rows, oy, tile.clone(), pairs);
+            for (ox, cell_pairs) in tile.zip(&pairs.0) {
+                if grid.cells[oy * w + ox].is_none() {
+                    continue;
+                }
+                let acc = &mut row[ox * 3 * frames..(ox + 1) * 3 * frames];
+                sum_pairs(cell_pairs, rows.flux, rows.moments, frames, acc);
+            }
         }
     }
 
@@ -586,60 +627,82 @@ impl KernelLevel {
         rows: &RowInputs,
         oy: usize,
         row: &mut [f32],
-        pairs: &mut Vec<Pair>,
+        pairs: &mut TilePairs,
     ) {
         self.evaluate_row(rows, oy, row, pairs);
     }
 
-    /// The lit source cells within this band's reach of output cell `o` (at `[ox, oy]`) and
-    /// their band responses (with derivatives when `gradient`).
+    /// For every output cell of row `oy`, columns `tile`: the lit source cells within this
+    /// band's reach and their band responses (with derivatives at aggregated levels), into
+    /// `pairs` (one list per cell of the tile, in raster order of the sources).
+    ///
+    /// The tile's cells are visited offset by offset: for one source offset, neighbouring output
+    /// cells look up nearly the same texels of the tables (a source one cell further away sits
+    /// one cell further along), so the texels they read are still in cache. Visited cell by
+    /// cell, each lookup of a cell's few hundred pairs missed the cache (the tables are several
+    /// MB). Each cell's list holds the same pairs in the same order either way.
     #[inline(always)]
-    fn gather_pairs(
+    fn gather_tile(
         &self,
-        grid: &LevelCells,
-        lit: &[bool],
-        o: &Cell,
-        [ox, oy]: [usize; 2],
-        gradient: bool,
-        pairs: &mut Vec<Pair>,
+        rows: &RowInputs,
+        oy: usize,
+        tile: std::ops::Range<usize>,
+        pairs: &mut TilePairs,
     ) {
+        let (grid, lit) = (rows.grid, rows.lit);
+        let gradient = rows.moments.is_some();
         let (w, h) = (grid.width as isize, grid.height as isize);
         // The tables are filtered, so they reach a little beyond the band.
         let reach = FILTER_REACH_CELLS * self.cell_mm;
         let r_min = (self.band.r_min() - reach).max(0.0) as f32;
         let r_max = (self.band.r_max() + reach) as f32;
         let rad = self.search_radius;
-        let (ox, oy) = (ox as isize, oy as isize);
+        let oy = oy as isize;
+        pairs.0.resize_with(tile.len(), Vec::new);
+        pairs.0.truncate(tile.len());
+        for list in &mut pairs.0 {
+            list.clear();
+        }
         for sy in (oy - rad).max(0)..(oy + rad + 1).min(h) {
-            for sx in (ox - rad).max(0)..(ox + rad + 1).min(w) {
-                let si = (sy * w + sx) as usize;
-                if !lit[si] {
-                    continue;
+            let half = disc_half_width(rad, sy - oy);
+            for dx in -half..=half {
+                for (ox, list) in tile.clone().zip(pairs.0.iter_mut()) {
+                    let sx = ox as isize + dx;
+                    if sx < 0 || sx >= w {
+                        continue;
+                    }
+                    let Some(o) = &grid.cells[oy as usize * grid.width + ox] else {
+                        continue;
+                    };
+                    let si = (sy * w + sx) as usize;
+                    if !lit[si] {
+                        continue;
+                    }
+                    let p = grid.points[si];
+                    let d = [o.point[0] - p[0], o.point[1] - p[1], o.point[2] - p[2]];
+                    let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    if r >= r_max || r < r_min {
+                        continue;
+                    }
+                    let Some(s) = &grid.cells[si] else { continue };
+                    let response = if gradient {
+                        self.kernel::<true>(s, d, r)
+                    } else {
+                        self.kernel::<false>(s, d, r)
+                    };
+                    let Some([k, gx, gy]) = response else {
+                        continue;
+                    };
+                    if k == [0.0; 3] && gx == [0.0; 3] && gy == [0.0; 3] {
+                        continue;
+                    }
+                    list.push(Pair {
+                        source: si as u32,
+                        k,
+                        gx,
+                        gy,
+                    });
                 }
-                let p = grid.points[si];
-                let d = [o.point[0] - p[0], o.point[1] - p[1], o.point[2] - p[2]];
-                let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                if r >= r_max || r < r_min {
-                    continue;
-                }
-                let Some(s) = &grid.cells[si] else { continue };
-                let response = if gradient {
-                    self.kernel::<true>(s, d, r)
-                } else {
-                    self.kernel::<false>(s, d, r)
-                };
-                let Some([k, gx, gy]) = response else {
-                    continue;
-                };
-                if k == [0.0; 3] && gx == [0.0; 3] && gy == [0.0; 3] {
-                    continue;
-                }
-                pairs.push(Pair {
-                    source: si as u32,
-                    k,
-                    gx,
-                    gy,
-                });
             }
         }
     }

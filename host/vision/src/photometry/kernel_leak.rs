@@ -128,8 +128,50 @@ pub fn separate_with_leak(
             got: leak.len(),
         });
     }
+    let harmonic = HarmonicTable::new(frames.len(), params.stripe_px as f32, params.blur_px);
+    Ok(split_pixels(frames, (w, h), |raws, i| {
+        separate_pixel(raws, i, leak[i], params, &harmonic)
+    }))
+}
+
+/// The stripes' totals alone: each pixel's total `2 mean / (1 + b)` per channel as its global
+/// part, direct 0, flagged as [`separate_with_leak`] flags it with a zero leak (saturated,
+/// non-finite; never a narrow kernel). What a direct part read from elsewhere needs (the
+/// separate stage's specular lobe replaces every direct part the stripes' harmonics give), at a
+/// fraction of the split's cost: no harmonics, phase or magnitudes (full-size booth, four
+/// projectors: 0.17 CPU-s against 0.67).
+pub fn stripe_totals(
+    frames: &[&Rgb32FImage],
+    params: &LeakParams,
+) -> Result<LeakSeparation, SeparationError> {
+    let size = check_frames(frames, params)?;
+    Ok(split_pixels(frames, size, |raws, i| {
+        let mut out = PixelOut {
+            direct: [0.0; 3],
+            global: [0.0; 3],
+            flag: LeakFlag::Ok,
+            clamped: 0,
+        };
+        match pixel_mean(raws, i, params) {
+            Ok(mean) => {
+                let b = params.black_level;
+                out.global = mean.map(|m| (2.0 * m / (1.0 + b)).max(0.0));
+            }
+            Err(flag) => out.flag = flag,
+        }
+        out
+    }))
+}
+
+/// Runs `per_pixel` (frames' raw RGB values, pixel index) over every pixel of the `size`
+/// frames, in parallel bands of rows, and gathers the images, flags and counters.
+fn split_pixels(
+    frames: &[&Rgb32FImage],
+    (w, h): (u32, u32),
+    per_pixel: impl Fn(&[&[f32]], usize) -> PixelOut + Sync,
+) -> LeakSeparation {
+    let n = w as usize * h as usize;
     let raws: Vec<&[f32]> = frames.iter().map(|f| f.as_raw().as_slice()).collect();
-    let harmonic = HarmonicTable::new(raws.len(), params.stripe_px as f32, params.blur_px);
     let mut direct = vec![0.0f32; n * 3];
     let mut global = vec![0.0f32; n * 3];
     let mut flags = vec![LeakFlag::Ok; n];
@@ -142,8 +184,7 @@ pub fn separate_with_leak(
         .map(|(ci, ((d, g), fl))| {
             let mut stats = LeakStats::default();
             for (p, flag) in fl.iter_mut().enumerate() {
-                let i = ci * chunk + p;
-                let out = separate_pixel(&raws, i, leak[i], params, &harmonic);
+                let out = per_pixel(&raws, ci * chunk + p);
                 *flag = out.flag;
                 d[p * 3..p * 3 + 3].copy_from_slice(&out.direct);
                 g[p * 3..p * 3 + 3].copy_from_slice(&out.global);
@@ -164,12 +205,12 @@ pub fn separate_with_leak(
     }
     let to_image =
         |v: Vec<f32>| Rgb32FImage::from_raw(w, h, v).unwrap_or_else(|| Rgb32FImage::new(w, h));
-    Ok(LeakSeparation {
+    LeakSeparation {
         direct: to_image(direct),
         global: to_image(global),
         flags,
         stats,
-    })
+    }
 }
 
 /// Makes the direct part colourless and smooth, keeping each pixel's total: the direct part
@@ -366,6 +407,27 @@ fn pixel_harmonics(
         return Err(LeakFlag::Saturated);
     }
     Ok(h)
+}
+
+/// The mean over the shifts per channel (summed as [`pixel_harmonics`] sums it), or the flag
+/// that stops the pixel.
+fn pixel_mean(raws: &[&[f32]], i: usize, params: &LeakParams) -> Result<[f32; 3], LeakFlag> {
+    let mut mean = [0.0f32; 3];
+    let mut saturated = false;
+    for raw in raws {
+        for (c, m) in mean.iter_mut().enumerate() {
+            let v = raw[i * 3 + c];
+            if !v.is_finite() {
+                return Err(LeakFlag::NonFinite);
+            }
+            saturated |= v >= params.saturation;
+            *m += v / raws.len() as f32;
+        }
+    }
+    if saturated {
+        return Err(LeakFlag::Saturated);
+    }
+    Ok(mean)
 }
 
 fn separate_pixel(
@@ -636,22 +698,32 @@ mod tests {
         }
     }
 
-    #[test]
-    fn narrow_kernels_saturation_and_garbage_are_flagged_never_nan() {
+    /// Skin-like frames with a saturated pixel (1), a NaN (2) and an out-of-range one (5).
+    fn garbled_frames() -> Vec<Rgb32FImage> {
         let scene = skin_like(Kernel::Gaussian(1.0));
         let mut frames = scene.frames(6);
         frames[0].put_pixel(1, 0, image::Rgb([1.0, 0.5, 0.5]));
         frames[2].put_pixel(2, 0, image::Rgb([f32::NAN, 0.1, 0.1]));
         frames[3].put_pixel(5, 0, image::Rgb([-3.0, f32::MAX, 0.0]));
+        frames
+    }
+
+    fn garbled_params() -> LeakParams {
+        LeakParams {
+            black_level: 0.02,
+            blur_px: 0.6,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn narrow_kernels_saturation_and_garbage_are_flagged_never_nan() {
+        let frames = garbled_frames();
         let refs: Vec<&Rgb32FImage> = frames.iter().collect();
         let mut leaks = vec![[0.5f32; 3]; 6];
         leaks[3] = [0.99, 0.2, 0.2];
         leaks[4] = [f32::INFINITY, 0.0, 0.0];
-        let params = LeakParams {
-            black_level: 0.02,
-            blur_px: 0.6,
-            ..Default::default()
-        };
+        let params = garbled_params();
         let sep = separate_with_leak(&refs, &leaks, &params).unwrap();
         assert_eq!(sep.flags[1], LeakFlag::Saturated);
         assert_eq!(sep.flags[2], LeakFlag::NonFinite);
@@ -664,6 +736,35 @@ mod tests {
         assert_eq!(sep.stats.narrow_kernel_pixels, 1);
         for v in sep.direct.as_raw().iter().chain(sep.global.as_raw()) {
             assert!(v.is_finite() && *v >= 0.0, "{v}");
+        }
+    }
+
+    #[test]
+    fn stripe_totals_are_the_zero_leak_splits_totals_and_flags() {
+        let frames = garbled_frames();
+        let refs: Vec<&Rgb32FImage> = frames.iter().collect();
+        let params = garbled_params();
+        let (w, h) = frames[0].dimensions();
+        let zero = vec![[0.0f32; 3]; (w * h) as usize];
+        let split = separate_with_leak(&refs, &zero, &params).unwrap();
+        let totals = stripe_totals(&refs, &params).unwrap();
+        assert_eq!(totals.flags, split.flags);
+        assert_eq!(totals.stats.saturated_pixels, split.stats.saturated_pixels);
+        assert_eq!(
+            totals.stats.non_finite_pixels,
+            split.stats.non_finite_pixels
+        );
+        assert!(totals.direct.iter().all(|v| *v == 0.0));
+        for ((d, g), t) in split
+            .direct
+            .iter()
+            .zip(split.global.iter())
+            .zip(totals.global.iter())
+        {
+            assert!(
+                (d + g - t).abs() <= 1e-6 * t.max(1e-3),
+                "{d} + {g} against {t}"
+            );
         }
     }
 

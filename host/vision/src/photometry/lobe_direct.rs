@@ -217,7 +217,7 @@ struct IncidenceBands {
 
 impl IncidenceBands {
     fn new(views: &[ProjectorView], params: &LobeDirectParams) -> Self {
-        let mut cosines: Vec<f32> = views
+        let cosines: Vec<f32> = views
             .iter()
             .flat_map(|v| {
                 v.lobes
@@ -226,12 +226,9 @@ impl IncidenceBands {
                     .filter_map(|(l, u)| l.filter(|_| *u).map(|l| l.cos_incidence))
             })
             .collect();
-        cosines.sort_unstable_by(f32::total_cmp);
-        let bands = params.incidence_bands.max(1);
-        let edges = (1..bands)
-            .filter_map(|b| cosines.get(b * cosines.len() / bands).copied())
-            .collect();
-        Self { edges }
+        Self {
+            edges: band_edges(cosines, params.incidence_bands.max(1)),
+        }
     }
 
     fn count(&self) -> usize {
@@ -285,6 +282,29 @@ impl IncidenceBands {
         colours.push(all);
         Some(colours)
     }
+}
+
+/// The values of `values` at ranks `b * len / bands` for `b` in `1..bands`: the edges of
+/// `bands` bands with equal numbers of values. Each is selected in what lies above the last
+/// (the same values a sort gives, in linear time: sorting the 2.4 million cosines of a
+/// full-size capture took about 0.15 s).
+fn band_edges(mut values: Vec<f32>, bands: usize) -> Vec<f32> {
+    let len = values.len();
+    let mut edges = Vec::with_capacity(bands.saturating_sub(1));
+    let (mut rest, mut offset) = (values.as_mut_slice(), 0);
+    for index in (1..bands).map(|b| b * len / bands).filter(|&i| i < len) {
+        // With fewer values than bands two edges may be the same rank.
+        if let Some(&last) = edges.last()
+            && index < offset
+        {
+            edges.push(last);
+            continue;
+        }
+        let (_, edge, above) = rest.select_nth_unstable_by(index - offset, f32::total_cmp);
+        edges.push(*edge);
+        (rest, offset) = (above, index + 1);
+    }
+    edges
 }
 
 /// The least-squares scale of the lobes to the colour estimates of the usable pixels with a lobe.
@@ -484,5 +504,26 @@ mod tests {
         // The head-on band is the reddest.
         let bands = &fit.body_colours;
         assert!(bands[bands.len() - 2][0] > bands[0][0], "{bands:?}");
+    }
+    #[test]
+    fn band_edges_are_the_ranks_a_sort_gives() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        for len in [0, 1, 2, 3, 5, 17, 1000] {
+            for bands in [1, 2, 4, 7] {
+                // Few distinct values, so ties occur.
+                let values: Vec<f32> = (0..len).map(|_| f32::from(rng.gen_range(0u8..9))).collect();
+                let mut sorted = values.clone();
+                sorted.sort_unstable_by(f32::total_cmp);
+                let expected: Vec<f32> = (1..bands)
+                    .filter_map(|b| sorted.get(b * len / bands).copied())
+                    .collect();
+                assert_eq!(
+                    band_edges(values, bands),
+                    expected,
+                    "len {len}, bands {bands}"
+                );
+            }
+        }
     }
 }

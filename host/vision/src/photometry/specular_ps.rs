@@ -127,16 +127,45 @@ impl HalfVector {
 
     /// [`specular_shading`] at normal `n`.
     fn shading(&self, n: &Vector3<f64>, l: &Vector3<f64>, v: &Vector3<f64>, alpha: f64) -> f64 {
-        let (cos_l, cos_v) = (n.dot(l), n.dot(v));
-        if cos_l <= 0.0 || cos_v <= 0.0 {
+        self.shading_seen_from(n, l, &ViewTerms::new(n, v, alpha), alpha)
+    }
+
+    /// [`Self::shading`] with the view's terms at `n` given: they are the same for every light,
+    /// so the refinement computes them once per normal (same values, bit for bit).
+    fn shading_seen_from(
+        &self,
+        n: &Vector3<f64>,
+        l: &Vector3<f64>,
+        view: &ViewTerms,
+        alpha: f64,
+    ) -> f64 {
+        let cos_l = n.dot(l);
+        if cos_l <= 0.0 || view.cos_v <= 0.0 {
             return 0.0;
         }
         let value = self.reflectance
             * ggx(n.dot(&self.h).max(0.0), alpha)
             * smith_g1(cos_l, alpha)
-            * smith_g1(cos_v, alpha)
-            / (4.0 * cos_v);
+            * view.masking
+            / (4.0 * view.cos_v);
         if value.is_finite() { value } else { 0.0 }
+    }
+}
+
+/// The view direction's terms of the lobe at one normal.
+struct ViewTerms {
+    cos_v: f64,
+    /// Smith's masking of the view direction.
+    masking: f64,
+}
+
+impl ViewTerms {
+    fn new(n: &Vector3<f64>, v: &Vector3<f64>, alpha: f64) -> Self {
+        let cos_v = n.dot(v);
+        Self {
+            cos_v,
+            masking: smith_g1(cos_v, alpha),
+        }
     }
 }
 
@@ -190,6 +219,7 @@ fn shading_parts(
     data: &PixelData,
     k: usize,
     n: &Vector3<f64>,
+    view: &ViewTerms,
     params: &SpecularParams,
     normal_incidence: f64,
 ) -> (f64, f64) {
@@ -201,7 +231,7 @@ fn shading_parts(
     }
     let diffuse = cos * fresnel_transmittance(cos, params.transmission.eta) / normal_incidence;
     let specular = half.map_or(0.0, |h| {
-        h.shading(n, &light.direction, &data.view, params.roughness)
+        h.shading_seen_from(n, &light.direction, view, params.roughness)
     });
     (irradiance * diffuse, irradiance * specular)
 }
@@ -219,8 +249,9 @@ fn residuals(
     let (mut aa, mut ab, mut bb) = (0.0, 0.0, 0.0);
     let (mut ay, mut by) = ([0.0f64; 3], [0.0f64; 3]);
     let mut parts = [(0.0, 0.0); 16];
+    let view = ViewTerms::new(n, &data.view, params.roughness);
     for k in indices(data.set) {
-        let (a, b) = shading_parts(data, k, n, params, normal_incidence);
+        let (a, b) = shading_parts(data, k, n, &view, params, normal_incidence);
         *parts.get_mut(k)? = (a, b);
         aa += a * a;
         ab += a * b;
@@ -249,12 +280,14 @@ fn residuals(
         specular = 0.0;
     }
     let albedo = ay.map(|y| (y - ab * specular) / aa);
+    let root_weights = w.map(f64::sqrt);
     let mut cost = 0.0;
     out.clear();
     for k in indices(data.set) {
         let (a, b) = parts[k];
         for (c, rho) in albedo.iter().enumerate() {
-            let residual = w[c].sqrt() * (f64::from(data.readings[k][c]) - rho * a - specular * b);
+            let residual =
+                root_weights[c] * (f64::from(data.readings[k][c]) - rho * a - specular * b);
             out.push(residual);
             cost += residual * residual;
         }
@@ -286,16 +319,17 @@ fn refine(
 ) -> Option<(Vector3<f64>, LinearFit)> {
     const STEP: f64 = 1e-4;
     let (mut r0, mut rp, mut rc) = (Vec::new(), Vec::new(), Vec::new());
+    let mut jacobian: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
     let mut n = start;
     let mut fit = residuals(data, &n, params, normal_incidence, &mut r0)?;
     let mut lambda = 1e-3;
     for _ in 0..params.iterations {
         let (t1, t2) = tangents(&n);
-        let mut jacobian: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
         for (column, t) in jacobian.iter_mut().zip([t1, t2]) {
             let moved = (n + t * STEP).normalize();
             residuals(data, &moved, params, normal_incidence, &mut rp)?;
-            *column = rp.iter().zip(&r0).map(|(p, q)| (p - q) / STEP).collect();
+            column.clear();
+            column.extend(rp.iter().zip(&r0).map(|(p, q)| (p - q) / STEP));
         }
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
         let jtj = Matrix2::new(

@@ -83,27 +83,46 @@ pub(super) struct PreparedFigures {
     profiles_plot: LinePlot,
 }
 
-/// The figures' data from the profiles: Fig. 10's measured slit and the pixel profiles' plot
-/// (drawn from `layers`, the model's layers).
-#[allow(clippy::too_many_arguments)] // the profiles' parts, each borrowed for this moment only
-pub(super) fn prepare_figures(
+/// Fig. 10's projector (the held-out one, else the first training projector) and its measured
+/// slit light: taken before the EM, so the projectors' images it is extracted from can be freed
+/// for the rest of the fit.
+pub(super) fn fig10_measured(
     ctx: &StageContext,
+    inputs: &ProfileInputs,
+    holdout: Option<usize>,
+    training: &[usize],
+) -> Result<Fig10Measured, FitStageError> {
+    let projector = holdout.unwrap_or(training[0]);
+    let slit = fig10_slit(&ctx.capture.manifest.booth.patterns);
+    Ok(Fig10Measured {
+        projector,
+        slit: measured_slit_global(ctx, inputs, projector, &slit)?,
+    })
+}
+
+/// Fig. 10's projector and its measured slit light (`None` when it cannot be extracted).
+pub(super) struct Fig10Measured {
+    projector: usize,
+    slit: Option<Vec<[f32; 3]>>,
+}
+
+/// The figures' data from the profiles: Fig. 10's measured slit ([`fig10_measured`]) and the
+/// pixel profiles' plot (drawn from `layers`, the model's layers).
+pub(super) fn prepare_figures(
     inputs: &ProfileInputs,
     record: &ProfilesRecord,
     layers: &LayerModel,
-    holdout: Option<usize>,
+    fig10: Fig10Measured,
     training: &[usize],
-    sweeps: &[SlitSweep],
-    geometries: &[Vec<Option<PixelGeometry>>],
-) -> Result<PreparedFigures, FitStageError> {
+    profiles: (&[SlitSweep], &[Vec<Option<PixelGeometry>>]),
+) -> PreparedFigures {
     let scanline = Scanline::new(inputs, record);
-    let projector = holdout.unwrap_or(training[0]);
-    let slit = fig10_slit(&ctx.capture.manifest.booth.patterns);
-    Ok(PreparedFigures {
-        projector,
-        measured_slit: measured_slit_global(ctx, inputs, projector, &slit)?,
+    let (sweeps, geometries) = profiles;
+    PreparedFigures {
+        projector: fig10.projector,
+        measured_slit: fig10.slit,
         profiles_plot: pixel_profiles_plot(layers, training, sweeps, geometries, &scanline),
-    })
+    }
 }
 
 /// The slit Fig. 10 shows: vertical lines at offset 0.
@@ -191,8 +210,8 @@ fn fig10_plot(
 }
 
 /// Measured global light of projector `k`'s `slit`: the extracted global part when the
-/// projector's slits were loaded (training), else the frame itself minus the rendered direct
-/// part and the stray light.
+/// projector's slits are loaded as images, else extracted again from the frame the same way
+/// (the held-out projector, and the training ones once their slits are stacked for the fit).
 fn measured_slit_global(
     ctx: &StageContext,
     inputs: &ProfileInputs,

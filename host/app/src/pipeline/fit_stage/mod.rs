@@ -54,7 +54,9 @@ use mlsss_layer_model::model_file::{
     Baseline, FORMAT_VERSION, ModelFileError, ModelHeader, ProjectorLight, ProjectorPatterns,
     SubsurfaceModel, render_pattern_alone,
 };
-use mlsss_layer_model::profiles::{PixelGeometry, ProfileError, SlitSweep, pixel_geometry};
+use mlsss_layer_model::profiles::{
+    PixelGeometry, ProfileError, SlitStack, SlitSweep, pixel_geometry,
+};
 use mlsss_layer_model::relight::{direct_albedo, pattern_irradiance};
 use mlsss_layer_model::render::{LayerModel, RenderOptions, SplatLayer, extent};
 use mlsss_layer_model::shading_regression::{ShadingReport, refine_normals};
@@ -65,7 +67,7 @@ mod figures;
 
 #[cfg(test)]
 use figures::model_profile;
-use figures::{PreparedFigures, prepare_figures, write_figures};
+use figures::{PreparedFigures, fig10_measured, prepare_figures, write_figures};
 
 /// The fit stage.
 pub const STAGE: Stage = Stage {
@@ -177,7 +179,7 @@ pub enum FitStageError {
     #[error(
         "held-out check: projector {projector} shows no subsurface light under `{pattern}` where \
          it was decoded (black or missing frames?); its error would read 0 for every model. \
-         Check the capture, or pass --no-heldout-check"
+         Check the capture, or leave out --heldout-check"
     )]
     NothingToCompare { projector: usize, pattern: String },
     /// A parameter is out of range.
@@ -420,6 +422,12 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
 
     let t1 = Instant::now();
     let (geometries, shading) = training_geometry(&mut inputs, &training, params)?;
+    // What the model file and the figures take from the projectors' images (on the corrected
+    // normals), so the images are freed before the EM.
+    let products = ProjectorProducts::new(&inputs, &training);
+    let fig10 = fig10_measured(ctx, &inputs, params.holdout, &training)?;
+    release_projector_images(&mut inputs);
+    release_free_memory();
     let profiles = TrainingProfiles::new(&inputs, &training, geometries)?;
     let normals_s = t1.elapsed().as_secs_f64();
     let c_em = cpu_seconds();
@@ -434,21 +442,27 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     // What the figures need of the profiles, taken now: the profiles (the training slits and
     // their geometry, 1.4 GB at full size) are freed before the held-out renders and the save.
     let prepared = prepare_figures(
-        ctx,
         &inputs,
         &record,
         &layers,
-        params.holdout,
+        fig10,
         &training,
-        &profiles.sweeps,
-        &profiles.geometries,
-    )?;
+        (&profiles.sweeps, &profiles.geometries),
+    );
     drop(profiles);
     release_slits(&mut inputs);
     let inputs = inputs;
     release_free_memory();
 
-    let model = assemble(ctx, &inputs, params, &training, layers, dipole, &fit.stats)?;
+    let model = assemble(
+        ctx,
+        &inputs,
+        params,
+        &training,
+        (layers, dipole),
+        products,
+        &fit.stats,
+    )?;
     let t_heldout = Instant::now();
     let heldout = match (params.holdout, ctx.truth_dir(), params.heldout_check) {
         (Some(h), Some(t), true) => Some(heldout_errors(&model, h, &t)?),
@@ -534,6 +548,14 @@ fn load_training(
         .collect();
     if training.is_empty() {
         return Err(FitStageError::NoTrainingProjector);
+    }
+    // The other projectors' profile geometry (the held-out one's: 125 MB at full size) is never
+    // read by the fit.
+    let mut inputs = inputs;
+    for p in &mut inputs.projectors {
+        if !training.contains(&p.k) {
+            p.geometry = Vec::new();
+        }
     }
     Ok((inputs, training))
 }
@@ -683,6 +705,27 @@ fn save_and_draw(
 fn release_slits(inputs: &mut ProfileInputs) {
     for p in &mut inputs.projectors {
         p.slits = Vec::new();
+        p.stack = SlitStack::default();
+    }
+}
+
+/// Frees the projectors' images (separation, stray light; the coordinates stay, the stacked
+/// sweeps are checked against their size): once
+/// [`ProjectorProducts`] and Fig. 10's measured slit are taken nothing reads them (at full size
+/// ~0.4 GB the EM, the prior beside the dipole, the held-out renders and the save no longer sit
+/// on). The training projectors' profile geometry is moved out before; any left is dropped.
+fn release_projector_images(inputs: &mut ProfileInputs) {
+    for p in &mut inputs.projectors {
+        for image in [
+            &mut p.direct_white,
+            &mut p.global_white,
+            &mut p.separation_direct,
+            &mut p.separation_global,
+            &mut p.stray,
+        ] {
+            *image = Vec::new();
+        }
+        p.geometry = Vec::new();
     }
 }
 
@@ -705,14 +748,62 @@ fn fill_unfitted(model: &LayerModel, fitted: &[bool], mask: &[bool]) -> (LayerMo
     (out, filled)
 }
 
+/// What the model file takes from the projectors' images: the direct and the white albedo (from
+/// the training projectors' white frames) and every projector's visibility.
+struct ProjectorProducts {
+    albedo: Vec<[f32; 3]>,
+    white_albedo: Vec<[f32; 3]>,
+    visibility: Vec<Vec<bool>>,
+}
+
+impl ProjectorProducts {
+    fn new(inputs: &ProfileInputs, training: &[usize]) -> Self {
+        let surface = &inputs.surface;
+        let white_irradiance: Vec<Vec<f32>> = training
+            .iter()
+            .map(|&k| {
+                let p = &inputs.projectors[k];
+                pattern_irradiance(surface, &p.view(), &Pattern::White, p.black_level, 0.0)
+            })
+            .collect();
+        let direct: Vec<&[[f32; 3]]> = training
+            .iter()
+            .map(|&k| inputs.projectors[k].direct_white.as_slice())
+            .collect();
+        let albedo = direct_albedo(&white_irradiance, &direct);
+        let totals: Vec<Vec<[f32; 3]>> = training
+            .iter()
+            .map(|&k| {
+                let p = &inputs.projectors[k];
+                p.separation_direct
+                    .iter()
+                    .zip(&p.separation_global)
+                    .map(|(d, g)| [d[0] + g[0], d[1] + g[1], d[2] + g[2]])
+                    .collect()
+            })
+            .collect();
+        let total_refs: Vec<&[[f32; 3]]> = totals.iter().map(Vec::as_slice).collect();
+        let white_albedo = direct_albedo(&white_irradiance, &total_refs);
+        Self {
+            albedo,
+            white_albedo,
+            visibility: inputs
+                .projectors
+                .iter()
+                .map(|p| p.coords.iter().map(Option::is_some).collect())
+                .collect(),
+        }
+    }
+}
+
 /// The model file's content.
 fn assemble(
     ctx: &StageContext,
     inputs: &ProfileInputs,
     params: &FitParams,
     training: &[usize],
-    layers: LayerModel,
-    dipole: Option<LayerModel>,
+    (layers, dipole): (LayerModel, Option<LayerModel>),
+    products: ProjectorProducts,
     stats: &mlsss_layer_model::fit::FitStats,
 ) -> Result<SubsurfaceModel, FitStageError> {
     let surface = &inputs.surface;
@@ -720,31 +811,11 @@ fn assemble(
         .calibration
         .cloned()
         .ok_or(FitStageError::NoTrainingProjector)?;
-    let white_irradiance: Vec<Vec<f32>> = training
-        .iter()
-        .map(|&k| {
-            let p = &inputs.projectors[k];
-            pattern_irradiance(surface, &p.view(), &Pattern::White, p.black_level, 0.0)
-        })
-        .collect();
-    let direct: Vec<&[[f32; 3]]> = training
-        .iter()
-        .map(|&k| inputs.projectors[k].direct_white.as_slice())
-        .collect();
-    let albedo = direct_albedo(&white_irradiance, &direct);
-    let totals: Vec<Vec<[f32; 3]>> = training
-        .iter()
-        .map(|&k| {
-            let p = &inputs.projectors[k];
-            p.separation_direct
-                .iter()
-                .zip(&p.separation_global)
-                .map(|(d, g)| [d[0] + g[0], d[1] + g[1], d[2] + g[2]])
-                .collect()
-        })
-        .collect();
-    let total_refs: Vec<&[[f32; 3]]> = totals.iter().map(Vec::as_slice).collect();
-    let white_albedo = direct_albedo(&white_irradiance, &total_refs);
+    let ProjectorProducts {
+        albedo,
+        white_albedo,
+        visibility,
+    } = products;
     let model = SubsurfaceModel {
         header: ModelHeader {
             format_version: FORMAT_VERSION,
@@ -775,11 +846,7 @@ fn assemble(
         surface: surface.clone(),
         albedo,
         white_albedo,
-        visibility: inputs
-            .projectors
-            .iter()
-            .map(|p| p.coords.iter().map(Option::is_some).collect())
-            .collect(),
+        visibility,
         layers,
         dipole,
     };

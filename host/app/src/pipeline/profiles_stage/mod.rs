@@ -25,6 +25,7 @@
 //! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless,auto}` (each
 //! rule of [`DirectPart`]).
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Point3, Vector3};
@@ -41,7 +42,7 @@ use mlsss_core::calibration::DeviceCalibration;
 use mlsss_core::capture::{Axis, CaptureError, FrameNoise, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_layer_model::profiles::{
-    Falloff, PixelGeometry, ProfileError, ProjectorIllumination, SlitFrame, SlitSweep,
+    Falloff, PixelGeometry, ProfileError, ProjectorIllumination, SlitFrame, SlitStack, SlitSweep,
     pixel_geometry,
 };
 use mlsss_layer_model::slit_global::{SlitGlobalError, WhiteSeparation, slit_global};
@@ -409,8 +410,11 @@ pub struct ProjectorInputs {
     /// ([`ProfileWeights::Information`]).
     pub noise: Option<FrameNoise>,
     /// Global part of each slit frame, in capture order; empty when the slits were not asked
-    /// for.
+    /// for, or once moved into `stack`.
     pub slits: Vec<SlitGlobal>,
+    /// The same slit light at the pixels with projector coordinates only, for the fit
+    /// ([`ProjectorInputs::stack_slits`]; empty until then).
+    pub stack: SlitStack,
     /// Per-pixel profile geometry (`None`: off the subject, undecoded, facing away).
     pub geometry: Vec<Option<PixelGeometry>>,
 }
@@ -425,21 +429,73 @@ impl ProjectorInputs {
         }
     }
 
-    /// The slit sweep over this projector's global slit frames.
+    /// The slit sweep over this projector's global slit frames (from `stack` once the slits
+    /// are stacked).
     pub fn sweep(&self) -> Result<SlitSweep<'_>, ProfileError> {
-        let frames: Vec<SlitFrame> = self
-            .slits
+        let sweep = if self.slits.is_empty() && !self.stack.patterns().is_empty() {
+            SlitSweep::from_stack(&self.stack, self.coords.len())?
+        } else {
+            SlitSweep::new(&self.slit_frames(), self.coords.len())?
+        };
+        Ok(match self.noise {
+            Some(noise) => sweep.with_noise(noise),
+            None => sweep,
+        })
+    }
+
+    fn slit_frames(&self) -> Vec<SlitFrame<'_>> {
+        self.slits
             .iter()
             .map(|(pattern, global)| SlitFrame {
                 pattern: *pattern,
                 global,
             })
-            .collect();
-        let sweep = SlitSweep::new(&frames, self.coords.len())?;
-        Ok(match self.noise {
-            Some(noise) => sweep.with_noise(noise),
-            None => sweep,
-        })
+            .collect()
+    }
+
+    /// Moves the slits' global light into `stack` at the pixels `keep` accepts (or, already
+    /// stacked, keeps only those): held as camera-sized images the slits were 1.4 GB of the
+    /// profiles stage's peak at full size (every projector's) and 1 GB of the fit's (the
+    /// training ones, held through the EM, the spatial prior and the dipole baseline).
+    pub fn stack_slits(&mut self, keep: impl Fn(usize) -> bool) -> Result<(), ProfileError> {
+        self.stack = if self.slits.is_empty() {
+            self.stack.restrict(keep)
+        } else {
+            SlitStack::new(&self.slit_frames(), self.coords.len(), keep)?
+        };
+        self.slits = Vec::new();
+        Ok(())
+    }
+
+    /// Slit frames loaded (as images or stacked).
+    pub fn slit_count(&self) -> usize {
+        if self.slits.is_empty() {
+            self.stack.patterns().len()
+        } else {
+            self.slits.len()
+        }
+    }
+
+    /// Slit frame `j` (capture order) as a camera-sized image: zero at the pixels the stack does
+    /// not hold once stacked.
+    pub fn slit_image(&self, j: usize) -> Option<(Pattern, Cow<'_, [[f32; 3]]>)> {
+        if let Some((pattern, global)) = self.slits.get(j) {
+            return Some((*pattern, Cow::Borrowed(global.as_slice())));
+        }
+        if !self.slits.is_empty() {
+            return None;
+        }
+        let pattern = *self.stack.patterns().get(j)?;
+        Some((pattern, Cow::Owned(self.stack.frame(j)?)))
+    }
+
+    /// The patterns of the loaded slit frames, in capture order.
+    pub fn slit_patterns(&self) -> Vec<Pattern> {
+        if self.slits.is_empty() {
+            self.stack.patterns().to_vec()
+        } else {
+            self.slits.iter().map(|(p, _)| *p).collect()
+        }
     }
 }
 
@@ -551,24 +607,30 @@ fn projected_coords(
 }
 
 impl ProfileInputs {
-    /// What the profiles stage of this run handed over (every projector's slits; those not in
-    /// `with_slits` are dropped), else [`ProfileInputs::load`].
+    /// What the profiles stage of this run handed over, else [`ProfileInputs::load`]: the slits
+    /// of the projectors in `with_slits` stacked ([`ProjectorInputs::stack_slits`]), the others'
+    /// dropped.
     pub fn take_or_load(
         ctx: &StageContext,
         params: &ProfilesParams,
         with_slits: &[usize],
     ) -> Result<Self, ProfilesStageError> {
-        match ctx.take_handed_over::<ProfileInputs>(STAGE.name) {
-            Some(mut inputs) if inputs.params == *params => {
-                for p in &mut inputs.projectors {
-                    if !with_slits.contains(&p.k) {
-                        p.slits = Vec::new();
-                    }
-                }
-                Ok(inputs)
+        let mut inputs = match ctx.take_handed_over::<ProfileInputs>(STAGE.name) {
+            Some(inputs) if inputs.params == *params => inputs,
+            _ => Self::load(ctx, params, with_slits)?,
+        };
+        for p in &mut inputs.projectors {
+            if with_slits.contains(&p.k) {
+                // Down to the pixels with projector coordinates: a profile geometry needs them.
+                let coords = std::mem::take(&mut p.coords);
+                p.stack_slits(|i| coords[i].is_some())?;
+                p.coords = coords;
+            } else {
+                p.slits = Vec::new();
+                p.stack = SlitStack::default();
             }
-            _ => Self::load(ctx, params, with_slits),
         }
+        Ok(inputs)
     }
 
     /// Rebuilds the profiles' inputs from the cached artefacts: the surface, every projector's
@@ -653,11 +715,15 @@ impl ProfileInputs {
                     ProfileWeights::Equal => None,
                 },
                 slits: Vec::new(),
+                stack: SlitStack::default(),
                 coords,
                 geometry,
             };
             if with_slits.contains(&k) {
                 inputs.slits = slit_globals(ctx, &inputs, inputs.blur_px)?;
+                // Stacked at once, so only one projector's slits are ever held as images; at
+                // every subject pixel, which is all the truth check and the plot read.
+                inputs.stack_slits(|i| surface.mask[i])?;
             }
             projectors.push(inputs);
         }
@@ -759,11 +825,12 @@ pub fn scanline(surface: &Surface) -> (usize, (usize, usize)) {
     )
 }
 
-/// The first vertical slit (offset 0) of a sweep, the pattern the plots show.
-pub fn reference_slit(slits: &[SlitGlobal]) -> Option<&SlitGlobal> {
-    slits
+/// Index of the first vertical slit (offset 0) of a sweep's `patterns`, the pattern the plots
+/// show (else the first).
+pub fn reference_slit(patterns: &[Pattern]) -> Option<usize> {
+    patterns
         .iter()
-        .find(|(p, _)| {
+        .position(|p| {
             matches!(
                 p,
                 Pattern::Slit {
@@ -773,7 +840,7 @@ pub fn reference_slit(slits: &[SlitGlobal]) -> Option<&SlitGlobal> {
                 }
             )
         })
-        .or_else(|| slits.first())
+        .or_else(|| (!patterns.is_empty()).then_some(0))
 }
 
 /// The simulator's global part of a slit alone at full level: `(G_slit - b G_white) / (1 - b)`
@@ -870,7 +937,7 @@ fn run_profiles(
         per_projector.push(ProjectorProfilesReport {
             projector: p.k,
             pixels_with_profiles: p.geometry.iter().filter(|g| g.is_some()).count(),
-            slit_frames: p.slits.len(),
+            slit_frames: p.slit_count(),
             blur_px: f64::from(p.blur_px),
             black_level: f64::from(p.black_level),
             direct_fraction_median,
@@ -968,17 +1035,21 @@ fn truth_check(
                 }
             })
             .collect();
-        let per_slit = p
-            .slits
-            .par_iter()
+        // Only the slits with a truth image are made into images again (two of twenty in a
+        // simulated capture).
+        let patterns = p.slit_patterns();
+        let per_slit = (0..patterns.len())
+            .into_par_iter()
+            .filter(|&j| truth::global(truth_dir, p.k, &patterns[j]).is_file())
+            .filter_map(|j| p.slit_image(j))
             .map(|(pattern, global)| {
                 check_slit(
                     ctx,
                     inputs,
                     p,
                     &splits,
-                    pattern,
-                    global,
+                    &pattern,
+                    &global,
                     &white_truth,
                     truth_dir,
                     size,
@@ -1058,9 +1129,11 @@ fn write_scanline_plot(
     let Some(p) = inputs.projectors.get(record.params.scanline_projector) else {
         return Ok(());
     };
-    let Some((pattern, global)) = reference_slit(&p.slits) else {
+    let Some((pattern, global)) = reference_slit(&p.slit_patterns()).and_then(|j| p.slit_image(j))
+    else {
         return Ok(());
     };
+    let pattern = &pattern;
     let (row, (c0, c1)) = (record.scanline_row, record.scanline_columns);
     let w = inputs.surface.width;
     let along = |img: &[[f32; 3]]| -> Vec<(f64, f64)> {
@@ -1073,7 +1146,7 @@ fn write_scanline_plot(
         label: "measured global (R)".into(),
         colour: [200, 30, 30],
         mark: Mark::Line,
-        points: along(global),
+        points: along(&global),
     }];
     if let Some(t) = truth_dir
         && let Some(truth) = true_slit_global(t, p.k, pattern, p.black_level, size)?

@@ -15,7 +15,9 @@
 
 use rayon::prelude::*;
 
-use super::{BitPair, DecodeParams};
+#[cfg(test)]
+use super::BitPair;
+use super::DecodeParams;
 
 /// How the projector's light shows at a pixel.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -34,14 +36,16 @@ pub(super) enum Lighting {
 pub(super) const BLOCK: usize = 2048;
 
 /// The lighting of every pixel from the code pairs of both axes (and white/black if present).
+/// The decoder computes it in [`super::bits::first_pass`], with the bits, in one read of the
+/// frames; this is the reference of the tests.
+#[cfg(test)]
 pub(super) fn classify_lighting(
     pairs: &[&BitPair],
     white_black: Option<(&[f32], &[f32])>,
     params: &DecodeParams,
 ) -> Vec<Lighting> {
     let terms = pairs.len() + usize::from(white_black.is_some());
-    let lit_level = chi_square_quantile(terms, params.lit_false_alarm as f64);
-    let dim_level = chi_square_quantile(terms, params.dim_false_alarm as f64);
+    let levels = LitLevels::new(terms, params);
     let n = pairs
         .first()
         .map(|p| p.pattern.len())
@@ -63,19 +67,41 @@ pub(super) fn classify_lighting(
                 add_chi_square(sum, white, black, range, params);
             }
             for (l, &s) in out.iter_mut().zip(sum.iter()) {
-                *l = if s >= lit_level {
-                    Lighting::Lit
-                } else if s >= dim_level {
-                    Lighting::Dim
-                } else {
-                    Lighting::Unlit
-                };
+                *l = levels.classify(s);
             }
         });
     lighting
 }
 
 /// Adds `pair_chi_square(a[i], b[i])` for `i` in `range` to `sum[i - range.start]`.
+/// The chi-square levels of the lit and dim calls for `terms` pair differences.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct LitLevels {
+    lit: f64,
+    dim: f64,
+}
+
+impl LitLevels {
+    pub(super) fn new(terms: usize, params: &DecodeParams) -> Self {
+        Self {
+            lit: chi_square_quantile(terms, params.lit_false_alarm as f64),
+            dim: chi_square_quantile(terms, params.dim_false_alarm as f64),
+        }
+    }
+
+    /// The lighting of a pixel whose chi-square sum is `s`.
+    pub(super) fn classify(&self, s: f64) -> Lighting {
+        if s >= self.lit {
+            Lighting::Lit
+        } else if s >= self.dim {
+            Lighting::Dim
+        } else {
+            Lighting::Unlit
+        }
+    }
+}
+
+#[cfg(test)]
 fn add_chi_square(
     sum: &mut [f64],
     a: &[f32],
@@ -147,7 +173,7 @@ pub(super) fn demote_partly_lit(
 }
 
 /// `(a - b)^2 / var(a - b)` under the sensor noise model.
-fn pair_chi_square(a: f32, b: f32, params: &DecodeParams) -> f64 {
+pub(super) fn pair_chi_square(a: f32, b: f32, params: &DecodeParams) -> f64 {
     let d = (a - b) as f64;
     d * d / pair_variance(a, b, params)
 }

@@ -49,8 +49,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use axis::{Grid, decode_axis};
-use bits::decide_bits;
-use lit_test::{classify_lighting, demote_partly_lit};
+use bits::{first_pass, mask_unlit};
+use lit_test::demote_partly_lit;
 use mlsss_core::capture::FrameNoise;
 
 /// Errors of the Gray-code decoder.
@@ -416,12 +416,12 @@ pub fn decode(
         width: frames.width as usize,
         height: frames.height as usize,
     };
-    let all_pairs: Vec<&BitPair> = frames.x.iter().chain(&frames.y).collect();
     let white_black = match (&frames.white, &frames.black) {
         (Some(w), Some(b)) => Some((w.as_slice(), b.as_slice())),
         _ => None,
     };
-    let mut lighting = classify_lighting(&all_pairs, white_black, params);
+    let (mut lighting, (mut u_bits, mut u_conf), (mut v_bits, mut v_conf)) =
+        first_pass(&frames.x, &frames.y, white_black, &amplitude, params);
     demote_partly_lit(
         &mut lighting,
         &amplitude,
@@ -429,8 +429,8 @@ pub fn decode(
         params.window_radius as usize,
         params.min_neighbour_ratio,
     );
-    let (u_bits, u_conf) = decide_bits(&frames.x, &amplitude, &lighting, params);
-    let (v_bits, v_conf) = decide_bits(&frames.y, &amplitude, &lighting, params);
+    mask_unlit(&mut u_bits, &mut u_conf, &lighting);
+    mask_unlit(&mut v_bits, &mut v_conf, &lighting);
     let u = decode_axis(
         grid,
         &u_bits,

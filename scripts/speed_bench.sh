@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# The speed targets of the project in one sitting (issue 19): the Monte Carlo against MCML itself,
+# the full-size booth simulated from an empty cache and processed, the quick demo from a cold
+# cache, and every stage against its peer. Prints each figure as it comes and a summary at the
+# end (wall, CPU = user + sys, peak memory from GNU time; the load average beside each, since a
+# shared machine's wall times drift).
+#
+#   scripts/speed_bench.sh PATH/TO/gpumcml/cpumcml [OUT]
+#
+# PATH/TO/gpumcml/cpumcml: the `cpumcml/` folder of the public repository ominux/gpumcml (never
+# committed here: no licence; see host/monte-carlo/benches/mcml_race.py). OUT (default
+# target/speed-bench) receives the captures and outputs (about 3 GB). SKIP_PEERS=1 leaves out the
+# peers (they need a venv from PyPI, PEERS_VENV=DIR reuses one); SKIP_MCML=1 the MCML race.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+MCML=${1:?usage: scripts/speed_bench.sh PATH/TO/gpumcml/cpumcml [OUT]}
+OUT=${2:-target/speed-bench}
+command -v /usr/bin/time >/dev/null || { echo "error: GNU time (/usr/bin/time) is missing: apt-get install time" >&2; exit 1; }
+cargo build --release -q -p mlsss
+BIN=target/release/mlsss
+rm -rf "$OUT" && mkdir -p "$OUT"
+SUMMARY="$OUT/summary.txt"
+
+# timed NAME COMMAND...: runs COMMAND under GNU time, appends wall, CPU and peak to the summary.
+timed() {
+    local name=$1
+    shift
+    local load
+    load=$(cut -d' ' -f1 /proc/loadavg)
+    /usr/bin/time -f "%e %U %S %M" -o "$OUT/$name.time" "$@" > "$OUT/$name.json" 2> "$OUT/$name.err"
+    awk -v name="$name" -v load="$load" '{ printf "%-16s %8.1f s wall %8.1f s CPU %6.2f GB peak   (load %s)\n",
+        name, $1, $2 + $3, $4 / 1048576, load }' "$OUT/$name.time" | tee -a "$SUMMARY"
+}
+
+echo "== speed bench, $(git rev-parse --short HEAD), $(date -u +%FT%TZ), $(nproc) cores" | tee "$SUMMARY"
+if [ "${SKIP_MCML:-}" != 1 ]; then
+    echo "-- Monte Carlo against MCML (per CPU second, one thread each)" | tee -a "$SUMMARY"
+    python3 host/monte-carlo/benches/mcml_race.py "$MCML" --photons 100000 --rounds 3 \
+        --mlsss "$BIN" | tee -a "$SUMMARY"
+fi
+echo "-- full-size booth (268 frames, 1379x1029), empty Monte Carlo cache" | tee -a "$SUMMARY"
+timed simulate_full "$BIN" simulate --subject head --skin I --seed 96 --cache "$OUT/cache" \
+    --out "$OUT/full" --json
+timed process_full "$BIN" process "$OUT/full" --calib truth --until fit --holdout 3 \
+    --components 4 --block 6 --out "$OUT/full-out" --json
+python3 - "$OUT/process_full.json" <<'EOF' | tee -a "$SUMMARY"
+import json, sys
+d = json.load(open(sys.argv[1]))
+stages = " ".join(f"{k} {v:.1f}" for k, v in d["timing_cpu_s"].items())
+print(f"   process stages, CPU s: {stages}")
+print(f"   separation direct error {d['separation']['direct_rel_rmse']:.4f}, normals {d['normals']['mean_angular_error_deg']:.3f} deg")
+EOF
+echo "-- quick demo, cold cache" | tee -a "$SUMMARY"
+timed demo_quick "$BIN" demo --quick --cache "$OUT/demo-cache" --out "$OUT/demo" --json
+if [ "${SKIP_PEERS:-}" != 1 ]; then
+    echo "-- stages against their peers (ratio = peer time / ours)" | tee -a "$SUMMARY"
+    scripts/peers.sh | tee -a "$SUMMARY"
+fi
+echo "== summary in $SUMMARY"
