@@ -326,7 +326,7 @@ impl HarmonicTable {
                         (re + v * cos, im - v * sin)
                     },
                 );
-                re.hypot(im)
+                phasor_magnitude(re, im)
             })
             .collect();
         Self {
@@ -462,7 +462,7 @@ fn separate_pixel(
             out.global[c] = total;
             continue;
         }
-        let contrast = h.re[c].hypot(h.im[c]) / ((1.0 - b) * h1);
+        let contrast = phasor_magnitude(h.re[c], h.im[c]) / ((1.0 - b) * h1);
         let direct = (contrast - lambda * total) / (1.0 - lambda);
         let kept = direct.clamp(0.0, total);
         out.clamped += u64::from(kept != direct);
@@ -470,6 +470,13 @@ fn separate_pixel(
         out.global[c] = total - kept;
     }
     out
+}
+
+/// `|re + i im|` through f64: the squares of f32 values can neither overflow nor underflow there,
+/// so the careful scaling of `f32::hypot` (a libm call, the largest cost of the slit leak's reading
+/// at full size when it was used there) buys nothing.
+pub(crate) fn phasor_magnitude(re: f32, im: f32) -> f32 {
+    (f64::from(re).powi(2) + f64::from(im).powi(2)).sqrt() as f32
 }
 
 #[cfg(test)]

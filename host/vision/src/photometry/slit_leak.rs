@@ -235,11 +235,7 @@ impl HarmonicPlan {
         if total <= 0.0 || !total.is_finite() {
             return None;
         }
-        // The magnitude in f64 rather than `f32::hypot`, which was the largest cost of the whole
-        // leak reading (full-size booth: 6 per pixel); the squares of f32 values cannot overflow
-        // or underflow in f64.
-        let magnitude =
-            |[re, im]: [f32; 2]| (f64::from(re).powi(2) + f64::from(im).powi(2)).sqrt() as f32;
+        let magnitude = |[re, im]: [f32; 2]| super::kernel_leak::phasor_magnitude(re, im);
         let transfer =
             |h: usize| (magnitude(sums[h]) / total / self.corrections[h]).clamp(1e-6, 1.0);
         let lower = if self.lower_is_mean { 1.0 } else { transfer(0) };
