@@ -26,6 +26,8 @@
 //! - `max`/`min` of noisy samples are biased (up and down by about 0.85 sigma with three samples per
 //!   level), which biases `Ld` up and `Lg` down by about 1.7 sigma of the frame noise.
 
+use std::mem::MaybeUninit;
+
 use image::Rgb32FImage;
 
 /// Errors of the separation.
@@ -162,35 +164,7 @@ pub fn separate(
     let raws: Vec<&[f32]> = frames.iter().map(|f| f.as_raw().as_slice()).collect();
     let shifts = ShiftTables::new(raws.len(), params);
     let n = w as usize * h as usize;
-    // 17 MB each at full size: on huge pages (4 KiB page faults were a large share of the time).
-    let mut direct = mlsss_core::resources::zeros_on_huge_pages(n * 3);
-    let mut global = mlsss_core::resources::zeros_on_huge_pages(n * 3);
-    let mut flags = vec![SeparationFlag::Ok; n];
-    let mut stats = SeparationStats {
-        pixels: n as u64,
-        ..Default::default()
-    };
-
-    use rayon::prelude::*;
-    // A band's frames and accumulators stay in the core's cache (4 rows of 1379 px: 66 KB per
-    // frame, 330 KB of accumulators).
-    const ROWS: usize = 4;
-    let chunk = ROWS * w as usize;
-    let partial: Vec<SeparationStats> = direct
-        .par_chunks_mut(chunk * 3)
-        .zip(global.par_chunks_mut(chunk * 3))
-        .zip(flags.par_chunks_mut(chunk))
-        .enumerate()
-        .map(|(ci, ((d, g), fl))| {
-            let extremes = BandExtremes::gather(&raws, ci * chunk, fl.len(), &shifts);
-            separate_band(&extremes, params, &shifts, d, g, fl)
-        })
-        .collect();
-    for s in partial {
-        stats.saturated_pixels += s.saturated_pixels;
-        stats.non_finite_pixels += s.non_finite_pixels;
-        stats.clamped_negative += s.clamped_negative;
-    }
+    let (direct, global, flags, stats) = separate_all(&raws, n, params, &shifts);
     let to_image =
         |v: Vec<f32>| Rgb32FImage::from_raw(w, h, v).unwrap_or_else(|| Rgb32FImage::new(w, h));
     Ok(Separation {
@@ -199,6 +173,236 @@ pub fn separate(
         flags,
         stats,
     })
+}
+
+/// Pixels per chunk of the parallel loop: a chunk's extremes (2 x 24 KB) and its six frame
+/// slices (6 x 24 KB) stay in the core's L2 cache while each frame is streamed through once.
+const CHUNK_PIXELS: usize = 2048;
+
+/// The outputs of [`separate`] for the `n` pixels of `raws`, chunk by chunk on every core. Why
+/// the outputs are written into uninitialised capacity: each of the two 17 MB outputs of a
+/// full-size separation was zeroed (`calloc`) and then overwritten, an extra pass over memory in
+/// a loop that is bound by memory traffic; now every value is written exactly once (the chunk
+/// kernels write each output value and flag of their chunk, flagged pixels included).
+fn separate_all(
+    raws: &[&[f32]],
+    n: usize,
+    params: &SeparationParams,
+    shifts: &ShiftTables,
+) -> (Vec<f32>, Vec<f32>, Vec<SeparationFlag>, SeparationStats) {
+    use rayon::prelude::*;
+    let mut direct: Vec<f32> = mlsss_core::resources::vec_on_huge_pages(n * 3);
+    let mut global: Vec<f32> = mlsss_core::resources::vec_on_huge_pages(n * 3);
+    let mut flags: Vec<SeparationFlag> = Vec::with_capacity(n);
+    let partial = direct.spare_capacity_mut()[..n * 3]
+        .par_chunks_mut(CHUNK_PIXELS * 3)
+        .zip(global.spare_capacity_mut()[..n * 3].par_chunks_mut(CHUNK_PIXELS * 3))
+        .zip(flags.spare_capacity_mut()[..n].par_chunks_mut(CHUNK_PIXELS))
+        .enumerate()
+        .map(|(ci, ((d, g), fl))| {
+            let first = ci * CHUNK_PIXELS;
+            if shifts.contrast.is_some() {
+                let extremes = BandExtremes::gather(raws, first, fl.len(), shifts);
+                separate_band(&extremes, params, shifts, d, g, fl)
+            } else {
+                separate_chunk_sharp_best(raws, first, params, d, g, fl)
+            }
+        })
+        .reduce(SeparationStats::default, SeparationStats::add);
+    // SAFETY: the three spare capacities were split into chunks covering exactly their first
+    // `n * 3`, `n * 3` and `n` elements, and both chunk kernels write every element of the
+    // chunks they are given (one `write` per output value and per flag, in loops over the whole
+    // chunk with no early exit), so these elements are initialised.
+    unsafe {
+        direct.set_len(n * 3);
+        global.set_len(n * 3);
+        flags.set_len(n);
+    }
+    let stats = SeparationStats {
+        pixels: n as u64,
+        ..partial
+    };
+    (direct, global, flags, stats)
+}
+
+impl SeparationStats {
+    fn add(self, other: Self) -> Self {
+        Self {
+            pixels: self.pixels + other.pixels,
+            saturated_pixels: self.saturated_pixels + other.saturated_pixels,
+            non_finite_pixels: self.non_finite_pixels + other.non_finite_pixels,
+            clamped_negative: self.clamped_negative + other.clamped_negative,
+        }
+    }
+}
+
+/// [`separate_chunk_sharp`], compiled for AVX2 where the CPU has it (eight lanes instead of
+/// four for the extremes and the divisions; the same IEEE operations, no FMA, hence the same
+/// bits: test).
+fn separate_chunk_sharp_best(
+    raws: &[&[f32]],
+    first: usize,
+    params: &SeparationParams,
+    direct: &mut [MaybeUninit<f32>],
+    global: &mut [MaybeUninit<f32>],
+    flags: &mut [MaybeUninit<SeparationFlag>],
+) -> SeparationStats {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2, the one feature the variant is compiled for.
+        return unsafe { separate_chunk_sharp_avx2(raws, first, params, direct, global, flags) };
+    }
+    separate_chunk_sharp(raws, first, params, direct, global, flags)
+}
+
+/// [`separate_chunk_sharp`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn separate_chunk_sharp_avx2(
+    raws: &[&[f32]],
+    first: usize,
+    params: &SeparationParams,
+    direct: &mut [MaybeUninit<f32>],
+    global: &mut [MaybeUninit<f32>],
+    flags: &mut [MaybeUninit<SeparationFlag>],
+) -> SeparationStats {
+    separate_chunk_sharp(raws, first, params, direct, global, flags)
+}
+
+/// Nayar's formulas without blur correction for the pixels `first..first + flags.len()`, in one
+/// read of each frame: the extremes of every value (six frames read side by side when there
+/// are six, else frame after frame into the chunk's buffers), then the outputs of every value
+/// (branch-free, [`separate_sample`]'s arithmetic in its order), then the flags, with zero
+/// outputs for flagged pixels. Every output value and flag of the chunk is written. The same
+/// results per value as [`separate_sample`] on that pixel's own max and min (test).
+#[inline(always)]
+fn separate_chunk_sharp(
+    raws: &[&[f32]],
+    first: usize,
+    params: &SeparationParams,
+    direct: &mut [MaybeUninit<f32>],
+    global: &mut [MaybeUninit<f32>],
+    flags: &mut [MaybeUninit<SeparationFlag>],
+) -> SeparationStats {
+    let values = flags.len() * 3;
+    let mut lmax = [f32::NEG_INFINITY; CHUNK_PIXELS * 3];
+    let mut lmin = [f32::INFINITY; CHUNK_PIXELS * 3];
+    // 0 while every sample of the value is finite (an integer mask, not `bool`s: it vectorises
+    // with the extremes).
+    let mut bad = [0u32; CHUNK_PIXELS * 3];
+    let (lmax, lmin, bad) = (&mut lmax[..values], &mut lmin[..values], &mut bad[..values]);
+    let range = first * 3..first * 3 + values;
+    match raws {
+        [a, b, c, d, e, f] => {
+            // The booth's six shifts: all six read side by side, the extremes kept in registers
+            // (frame after frame, each value's max, min and mask went through the cache six
+            // times; the kernel is bound by memory traffic).
+            let frames = [a, b, c, d, e, f].map(|raw| &raw[range.clone()]);
+            extremes_of_six(frames, lmax, lmin, bad);
+        }
+        _ => {
+            for raw in raws {
+                let frame = &raw[range.clone()];
+                for (((mx, mn), bad), &v) in lmax
+                    .iter_mut()
+                    .zip(lmin.iter_mut())
+                    .zip(bad.iter_mut())
+                    .zip(frame)
+                {
+                    *mx = mx.max(v);
+                    *mn = mn.min(v);
+                    *bad |= u32::from(!v.is_finite());
+                }
+            }
+        }
+    }
+    let b = params.black_level;
+    let mut stats = SeparationStats::default();
+    // Every value's outputs as if its pixel were fine (a loop the compiler vectorises); the few
+    // flagged pixels are zeroed below.
+    let outputs = direct.iter_mut().zip(global.iter_mut());
+    for ((d_out, g_out), (&mx, &mn)) in outputs.zip(lmax.iter().zip(lmin.iter())) {
+        let (d, g, clamped) = separate_sample_branch_free(mx, mn, b);
+        d_out.write(d);
+        g_out.write(g);
+        stats.clamped_negative += u64::from(clamped);
+    }
+    let pixels = lmax
+        .chunks_exact(3)
+        .zip(lmin.chunks_exact(3))
+        .zip(bad.chunks_exact(3))
+        .zip(direct.chunks_exact_mut(3))
+        .zip(global.chunks_exact_mut(3))
+        .zip(flags.iter_mut());
+    for (((((mx, mn), bad), d_out), g_out), flag) in pixels {
+        let status = if (bad[0] | bad[1] | bad[2]) != 0 {
+            SeparationFlag::NonFinite
+        } else if mx.iter().any(|&v| v >= params.saturation) {
+            SeparationFlag::Saturated
+        } else {
+            SeparationFlag::Ok
+        };
+        flag.write(status);
+        if status != SeparationFlag::Ok {
+            stats.saturated_pixels += u64::from(status == SeparationFlag::Saturated);
+            stats.non_finite_pixels += u64::from(status == SeparationFlag::NonFinite);
+            for c in 0..3 {
+                // Only separated pixels count their clamps.
+                let (_, _, clamped) = separate_sample_branch_free(mx[c], mn[c], b);
+                stats.clamped_negative -= u64::from(clamped);
+                d_out[c].write(0.0);
+                g_out[c].write(0.0);
+            }
+        }
+    }
+    stats
+}
+
+/// Per value, the max and min over six frames and whether any sample is not finite.
+#[inline(always)]
+fn extremes_of_six(frames: [&[f32]; 6], lmax: &mut [f32], lmin: &mut [f32], bad: &mut [u32]) {
+    let [a, b, c, d, e, f] = frames;
+    let out = lmax.iter_mut().zip(lmin.iter_mut()).zip(bad.iter_mut());
+    let samples = a.iter().zip(b).zip(c).zip(d).zip(e).zip(f);
+    for (((mx, mn), bad), (((((&a, &b), &c), &d), &e), &f)) in out.zip(samples) {
+        // In frame order from -inf/+inf, as the frame-after-frame loop does (the same results,
+        // NaN samples included: `max`/`min` skip them).
+        *mx = f32::NEG_INFINITY.max(a).max(b).max(c).max(d).max(e).max(f);
+        *mn = f32::INFINITY.min(a).min(b).min(c).min(d).min(e).min(f);
+        *bad = [a, b, c, d, e, f]
+            .iter()
+            .fold(0, |m, v| m | u32::from(!v.is_finite()));
+    }
+}
+
+/// [`separate_sample`] with selects instead of a match (the same arithmetic in the same order,
+/// hence the same results), so that a loop over values vectorises.
+#[inline(always)]
+fn separate_sample_branch_free(lmax: f32, lmin: f32, black_level: f32) -> (f32, f32, bool) {
+    let b = black_level;
+    let direct = (lmax - lmin) / (1.0 - b);
+    let global = 2.0 * (lmin - b * lmax) / (1.0 - b * b);
+    let total = direct + global;
+    let (direct_negative, global_negative) = (direct < 0.0, global < 0.0);
+    let rest = total.max(0.0);
+    let d = if direct_negative {
+        0.0
+    } else if global_negative {
+        rest
+    } else {
+        direct
+    };
+    let g = if global_negative {
+        0.0
+    } else if direct_negative {
+        rest
+    } else {
+        global
+    };
+    (d, g, direct_negative | global_negative)
 }
 
 /// What every pixel of one separation shares, computed once: the weights of the first DFT
@@ -311,60 +515,64 @@ impl BandExtremes {
     }
 }
 
-/// Direct and global of each pixel of a band from its [`BandExtremes`]; flagged pixels keep zero
-/// outputs.
+/// Direct and global of each pixel of a band from its [`BandExtremes`] (with blur correction);
+/// flagged pixels get zero outputs. Writes every output value and flag of the band.
 fn separate_band(
     band: &BandExtremes,
     params: &SeparationParams,
     shifts: &ShiftTables,
-    direct: &mut [f32],
-    global: &mut [f32],
-    flags: &mut [SeparationFlag],
+    direct: &mut [MaybeUninit<f32>],
+    global: &mut [MaybeUninit<f32>],
+    flags: &mut [MaybeUninit<SeparationFlag>],
 ) -> SeparationStats {
     let mut stats = SeparationStats::default();
     let b = params.black_level;
-    for (p, flag) in flags.iter_mut().enumerate() {
+    let pixels = direct
+        .chunks_exact_mut(3)
+        .zip(global.chunks_exact_mut(3))
+        .zip(flags.iter_mut())
+        .enumerate();
+    for (p, ((d_out, g_out), flag)) in pixels {
         let o = p * 3;
-        if !band.finite[o..o + 3].iter().all(|&f| f) {
-            stats.non_finite_pixels += 1;
-            *flag = SeparationFlag::NonFinite;
-            continue;
-        }
         let (lmax, lmin) = (&band.lmax[o..o + 3], &band.lmin[o..o + 3]);
-        if lmax.iter().any(|&v| v >= params.saturation) {
-            stats.saturated_pixels += 1;
-            *flag = SeparationFlag::Saturated;
+        let status = if !band.finite[o..o + 3].iter().all(|&f| f) {
+            SeparationFlag::NonFinite
+        } else if lmax.iter().any(|&v| v >= params.saturation) {
+            SeparationFlag::Saturated
+        } else {
+            SeparationFlag::Ok
+        };
+        flag.write(status);
+        if status != SeparationFlag::Ok {
+            stats.saturated_pixels += u64::from(status == SeparationFlag::Saturated);
+            stats.non_finite_pixels += u64::from(status == SeparationFlag::NonFinite);
+            for c in 0..3 {
+                d_out[c].write(0.0);
+                g_out[c].write(0.0);
+            }
             continue;
         }
-        let (d_out, g_out) = (&mut direct[o..o + 3], &mut global[o..o + 3]);
-        if let Some(table) = &shifts.contrast {
-            let stripe = params.stripe_px as f32;
-            // Position of the pixel in the pattern (projector px, modulo one): see `blurred_contrast`.
-            let position = stripe / 2.0 - band.im[p].atan2(band.re[p]) / shifts.omega;
-            let contrast = table.at(position.rem_euclid(1.0));
-            for c in 0..3 {
-                let mean = band.sum[o + c] / shifts.phasors.len() as f32;
-                // The mean over all shifts is (1 + b)/2 of the white image whatever the blur.
-                let total = 2.0 * mean / (1.0 + b);
-                let d = ((lmax[c] - lmin[c]) / ((1.0 - b) * contrast)).min(total);
-                let (d, g, clamped) = if d >= 0.0 && total >= d {
-                    (d, total - d, false)
-                } else {
-                    (d.clamp(0.0, total.max(0.0)), (total - d).max(0.0), true)
-                };
-                d_out[c] = d;
-                g_out[c] = g;
-                stats.clamped_negative += clamped as u64;
-            }
-        } else {
-            for c in 0..3 {
-                let (d, g, clamped) = separate_sample(lmax[c], lmin[c], b);
-                d_out[c] = d;
-                g_out[c] = g;
-                stats.clamped_negative += clamped as u64;
-            }
+        let stripe = params.stripe_px as f32;
+        // Position of the pixel in the pattern (projector px, modulo one): see `blurred_contrast`.
+        let position = stripe / 2.0 - band.im[p].atan2(band.re[p]) / shifts.omega;
+        let contrast = shifts
+            .contrast
+            .as_ref()
+            .map_or(1.0, |table| table.at(position.rem_euclid(1.0)));
+        for c in 0..3 {
+            let mean = band.sum[o + c] / shifts.phasors.len() as f32;
+            // The mean over all shifts is (1 + b)/2 of the white image whatever the blur.
+            let total = 2.0 * mean / (1.0 + b);
+            let d = ((lmax[c] - lmin[c]) / ((1.0 - b) * contrast)).min(total);
+            let (d, g, clamped) = if d >= 0.0 && total >= d {
+                (d, total - d, false)
+            } else {
+                (d.clamp(0.0, total.max(0.0)), (total - d).max(0.0), true)
+            };
+            d_out[c].write(d);
+            g_out[c].write(g);
+            stats.clamped_negative += clamped as u64;
         }
-        *flag = SeparationFlag::Ok;
     }
     stats
 }
@@ -721,6 +929,125 @@ mod tests {
         }
         assert_eq!(sep.flags[(9 * w + 5) as usize], SeparationFlag::Saturated);
         assert_eq!(sep.flags[(17 * w + 30) as usize], SeparationFlag::NonFinite);
+    }
+
+    /// The AVX2 build of the sharp chunk kernel writes the portable one's outputs, flags and
+    /// counts, bit for bit, for six shifts and for five (skipped where the CPU has no AVX2).
+    #[test]
+    fn avx2_chunk_kernel_equals_the_portable_one() {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            use rand::{Rng, SeedableRng};
+            let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+            let pixels = CHUNK_PIXELS - 5;
+            for shifts in [6, 5] {
+                let frames: Vec<Vec<f32>> = (0..shifts)
+                    .map(|_| {
+                        (0..pixels * 3)
+                            .map(|_| match rng.gen_range(0..300) {
+                                0 => f32::NAN,
+                                1 => f32::NEG_INFINITY,
+                                2 => 1.0,
+                                _ => rng.gen_range(-0.01..0.99f32),
+                            })
+                            .collect()
+                    })
+                    .collect();
+                let raws: Vec<&[f32]> = frames.iter().map(|f| f.as_slice()).collect();
+                let params = SeparationParams {
+                    black_level: 0.04,
+                    ..Default::default()
+                };
+                let run = |avx2: bool| {
+                    let mut d = vec![MaybeUninit::new(0.0f32); pixels * 3];
+                    let mut g = vec![MaybeUninit::new(0.0f32); pixels * 3];
+                    let mut f = vec![MaybeUninit::new(SeparationFlag::Ok); pixels];
+                    let stats = if avx2 {
+                        // SAFETY: AVX2 was detected above.
+                        unsafe {
+                            separate_chunk_sharp_avx2(&raws, 0, &params, &mut d, &mut g, &mut f)
+                        }
+                    } else {
+                        separate_chunk_sharp(&raws, 0, &params, &mut d, &mut g, &mut f)
+                    };
+                    // SAFETY: initialised above (and overwritten by the kernel).
+                    let bits = |v: &[MaybeUninit<f32>]| {
+                        v.iter()
+                            .map(|x| unsafe { x.assume_init() }.to_bits())
+                            .collect::<Vec<_>>()
+                    };
+                    let flags: Vec<SeparationFlag> =
+                        f.iter().map(|x| unsafe { x.assume_init() }).collect();
+                    (bits(&d), bits(&g), flags, stats)
+                };
+                assert_eq!(run(true), run(false));
+            }
+        }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(24))]
+
+        /// Images of up to three chunks, with saturated, NaN and infinite samples scattered in:
+        /// every pixel's flag and outputs are those of the pixel-by-pixel formula (the fused
+        /// chunk kernel writes every value once, flagged pixels included), and the counters
+        /// count them.
+        #[test]
+        fn fused_separation_equals_the_per_pixel_formula(
+            seed in 0u64..1_000_000,
+            w in 1u32..90,
+            h in 1u32..70,
+            shifts in 2usize..8,
+            black_level in 0.0f32..0.1,
+        ) {
+            use rand::{Rng, SeedableRng};
+            let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+            let frames: Vec<Rgb32FImage> = (0..shifts)
+                .map(|_| {
+                    let data = (0..(w * h * 3) as usize)
+                        .map(|_| match rng.gen_range(0..400) {
+                            0 => f32::NAN,
+                            1 => f32::INFINITY,
+                            2 => 1.0,
+                            _ => rng.gen_range(0.0..0.99f32),
+                        })
+                        .collect();
+                    Rgb32FImage::from_raw(w, h, data).unwrap()
+                })
+                .collect();
+            let refs: Vec<&Rgb32FImage> = frames.iter().collect();
+            let params = SeparationParams { black_level, ..Default::default() };
+            let sep = separate(&refs, &params).unwrap();
+            let mut expected = SeparationStats { pixels: u64::from(w * h), ..Default::default() };
+            for i in 0..(w * h) as usize {
+                let samples = |c: usize| frames.iter().map(move |f| f.as_raw()[i * 3 + c]);
+                let finite = (0..3).all(|c| samples(c).all(f32::is_finite));
+                let max = |c: usize| samples(c).fold(f32::NEG_INFINITY, f32::max);
+                let min = |c: usize| samples(c).fold(f32::INFINITY, f32::min);
+                let flag = if !finite {
+                    expected.non_finite_pixels += 1;
+                    SeparationFlag::NonFinite
+                } else if (0..3).any(|c| max(c) >= params.saturation) {
+                    expected.saturated_pixels += 1;
+                    SeparationFlag::Saturated
+                } else {
+                    SeparationFlag::Ok
+                };
+                proptest::prop_assert_eq!(sep.flags[i], flag);
+                for c in 0..3 {
+                    let (d, g) = if flag == SeparationFlag::Ok {
+                        let (d, g, clamped) = separate_sample(max(c), min(c), black_level);
+                        expected.clamped_negative += u64::from(clamped);
+                        (d, g)
+                    } else {
+                        (0.0, 0.0)
+                    };
+                    proptest::prop_assert_eq!(sep.direct.as_raw()[i * 3 + c].to_bits(), d.to_bits());
+                    proptest::prop_assert_eq!(sep.global.as_raw()[i * 3 + c].to_bits(), g.to_bits());
+                }
+            }
+            proptest::prop_assert_eq!(sep.stats, expected);
+        }
     }
 
     #[test]

@@ -391,12 +391,36 @@ impl DecodeSummary {
     }
 }
 
+/// Wall seconds of the decoder's steps, for reports and for the comparison with OpenCV's
+/// decoding (`scripts/peers.py`), which does the work of `bits_s` only.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct DecodePhases {
+    /// Steps 1 and 2 and the codes of the pixels whose bits are all reliable: the lit test,
+    /// every bit against its inverse, Gray to binary and the range check.
+    pub bits_s: f64,
+    /// Step 3: repair of unreliable bits from the neighbours.
+    pub repair_s: f64,
+    /// Step 4: the consistency check and the sub-pixel fit, and the confidence.
+    pub check_s: f64,
+}
+
 /// Decodes one projector's Gray-code sequence.
 pub fn decode(
     frames: &GrayCodeFrames,
     projector_size: (u32, u32),
     params: &DecodeParams,
 ) -> Result<ProjectorDecode, GrayCodeError> {
+    decode_timed(frames, projector_size, params).map(|(decoded, _)| decoded)
+}
+
+/// [`decode`], with the time each step took.
+pub fn decode_timed(
+    frames: &GrayCodeFrames,
+    projector_size: (u32, u32),
+    params: &DecodeParams,
+) -> Result<(ProjectorDecode, DecodePhases), GrayCodeError> {
+    let start = std::time::Instant::now();
+    let mut phases = DecodePhases::default();
     params.check()?;
     frames.validate(projector_size)?;
     let amplitude = frames.amplitude();
@@ -431,12 +455,14 @@ pub fn decode(
     );
     mask_unlit(&mut u_bits, &mut u_conf, &lighting);
     mask_unlit(&mut v_bits, &mut v_conf, &lighting);
+    phases.bits_s = start.elapsed().as_secs_f64();
     let u = decode_axis(
         grid,
         &u_bits,
         frames.x.len() as u32,
         projector_size.0,
         params,
+        &mut phases,
     );
     let v = decode_axis(
         grid,
@@ -444,9 +470,12 @@ pub fn decode(
         frames.y.len() as u32,
         projector_size.1,
         params,
+        &mut phases,
     );
+    let confidence_start = std::time::Instant::now();
     let nbits = (frames.x.len() + frames.y.len()).max(1) as f32;
     let confidence = (0..grid.len())
+        .into_par_iter()
         .map(|i| {
             if !(u.status[i].is_valid() && v.status[i].is_valid()) {
                 return 0.0;
@@ -457,7 +486,8 @@ pub fn decode(
             if repaired { 0.5 * c } else { c }
         })
         .collect();
-    Ok(ProjectorDecode {
+    phases.check_s += confidence_start.elapsed().as_secs_f64();
+    let decoded = ProjectorDecode {
         width: frames.width,
         height: frames.height,
         projector_width: projector_size.0,
@@ -465,7 +495,8 @@ pub fn decode(
         u,
         v,
         confidence,
-    })
+    };
+    Ok((decoded, phases))
 }
 
 /// Number of Gray-code bits needed to address `size` pixels.
