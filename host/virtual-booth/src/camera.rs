@@ -54,9 +54,14 @@ impl CameraModel {
     pub fn add_noise_with_gain<R: Rng>(&self, values: &mut [f32], gain: f64, rng: &mut R) {
         // rand_distr's ziggurat deviates: no logarithm or square root for almost every value
         // (the noise was a quarter of a calibration capture's CPU time with polar Box-Muller).
+        // The shot term's division is taken out of the loop (it was a tenth of the frame
+        // finishing's time): `v * (gain / full_well)` instead of `gain * v / full_well`, which
+        // differ by at most one f64 ulp, far below the f32 the value is stored in.
+        let shot = gain / self.full_well_e;
+        let read = self.read_noise.powi(2);
         for v in values.iter_mut() {
-            let sigma = self.noise_sigma_with_gain(*v as f64, gain);
-            *v = (*v as f64 + sigma * rng.sample::<f64, _>(StandardNormal)) as f32;
+            let sigma = (f64::from(*v).max(0.0) * shot + read).sqrt();
+            *v = (f64::from(*v) + sigma * rng.sample::<f64, _>(StandardNormal)) as f32;
         }
     }
 

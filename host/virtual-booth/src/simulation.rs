@@ -614,11 +614,12 @@ impl FrameFinisher<'_> {
         let geo = &self.scene.geometry;
         let (scale, gain) = exposure.map_or((1.0, 1.0), |e| (e.scale as f32, e.analog_gain));
         // The exposure scales all the light the camera collects, stray light included.
-        let mut values: Vec<f32> = totals
-            .iter()
-            .zip(stray)
-            .flat_map(|(t, s)| [t[0] + s[0], t[1] + s[1], t[2] + s[2]].map(|v| v * scale))
-            .collect();
+        let mut values = vec![0.0f32; totals.len() * 3];
+        for ((v, t), s) in values.chunks_exact_mut(3).zip(totals).zip(stray) {
+            for c in 0..3 {
+                v[c] = (t[c] + s[c]) * scale;
+            }
+        }
         let mut rng = Pcg64::seed_from_u64(self.seed ^ (0x5eed_0000 + spec.index as u64) << 8);
         self.scene
             .camera

@@ -14,8 +14,7 @@ use std::fs;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{ImageEncoder, Rgb32FImage};
+use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
 
 use super::exposure::{FrameNoise, ProjectorExposure};
@@ -449,29 +448,28 @@ pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result
     let max_code = ((1u32 << bit_depth) - 1) as f32;
     let shift = 16 - bit_depth;
     let raw = img.as_raw();
-    let mut bytes: Vec<u8> = Vec::with_capacity(raw.len() * 2);
-    for &v in raw {
+    // Big-endian samples, as PNG stores them, written in place: handed to `png` directly, not
+    // through `image`'s encoder, which takes native-endian samples and reorders them into a
+    // second buffer (with the per-sample `Vec` pushes before, the conversions were a fifth of
+    // the frame writing's CPU time; the file is the same byte for byte).
+    let mut bytes = vec![0u8; raw.len() * 2];
+    for (out, &v) in bytes.chunks_exact_mut(2).zip(raw) {
         let code = round_non_negative(v.clamp(0.0, 1.0) * max_code);
-        // The encoder takes native-endian samples.
-        bytes.extend_from_slice(&(code << shift).to_ne_bytes());
+        out.copy_from_slice(&(code << shift).to_be_bytes());
     }
+    let image_err = |e: png::EncodingError| CaptureError::Image {
+        path: path.to_owned(),
+        source: image::ImageError::IoError(e.into()),
+    };
     let file = fs::File::create(path).map_err(io_err(path))?;
-    let encoder = PngEncoder::new_with_quality(
-        BufWriter::new(file),
-        CompressionType::Uncompressed,
-        FilterType::NoFilter,
-    );
-    encoder
-        .write_image(
-            &bytes,
-            img.width(),
-            img.height(),
-            image::ExtendedColorType::Rgb16,
-        )
-        .map_err(|source| CaptureError::Image {
-            path: path.to_owned(),
-            source,
-        })
+    let mut encoder = png::Encoder::new(BufWriter::new(file), img.width(), img.height());
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Sixteen);
+    encoder.set_compression(png::Compression::NoCompression);
+    encoder.set_filter(png::Filter::NoFilter);
+    let mut writer = encoder.write_header().map_err(image_err)?;
+    writer.write_image_data(&bytes).map_err(image_err)?;
+    writer.finish().map_err(image_err)
 }
 
 /// Writes a capture folder atomically: frames go to a hidden sibling folder, renamed into place by
