@@ -111,7 +111,7 @@ pub fn cdf_diff(a: f64, b: f64) -> f64 {
 const SCALED_TAIL_FROM: f64 = 1.25 * SQRT_2;
 
 /// The smaller normal tail beyond `z`, `Q(|z|)`, given `gauss = exp(-z^2/2)` when `|z| >=`
-/// [`SCALED_TAIL_FROM`] (ignored below it). Relative error within `2e-15 + 2e-16 z^2`
+/// [`SCALED_TAIL_FROM`] (ignored below it). Relative error within `2e-15 + 2.5e-16 z^2`
 /// ([`normal_tail_scaled`]; `0.5 erfc` to an ulp below the switch).
 #[inline]
 fn tail_with(z: f64, gauss: impl FnOnce() -> f64) -> f64 {
