@@ -580,6 +580,9 @@ fn refine_surface(
     let (refined, report) = refine_normals(&inputs.surface, geometries, &sweeps, &centres)?;
     drop(sweeps);
     inputs.surface = refined;
+    // Freed before the corrected geometry is built, so the two are never held together
+    // (375 MB each at full size).
+    *geometries = Vec::new();
     *geometries = training
         .iter()
         .map(|&k| {
@@ -639,7 +642,8 @@ fn fit_layers(
                 spacing,
             )?;
             let fitted = model.fitted();
-            let (layers, filled) = fill_unfitted(&model, &fitted, &surface.mask);
+            let filled = fill_unfitted(&mut model, &fitted, &surface.mask);
+            let layers = model;
             Ok((prior, fitted, layers, filled, t.elapsed().as_secs_f64()))
         },
         || -> Result<_, FitStageError> {
@@ -729,23 +733,17 @@ fn release_projector_images(inputs: &mut ProfileInputs) {
     }
 }
 
-/// Surface pixels without layers in a channel get the homogeneous layers of that channel.
-fn fill_unfitted(model: &LayerModel, fitted: &[bool], mask: &[bool]) -> (LayerModel, usize) {
+/// Surface pixels without layers in a channel get the homogeneous layers of that channel, in
+/// place (a copy of the regularised model was the stage's peak); returns how many surface
+/// pixels had none in the first channel.
+fn fill_unfitted(model: &mut LayerModel, fitted: &[bool], mask: &[bool]) -> usize {
     let mean = model.mean_layers(fitted);
-    let unfitted = |i: usize, c: usize| mask[i] && model.layers(i, c).is_empty();
-    let out = LayerModel::from_fn(model.width, model.height, |i, c| {
-        let layers = if unfitted(i, c) {
-            &mean[c]
-        } else {
-            model.layers(i, c)
-        };
-        layers.iter().copied()
-    });
     let filled = (0..model.width * model.height)
         .into_par_iter()
-        .filter(|&i| unfitted(i, 0))
+        .filter(|&i| mask[i] && model.layers(i, 0).is_empty())
         .count();
-    (out, filled)
+    model.fill_empty(|i, c| mask[i].then_some(mean[c].as_slice()));
+    filled
 }
 
 /// What the model file takes from the projectors' images: the direct and the white albedo (from

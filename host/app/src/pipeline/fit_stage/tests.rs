@@ -73,7 +73,8 @@ fn unfitted_surface_pixels_get_the_mean_layers_and_only_they() {
     });
     let fitted = model.fitted();
     assert_eq!(fitted, [true, false, false]);
-    let (filled, count) = fill_unfitted(&model, &fitted, &[true, true, false]);
+    let mut filled = model.clone();
+    let count = fill_unfitted(&mut filled, &fitted, &[true, true, false]);
     assert_eq!(count, 1);
     for c in 0..3 {
         assert_eq!(filled.layers(0, c), model.layers(0, c));
