@@ -682,12 +682,6 @@ impl ProfileInputs {
                 SlitCoordinates::Decoded => coords,
                 SlitCoordinates::Projected => projected_coords(&surface, device, &coords),
             };
-            let view = ProjectorIllumination {
-                centre,
-                falloff,
-                coords: &coords,
-            };
-            let geometry = pixel_geometry(&surface, &view, params.eta, params.view_ray)?;
             let separation_direct = read_rgb(&direct_path(&sep, k), size)?;
             let separation_global = read_rgb(&global_path(&sep, k), size)?;
             let (direct_white, global_white) = params.direct.split(
@@ -717,7 +711,7 @@ impl ProfileInputs {
                 slits: Vec::new(),
                 stack: SlitStack::default(),
                 coords,
-                geometry,
+                geometry: Vec::new(),
             };
             if with_slits.contains(&k) {
                 inputs.slits = slit_globals(ctx, &inputs, inputs.blur_px)?;
@@ -725,6 +719,10 @@ impl ProfileInputs {
                 // every subject pixel, which is all the truth check and the plot read.
                 inputs.stack_slits(|i| surface.mask[i])?;
             }
+            // After the slits (which do not read it): the last projector's slit images and its
+            // geometry (125 MB at full size) were held together at the stage's peak, the run's.
+            inputs.geometry =
+                pixel_geometry(&surface, &inputs.view(), params.eta, params.view_ray)?;
             projectors.push(inputs);
         }
         Ok(Self {
