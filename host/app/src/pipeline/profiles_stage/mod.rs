@@ -619,15 +619,20 @@ impl ProfileInputs {
             Some(inputs) if inputs.params == *params => inputs,
             _ => Self::load(ctx, params, with_slits)?,
         };
+        // The other projectors' slits go first: restricting a stack copies it, and with the
+        // held-out projector's still held that copy was the run's peak at full size.
+        for p in &mut inputs.projectors {
+            if !with_slits.contains(&p.k) {
+                p.slits = Vec::new();
+                p.stack = SlitStack::default();
+            }
+        }
         for p in &mut inputs.projectors {
             if with_slits.contains(&p.k) {
                 // Down to the pixels with projector coordinates: a profile geometry needs them.
                 let coords = std::mem::take(&mut p.coords);
                 p.stack_slits(|i| coords[i].is_some())?;
                 p.coords = coords;
-            } else {
-                p.slits = Vec::new();
-                p.stack = SlitStack::default();
             }
         }
         Ok(inputs)
