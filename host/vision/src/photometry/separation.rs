@@ -116,6 +116,28 @@ pub struct SeparationStats {
     pub clamped_negative: u64,
 }
 
+impl SeparationStats {
+    /// Counts a pixel the kernels flagged (and left at zero) by its flag.
+    #[inline(always)]
+    fn count_flagged(&mut self, status: SeparationFlag) {
+        self.saturated_pixels += u64::from(status == SeparationFlag::Saturated);
+        self.non_finite_pixels += u64::from(status == SeparationFlag::NonFinite);
+    }
+}
+
+/// A pixel's flag from whether all its samples are finite and its brightest sample per channel:
+/// non-finite first, then saturated. Shared by the sharp and the blurred kernels.
+#[inline(always)]
+fn pixel_status(finite: bool, lmax: &[f32], saturation: f32) -> SeparationFlag {
+    if !finite {
+        SeparationFlag::NonFinite
+    } else if lmax.iter().any(|&v| v >= saturation) {
+        SeparationFlag::Saturated
+    } else {
+        SeparationFlag::Ok
+    }
+}
+
 /// Direct and global radiance of one channel from the extreme samples; never negative.
 /// Returns `(direct, global, clamped)`.
 pub fn separate_sample(lmax: f32, lmin: f32, black_level: f32) -> (f32, f32, bool) {
@@ -338,17 +360,10 @@ fn separate_chunk_sharp(
         .zip(global.chunks_exact_mut(3))
         .zip(flags.iter_mut());
     for (((((mx, mn), bad), d_out), g_out), flag) in pixels {
-        let status = if (bad[0] | bad[1] | bad[2]) != 0 {
-            SeparationFlag::NonFinite
-        } else if mx.iter().any(|&v| v >= params.saturation) {
-            SeparationFlag::Saturated
-        } else {
-            SeparationFlag::Ok
-        };
+        let status = pixel_status((bad[0] | bad[1] | bad[2]) == 0, mx, params.saturation);
         flag.write(status);
         if status != SeparationFlag::Ok {
-            stats.saturated_pixels += u64::from(status == SeparationFlag::Saturated);
-            stats.non_finite_pixels += u64::from(status == SeparationFlag::NonFinite);
+            stats.count_flagged(status);
             for c in 0..3 {
                 // Only separated pixels count their clamps.
                 let (_, _, clamped) = separate_sample_branch_free(mx[c], mn[c], b);
@@ -535,17 +550,14 @@ fn separate_band(
     for (p, ((d_out, g_out), flag)) in pixels {
         let o = p * 3;
         let (lmax, lmin) = (&band.lmax[o..o + 3], &band.lmin[o..o + 3]);
-        let status = if !band.finite[o..o + 3].iter().all(|&f| f) {
-            SeparationFlag::NonFinite
-        } else if lmax.iter().any(|&v| v >= params.saturation) {
-            SeparationFlag::Saturated
-        } else {
-            SeparationFlag::Ok
-        };
+        let status = pixel_status(
+            band.finite[o..o + 3].iter().all(|&f| f),
+            lmax,
+            params.saturation,
+        );
         flag.write(status);
         if status != SeparationFlag::Ok {
-            stats.saturated_pixels += u64::from(status == SeparationFlag::Saturated);
-            stats.non_finite_pixels += u64::from(status == SeparationFlag::NonFinite);
+            stats.count_flagged(status);
             for c in 0..3 {
                 d_out[c].write(0.0);
                 g_out[c].write(0.0);
