@@ -317,17 +317,25 @@ mod tests {
     use proptest::prelude::*;
     use rand::{Rng, SeedableRng};
 
-    /// Random lights around the view axis, random normals and albedos, with noise, some shadowed
-    /// (zero) readings, dark pixels and a few non-finite readings: what `solve_images` gives
-    /// (this path) against `solve_pixel` (the general f64 solver) for each pixel.
-    fn compare(seed: u64, lights: usize, pixels: usize) -> Result<usize, TestCaseError> {
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
-        // Spread around the view axis (random lights can be too ill-conditioned to solve).
-        let samples: Vec<LightSample> = (0..lights)
+    /// `lights` lights spread around the view axis (azimuths evenly spaced, each moved by up to
+    /// `azimuth_jitter` rad), tilted 0.4 rad to `max_tilt` from it, each channel's irradiance
+    /// 0.3 to 2: a rig the solver can use. Random lights can be too ill-conditioned: with 3
+    /// lights, tilts near 0.3 rad and one light 40x dimmer than the others exceed
+    /// `max_condition` and every pixel is flagged (seed 212841 of the block test drew such a rig;
+    /// the coplanar test covers that case).
+    fn usable_rig(
+        rng: &mut rand_pcg::Pcg64,
+        lights: usize,
+        azimuth_jitter: f64,
+        max_tilt: f64,
+    ) -> Vec<LightSample> {
+        (0..lights)
             .map(|k| {
-                let azimuth =
-                    std::f64::consts::TAU * k as f64 / lights as f64 + rng.gen_range(-0.3..0.3);
-                let tilt: f64 = rng.gen_range(0.4..0.9);
+                let mut azimuth = std::f64::consts::TAU * k as f64 / lights as f64;
+                if azimuth_jitter > 0.0 {
+                    azimuth += rng.gen_range(-azimuth_jitter..azimuth_jitter);
+                }
+                let tilt: f64 = rng.gen_range(0.4..max_tilt);
                 LightSample {
                     direction: Vector3::new(
                         tilt.sin() * azimuth.cos(),
@@ -337,7 +345,15 @@ mod tests {
                     irradiance: [0, 1, 2].map(|_| rng.gen_range(0.3..2.0)),
                 }
             })
-            .collect();
+            .collect()
+    }
+
+    /// Random lights around the view axis, random normals and albedos, with noise, some shadowed
+    /// (zero) readings, dark pixels and a few non-finite readings: what `solve_images` gives
+    /// (this path) against `solve_pixel` (the general f64 solver) for each pixel.
+    fn compare(seed: u64, lights: usize, pixels: usize) -> Result<usize, TestCaseError> {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let samples = usable_rig(&mut rng, lights, 0.3, 0.9);
         let view = Vector3::z();
         let mut images = vec![vec![0f32; pixels * 3]; lights];
         for p in 0..pixels {
@@ -427,23 +443,7 @@ mod tests {
         #[test]
         fn blocks_match_the_per_pixel_path_exactly(seed in 0u64..1_000_000, lights in 3usize..7) {
             let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
-            let samples: Vec<LightSample> = (0..lights)
-                .map(|k| {
-                    let azimuth = std::f64::consts::TAU * k as f64 / lights as f64;
-                    // Tilts and irradiances of a usable rig: with 3 lights, tilts near 0.3 rad and
-                    // one light 40x dimmer than the others exceed `max_condition`, and every pixel
-                    // would be flagged (seed 212841 did; the coplanar test covers that case).
-                    let tilt: f64 = rng.gen_range(0.4..1.0);
-                    LightSample {
-                        direction: Vector3::new(
-                            tilt.sin() * azimuth.cos(),
-                            tilt.sin() * azimuth.sin(),
-                            tilt.cos(),
-                        ),
-                        irradiance: [0, 1, 2].map(|_| rng.gen_range(0.3..2.0)),
-                    }
-                })
-                .collect();
+            let samples = usable_rig(&mut rng, lights, 0.0, 1.0);
             let params = PsParams {
                 method: Method::LeastSquares,
                 ..PsParams::default()
