@@ -112,7 +112,6 @@ impl Plane {
 /// Least-squares plane through the samples; the mean when they are collinear. The sums are
 /// exact integers (i64), converted once.
 fn fit_plane(samples: &[Sample]) -> Option<Plane> {
-    let n = samples.len() as f64;
     if samples.is_empty() {
         return None;
     }
@@ -129,23 +128,29 @@ fn fit_plane(samples: &[Sample]) -> Option<Plane> {
         sxv += x * v;
         syv += y * v;
     }
-    let [sx, sy, sv, sxx, syy, sxy, sxv, syv] =
-        [sx, sy, sv, sxx, syy, sxy, sxv, syv].map(|v| v as f64);
+    let sums = [sx, sy, sv, sxx, syy, sxy, sxv, syv].map(|v| v as f64);
+    Some(plane_from_sums(samples.len(), sums))
+}
+
+/// The least-squares plane of `count` samples from their sums `[x, y, v, xx, yy, xy, xv, yv]`;
+/// the mean when the samples are collinear.
+fn plane_from_sums(count: usize, [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8]) -> Plane {
+    let n = count as f64;
     let m = nalgebra::Matrix3::new(n, sx, sy, sx, sxx, sxy, sy, sxy, syy);
     let rhs = nalgebra::Vector3::new(sv, sxv, syv);
     // Samples on a line leave the plane undetermined (determinant ~0 relative to n^3).
-    let well_posed = samples.len() >= 3 && m.determinant().abs() > 1e-6 * n * n * n;
+    let well_posed = count >= 3 && m.determinant().abs() > 1e-6 * n * n * n;
     match m.lu().solve(&rhs) {
-        Some(p) if well_posed && p.iter().all(|x| x.is_finite()) => Some(Plane {
+        Some(p) if well_posed && p.iter().all(|x| x.is_finite()) => Plane {
             a: p[0],
             b: p[1],
             c: p[2],
-        }),
-        _ => Some(Plane {
+        },
+        _ => Plane {
             a: sv / n,
             b: 0.0,
             c: 0.0,
-        }),
+        },
     }
 }
 
@@ -191,7 +196,6 @@ mod tests {
     }
 
     fn fit_plane_f64(samples: &[(f64, f64, f64)]) -> Option<Plane> {
-        let n = samples.len() as f64;
         if samples.is_empty() {
             return None;
         }
@@ -207,21 +211,10 @@ mod tests {
             sxv += x * v;
             syv += y * v;
         }
-        let m = nalgebra::Matrix3::new(n, sx, sy, sx, sxx, sxy, sy, sxy, syy);
-        let rhs = nalgebra::Vector3::new(sv, sxv, syv);
-        let well_posed = samples.len() >= 3 && m.determinant().abs() > 1e-6 * n * n * n;
-        match m.lu().solve(&rhs) {
-            Some(p) if well_posed && p.iter().all(|x| x.is_finite()) => Some(Plane {
-                a: p[0],
-                b: p[1],
-                c: p[2],
-            }),
-            _ => Some(Plane {
-                a: sv / n,
-                b: 0.0,
-                c: 0.0,
-            }),
-        }
+        Some(plane_from_sums(
+            samples.len(),
+            [sx, sy, sv, sxx, syy, sxy, sxv, syv],
+        ))
     }
 
     proptest! {
