@@ -20,7 +20,7 @@ use super::em_free::{self, Component};
 use super::em_layered::{self, DepthSpacing, LayeredParams};
 use super::layer_depth::{self, LayerDepthError, SpacingEstimate};
 use super::mixture::{EmError, Profile};
-use super::profiles::{PixelGeometry, SlitSweep, pixel_profiles};
+use super::profiles::{GeometryMap, SlitSweep, pixel_profiles};
 use super::render::{LayerModel, SplatLayer};
 use super::surface::Surface;
 
@@ -76,12 +76,12 @@ pub struct FitResult {
 pub(crate) fn pixel_amplitude(
     i: usize,
     c: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
 ) -> f64 {
     let (mut flux, mut ew) = (0.0, 0.0);
     for (geo, sweep) in geometries.iter().zip(sweeps) {
-        let Some(g) = geo[i] else { continue };
+        let Some(&g) = geo.get(i) else { continue };
         for (f, e) in sweep.fluxes(i, c, &g) {
             flux += f;
             ew += e;
@@ -190,7 +190,7 @@ fn fit_free_shape(profiles: &[Profile], opts: &FitOptions) -> Result<Shape, EmEr
 /// Runs the fit stage over the surface.
 pub fn fit_model(
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     opts: &FitOptions,
 ) -> Result<FitResult, FitError> {
@@ -201,7 +201,7 @@ pub fn fit_model(
         });
     }
     let (w, h) = (surface.width, surface.height);
-    let lit_by_any = |i: usize| surface.mask[i] && geometries.iter().any(|g| g[i].is_some());
+    let lit_by_any = |i: usize| surface.mask[i] && geometries.iter().any(|g| g.get(i).is_some());
     let lit: Vec<usize> = (0..w * h).filter(|&i| lit_by_any(i)).collect();
     if lit.is_empty() {
         return Err(FitError::NothingToFit);
@@ -270,7 +270,7 @@ pub fn fit_model(
 /// layered fit warm-started from and updating `warm` (per channel).
 fn fit_pixel_shapes(
     i: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     spacing: f64,
     opts: &FitOptions,
@@ -328,13 +328,13 @@ fn fit_stats(tiles: &[[Option<Shape>; 3]], depth: SpacingEstimate) -> Result<Fit
 /// training projector lights it), pixels in parallel.
 pub fn pixel_amplitudes(
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
 ) -> Vec<[f32; 3]> {
     (0..surface.len())
         .into_par_iter()
         .map(|i| {
-            if !surface.mask[i] || geometries.iter().all(|g| g[i].is_none()) {
+            if !surface.mask[i] || geometries.iter().all(|g| g.get(i).is_none()) {
                 return [0.0; 3];
             }
             std::array::from_fn(|c| pixel_amplitude(i, c, geometries, sweeps) as f32)
@@ -369,7 +369,7 @@ pub fn tile_pixel(
 /// [`pixel_amplitudes`]). Pixels without light get no layers.
 pub fn fit_dipole_model(
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     eta: f64,
     block: usize,
@@ -391,7 +391,7 @@ pub fn fit_dipole_model(
     let (w, h) = (surface.width, surface.height);
     let block = block.max(1);
     let (bw, bh) = (w.div_ceil(block), h.div_ceil(block));
-    let lit = |i: usize| surface.mask[i] && geometries.iter().any(|g| g[i].is_some());
+    let lit = |i: usize| surface.mask[i] && geometries.iter().any(|g| g.get(i).is_some());
     // Extinction per tile and channel, fitted at the tile's pixel: rows of tiles in parallel,
     // each tile's search starting from its left neighbour's optimum (the first of a row searches
     // the whole range).

@@ -48,7 +48,7 @@ use rayon::prelude::*;
 use super::em_layered::{self, DepthSpacing, LayeredParams};
 use super::fit_options::FitOptions;
 use super::mixture::{EmConfig, EmError, Profile};
-use super::profiles::{PixelGeometry, SlitSweep, pixel_profiles};
+use super::profiles::{GeometryMap, SlitSweep, pixel_profiles};
 
 /// Stop when one round moves `D` by less than this (mm).
 pub const TOLERANCE_MM: f64 = 1e-3;
@@ -184,7 +184,7 @@ pub fn pooled_spacing(
 /// (every channel), or `opts.depth_spacing` when it is given.
 pub fn estimate_spacing(
     lit: &[usize],
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     opts: &FitOptions,
 ) -> Result<SpacingEstimate, LayerDepthError> {

@@ -180,14 +180,107 @@ fn surface_gradient(fp: &Footprint, g: Vector2<f64>) -> Option<Vector3<f64>> {
     Some(fp.dx * a.x + fp.dy * a.y)
 }
 
-/// Per-pixel geometry of a projector: `None` where the pixel is off the subject, undecoded,
+/// One projector's [`PixelGeometry`] per camera pixel, stored only where there is one.
+///
+/// Why not `Vec<Option<PixelGeometry>>`: that takes 88 bytes for every pixel, lit or not
+/// (125 MB per projector at full size, where fewer than half the pixels are lit and three or four
+/// projectors' maps are held together at the fit's peaks); here an unlit pixel takes the 4 bytes
+/// of its slot.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct GeometryMap {
+    /// Per camera pixel, its index in `values`, or [`GeometryMap::UNLIT`].
+    slots: Vec<u32>,
+    values: Vec<PixelGeometry>,
+}
+
+impl GeometryMap {
+    /// The slot of a pixel without geometry.
+    const UNLIT: u32 = u32::MAX;
+
+    /// Pixels per parallel chunk of [`GeometryMap::from_fn`].
+    const CHUNK: usize = 1 << 14;
+
+    /// The map of `len` pixels whose geometry is `geometry(i)`, computed in parallel chunks.
+    /// Panics if more than `u32::MAX - 1` pixels have geometry (a 4-gigapixel camera).
+    pub fn from_fn(len: usize, geometry: impl Fn(usize) -> Option<PixelGeometry> + Sync) -> Self {
+        let chunks: Vec<(Vec<bool>, Vec<PixelGeometry>)> = (0..len.div_ceil(Self::CHUNK))
+            .into_par_iter()
+            .map(|k| {
+                let pixels = k * Self::CHUNK..((k + 1) * Self::CHUNK).min(len);
+                let mut lit = Vec::with_capacity(pixels.len());
+                let mut values = Vec::new();
+                for i in pixels {
+                    let g = geometry(i);
+                    lit.push(g.is_some());
+                    values.extend(g);
+                }
+                (lit, values)
+            })
+            .collect();
+        let mut map = Self {
+            slots: Vec::with_capacity(len),
+            values: Vec::with_capacity(chunks.iter().map(|c| c.1.len()).sum()),
+        };
+        for (lit, values) in chunks {
+            let mut next = map.values.len();
+            for l in lit {
+                map.slots.push(if l {
+                    next += 1;
+                    u32::try_from(next - 1).expect("fewer than 2^32 - 1 lit pixels")
+                } else {
+                    Self::UNLIT
+                });
+            }
+            map.values.extend(values);
+        }
+        map
+    }
+
+    /// The geometry of pixel `i`; `None` where it has none or lies outside the map.
+    #[inline]
+    pub fn get(&self, i: usize) -> Option<&PixelGeometry> {
+        match *self.slots.get(i)? {
+            Self::UNLIT => None,
+            slot => self.values.get(slot as usize),
+        }
+    }
+
+    /// Pixels covered (lit or not).
+    pub fn len(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Whether the map covers no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.slots.is_empty()
+    }
+
+    /// Pixels with geometry.
+    pub fn lit_count(&self) -> usize {
+        self.values.len()
+    }
+
+    /// Every pixel's geometry in pixel order.
+    pub fn iter(&self) -> impl Iterator<Item = Option<&PixelGeometry>> + '_ {
+        (0..self.len()).map(|i| self.get(i))
+    }
+}
+
+impl FromIterator<Option<PixelGeometry>> for GeometryMap {
+    fn from_iter<I: IntoIterator<Item = Option<PixelGeometry>>>(pixels: I) -> Self {
+        let dense: Vec<Option<PixelGeometry>> = pixels.into_iter().collect();
+        Self::from_fn(dense.len(), |i| dense[i])
+    }
+}
+
+/// Per-pixel geometry of a projector: none where the pixel is off the subject, undecoded,
 /// shadowed or at grazing incidence.
 pub fn pixel_geometry(
     surface: &Surface,
     view: &ProjectorIllumination,
     eta: f64,
     view_ray: ViewRay,
-) -> Result<Vec<Option<PixelGeometry>>, ProfileError> {
+) -> Result<GeometryMap, ProfileError> {
     if view.coords.len() != surface.len() {
         return Err(ProfileError::SizeMismatch {
             what: "projector coordinates",
@@ -196,34 +289,31 @@ pub fn pixel_geometry(
         });
     }
     // Pixels are independent: split them across threads.
-    Ok((0..surface.len())
-        .into_par_iter()
-        .map(|i| {
-            let (u, v) = view.coords[i]?;
-            let fp = surface.footprint(i)?;
-            let jac = coord_jacobian(view, surface, i)?;
-            let (p, n) = (&surface.points[i], &surface.normals[i]);
-            let shift = shift_per_depth(p, n, &view.centre, &surface.camera_centre, eta, view_ray)?;
-            let e = irradiance(p, n, &view.centre, &view.falloff);
-            if e <= 0.0 {
-                return None;
-            }
-            let axis = |row: usize| -> Option<AxisGeometry> {
-                let grad = surface_gradient(&fp, Vector2::new(jac[(row, 0)], jac[(row, 1)]))?;
-                let norm = grad.norm();
-                (norm > 1e-9).then(|| AxisGeometry {
-                    px_per_mm: norm,
-                    shift_per_depth: shift.dot(&(grad / norm)),
-                })
-            };
-            Some(PixelGeometry {
-                coords: (f64::from(u), f64::from(v)),
-                irradiance: e,
-                axes: [axis(0)?, axis(1)?],
-                shift,
+    Ok(GeometryMap::from_fn(surface.len(), |i| {
+        let (u, v) = view.coords[i]?;
+        let fp = surface.footprint(i)?;
+        let jac = coord_jacobian(view, surface, i)?;
+        let (p, n) = (&surface.points[i], &surface.normals[i]);
+        let shift = shift_per_depth(p, n, &view.centre, &surface.camera_centre, eta, view_ray)?;
+        let e = irradiance(p, n, &view.centre, &view.falloff);
+        if e <= 0.0 {
+            return None;
+        }
+        let axis = |row: usize| -> Option<AxisGeometry> {
+            let grad = surface_gradient(&fp, Vector2::new(jac[(row, 0)], jac[(row, 1)]))?;
+            let norm = grad.norm();
+            (norm > 1e-9).then(|| AxisGeometry {
+                px_per_mm: norm,
+                shift_per_depth: shift.dot(&(grad / norm)),
             })
+        };
+        Some(PixelGeometry {
+            coords: (f64::from(u), f64::from(v)),
+            irradiance: e,
+            axes: [axis(0)?, axis(1)?],
+            shift,
         })
-        .collect())
+    }))
 }
 
 /// Signed distance (projector px) from `coord` to the centre of the nearest slit of a comb with
@@ -538,13 +628,13 @@ impl<'a> SlitSweep<'a> {
 pub(crate) fn pixel_profiles(
     i: usize,
     c: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
 ) -> (Vec<Profile>, Vec<f64>) {
     let mut profiles = Vec::new();
     let mut ew = Vec::new();
     for (geo, sweep) in geometries.iter().zip(sweeps) {
-        let Some(g) = geo[i] else { continue };
+        let Some(&g) = geo.get(i) else { continue };
         for a in 0..2 {
             if let Some(p) = sweep.profile(i, c, a, &g) {
                 ew.push(g.irradiance * p.slit_width);
@@ -558,6 +648,40 @@ pub(crate) fn pixel_profiles(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The sparse map holds exactly what the dense per-pixel vector held: lit patterns that
+    /// cross the parallel chunks' borders, all lit, none lit, and an empty map.
+    #[test]
+    fn the_geometry_map_answers_as_the_dense_vector_it_replaces() {
+        let geometry = |i: usize| PixelGeometry {
+            coords: (i as f64, -(i as f64)),
+            irradiance: 1.0 + i as f64,
+            axes: [AxisGeometry {
+                px_per_mm: 2.0,
+                shift_per_depth: 0.5 * i as f64,
+            }; 2],
+            shift: Vector3::new(i as f64, 0.0, 1.0),
+        };
+        let len = 3 * GeometryMap::CHUNK + 17;
+        let patterns: [&dyn Fn(usize) -> bool; 4] = [
+            &|i| (i * 7919) % 13 < 5,
+            &|i| i % GeometryMap::CHUNK > GeometryMap::CHUNK - 3,
+            &|_| true,
+            &|_| false,
+        ];
+        for lit in patterns {
+            let dense: Vec<Option<PixelGeometry>> =
+                (0..len).map(|i| lit(i).then(|| geometry(i))).collect();
+            let map = GeometryMap::from_fn(len, |i| dense[i]);
+            assert_eq!(map.len(), len);
+            assert_eq!(map.lit_count(), dense.iter().flatten().count());
+            assert!(map.iter().eq(dense.iter().map(Option::as_ref)));
+            assert_eq!(map.get(len), None);
+            assert_eq!(dense.iter().copied().collect::<GeometryMap>(), map);
+        }
+        let empty = GeometryMap::from_fn(0, |i| Some(geometry(i)));
+        assert!(empty.is_empty() && empty.get(0).is_none());
+    }
 
     #[test]
     fn sweep_flux_is_the_profile_flux_bit_for_bit() {
@@ -752,7 +876,7 @@ mod tests {
             coords: &coords,
         };
         let geo = pixel_geometry(&surface, &view, 1.4, ViewRay::Refracted).unwrap();
-        let g = geo[5 * w + 10].unwrap();
+        let g = *geo.get(5 * w + 10).unwrap();
         // u changes 0.4 px per 0.2 mm = 2 px/mm; v 0.5 px per 0.2 mm = 2.5 px/mm.
         assert!((g.axes[0].px_per_mm - 2.0).abs() < 1e-6);
         assert!((g.axes[1].px_per_mm - 2.5).abs() < 1e-6);

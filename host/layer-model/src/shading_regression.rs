@@ -34,7 +34,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::mixture::Profile;
-use super::profiles::{PixelGeometry, SlitSweep};
+use super::profiles::{GeometryMap, SlitSweep};
 use super::surface::Surface;
 
 /// Errors of the shading regression.
@@ -345,7 +345,7 @@ pub fn fit_shading(pixels: &[Vec<Observation>]) -> (Vec<Option<PixelShading>>, S
 /// The observations of every surface pixel from the training projectors' slit profiles.
 pub fn observations(
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     centres: &[Vector3<f64>],
 ) -> Result<Vec<Vec<Observation>>, ShadingError> {
@@ -374,7 +374,7 @@ pub fn observations(
                 .zip(sweeps)
                 .zip(centres)
                 .filter_map(|((geo, sweep), centre)| {
-                    let g = geo[i]?;
+                    let g = *geo.get(i)?;
                     let u = light_term(&surface.points[i], &surface.normals[i], centre)?;
                     let y: [Option<f64>; 3] = std::array::from_fn(|c| {
                         let profiles: Vec<Profile> =
@@ -396,7 +396,7 @@ pub fn observations(
 /// observations; the report says what the cross-validation chose.
 pub fn refine_normals(
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     centres: &[Vector3<f64>],
 ) -> Result<(Surface, ShadingReport), ShadingError> {

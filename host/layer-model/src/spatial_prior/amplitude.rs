@@ -3,7 +3,7 @@
 
 use rayon::prelude::*;
 
-use crate::profiles::{PixelGeometry, SlitSweep};
+use crate::profiles::{GeometryMap, SlitSweep};
 use crate::render::LayerModel;
 
 /// The amplitudes the prior shrinks, per pixel and channel, and their statistics per channel.
@@ -21,7 +21,7 @@ impl Amplitudes {
     pub(super) fn measure(
         model: &LayerModel,
         pixels: usize,
-        geometries: &[Vec<Option<PixelGeometry>>],
+        geometries: &[GeometryMap],
         sweeps: &[SlitSweep],
     ) -> Self {
         let own: Vec<[f64; 3]> = (0..pixels)
@@ -121,14 +121,14 @@ fn channel_stats(own: &[[f64; 3]], per_projector: &PerProjector) -> Vec<Amplitud
 fn projector_amplitudes(
     i: usize,
     c: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
 ) -> Vec<f64> {
     geometries
         .iter()
         .zip(sweeps)
         .filter_map(|(geo, sweep)| {
-            let g = geo.get(i).copied().flatten()?;
+            let g = *geo.get(i)?;
             let (mut flux, mut ew, mut any) = (0.0, 0.0, false);
             for (f, e) in sweep.fluxes(i, c, &g) {
                 flux += f;

@@ -9,21 +9,21 @@ use super::shapes::{Shape, shape_log_likelihood};
 use super::tiles::{Inputs, hood_shape};
 use super::{Neighbourhood, SpatialPriorError};
 use crate::mixture::{EmError, Profile};
-use crate::profiles::{PixelGeometry, SlitSweep};
+use crate::profiles::{GeometryMap, SlitSweep};
 
 /// Profiles of pixel `i`, channel `c`, grouped per training projector that lights it, with each
 /// group's `E W` (irradiance x slit width summed over its profiles).
 fn profiles_by_projector(
     i: usize,
     c: usize,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
 ) -> Vec<(Vec<Profile>, f64)> {
     geometries
         .iter()
         .zip(sweeps)
         .filter_map(|(geo, sweep)| {
-            let g = geo.get(i).copied().flatten()?;
+            let g = *geo.get(i)?;
             let profiles: Vec<Profile> =
                 (0..2).filter_map(|a| sweep.profile(i, c, a, &g)).collect();
             let ew: f64 = profiles.iter().map(|p| g.irradiance * p.slit_width).sum();
@@ -179,7 +179,7 @@ fn log_widths(inputs: &Inputs, i: usize, c: usize) -> Vec<Option<f64>> {
         .iter()
         .zip(inputs.sweeps)
         .map(|(geo, sweep)| {
-            let g = geo[i]?;
+            let g = *geo.get(i)?;
             let (mut m0, mut m2) = (0.0, 0.0);
             for a in 0..2 {
                 if let Some(p) = sweep.profile(i, c, a, &g) {

@@ -44,7 +44,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::mixture::EmError;
-use crate::profiles::{PixelGeometry, SlitSweep};
+use crate::profiles::{GeometryMap, SlitSweep};
 use crate::render::{LayerModel, SplatLayer};
 use crate::surface::Surface;
 use amplitude::{AmplitudeStats, Amplitudes};
@@ -168,7 +168,7 @@ pub fn regularise_in_place(
     enabled: bool,
     model: &mut LayerModel,
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     block: usize,
     depth_spacing: f64,
@@ -195,7 +195,7 @@ pub fn regularise_in_place(
 pub fn regularise(
     model: &LayerModel,
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     block: usize,
     depth_spacing: f64,
@@ -241,7 +241,7 @@ pub fn regularise(
 fn check_inputs(
     model: &LayerModel,
     surface: &Surface,
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     opts: &PriorOptions,
 ) -> Result<(), SpatialPriorError> {

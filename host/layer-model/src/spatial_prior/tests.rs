@@ -10,7 +10,7 @@ use super::shapes::{SIGMA_BINS, Shape, merged_mixture, without_faint};
 use super::*;
 use crate::fit::{FitOptions, fit_model};
 use crate::mixture::EmConfig;
-use crate::profiles::{AxisGeometry, SlitFrame};
+use crate::profiles::{AxisGeometry, GeometryMap, PixelGeometry, SlitFrame};
 use crate::render::RenderOptions;
 use mlsss_core::capture::{Axis, Pattern};
 
@@ -173,7 +173,7 @@ fn true_profile(s: f64, scale: f64) -> f64 {
 /// factor per projector (the non-transferable error), camera noise on the slit frames.
 struct Scene {
     surface: Surface,
-    geometries: Vec<Vec<Option<PixelGeometry>>>,
+    geometries: Vec<GeometryMap>,
     frames: Vec<Vec<(Pattern, Vec<[f32; 3]>)>>,
 }
 
@@ -198,7 +198,7 @@ fn scene(amplitude: impl Fn(usize) -> f64, scale: impl Fn(usize) -> f64, seed: u
     let mut frames = Vec::new();
     for (p, irradiance) in [1.0, 0.8, 1.2].into_iter().enumerate() {
         let offset = 0.37 * p as f64;
-        let geo: Vec<Option<PixelGeometry>> = (0..n)
+        let geo: GeometryMap = (0..n)
             .map(|i| {
                 Some(PixelGeometry {
                     coords: ((i % SIZE) as f64 + offset, (i / SIZE) as f64 - offset),
@@ -223,7 +223,7 @@ fn scene(amplitude: impl Fn(usize) -> f64, scale: impl Fn(usize) -> f64, seed: u
                 };
                 let img: Vec<[f32; 3]> = (0..n)
                     .map(|i| {
-                        let g = geo[i].unwrap();
+                        let g = geo.get(i).unwrap();
                         let coord = if a == 0 { g.coords.0 } else { g.coords.1 };
                         let s = super::super::profiles::slit_distance_px(coord, 1, PERIOD, o);
                         let clean = delivered[i] * amplitude(i) * true_profile(s, scale(i));

@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use super::shapes::{Shape, merged_mixture, normalised};
 use super::{Neighbourhood, PriorOptions};
 use crate::fit::tile_pixel;
-use crate::profiles::{PixelGeometry, SlitSweep};
+use crate::profiles::{GeometryMap, SlitSweep};
 use crate::render::LayerModel;
 use crate::surface::Surface;
 
@@ -45,7 +45,7 @@ impl Tiles {
 pub(super) struct Inputs<'a> {
     pub(super) model: &'a LayerModel,
     pub(super) surface: &'a Surface,
-    pub(super) geometries: &'a [Vec<Option<PixelGeometry>>],
+    pub(super) geometries: &'a [GeometryMap],
     pub(super) sweeps: &'a [SlitSweep<'a>],
     pub(super) tiles: Tiles,
     pub(super) depth_spacing: f64,
@@ -54,7 +54,7 @@ pub(super) struct Inputs<'a> {
 
 impl Inputs<'_> {
     pub(super) fn lit(&self, i: usize) -> bool {
-        self.surface.mask[i] && self.geometries.iter().any(|g| g[i].is_some())
+        self.surface.mask[i] && self.geometries.iter().any(|g| g.get(i).is_some())
     }
 
     /// The pixel the fit used for tile `t`.

@@ -114,7 +114,7 @@ pub(super) fn prepare_figures(
     layers: &LayerModel,
     fig10: Fig10Measured,
     training: &[usize],
-    profiles: (&[SlitSweep], &[Vec<Option<PixelGeometry>>]),
+    profiles: (&[SlitSweep], &[GeometryMap]),
 ) -> PreparedFigures {
     let scanline = Scanline::new(inputs, record);
     let (sweeps, geometries) = profiles;
@@ -283,7 +283,7 @@ fn pixel_profiles_plot(
     model_layers: &LayerModel,
     training: &[usize],
     sweeps: &[SlitSweep],
-    geometries: &[Vec<Option<PixelGeometry>>],
+    geometries: &[GeometryMap],
     scanline: &Scanline,
 ) -> LinePlot {
     let (row, w, columns) = (scanline.row, scanline.width, &scanline.columns);
@@ -294,7 +294,7 @@ fn pixel_profiles_plot(
         .collect();
     let colours = [[200, 30, 30], [30, 90, 200], [60, 160, 60]];
     for (n, &i) in picks.iter().enumerate() {
-        let (Some(geo), Some(sweep)) = (geometries[0][i], sweeps.first()) else {
+        let (Some(geo), Some(sweep)) = (geometries[0].get(i).copied(), sweeps.first()) else {
             continue;
         };
         let Some(profile) = sweep.profile(i, 0, 0, &geo) else {

@@ -55,7 +55,7 @@ use mlsss_layer_model::model_file::{
     SubsurfaceModel, render_pattern_alone,
 };
 use mlsss_layer_model::profiles::{
-    PixelGeometry, ProfileError, SlitStack, SlitSweep, pixel_geometry,
+    GeometryMap, ProfileError, SlitStack, SlitSweep, pixel_geometry,
 };
 use mlsss_layer_model::relight::{direct_albedo, pattern_irradiance};
 use mlsss_layer_model::render::{LayerModel, RenderOptions, SplatLayer, extent};
@@ -310,11 +310,11 @@ fn cpu_span(a: Option<f64>, b: Option<f64>) -> Option<f64> {
 }
 
 /// Per training projector, per pixel: the profile geometry.
-type Geometries = Vec<Vec<Option<PixelGeometry>>>;
+type Geometries = Vec<GeometryMap>;
 
 /// The training projectors' profile geometry and slit sweeps, borrowed from the inputs.
 struct TrainingProfiles<'a> {
-    geometries: Vec<Vec<Option<PixelGeometry>>>,
+    geometries: Vec<GeometryMap>,
     sweeps: Vec<SlitSweep<'a>>,
 }
 
@@ -544,7 +544,7 @@ fn load_training(
     let inputs = ProfileInputs::take_or_load(ctx, &record.params, &candidates)?;
     let training: Vec<usize> = candidates
         .into_iter()
-        .filter(|&k| inputs.projectors[k].geometry.iter().any(Option::is_some))
+        .filter(|&k| inputs.projectors[k].geometry.lit_count() > 0)
         .collect();
     if training.is_empty() {
         return Err(FitStageError::NoTrainingProjector);
@@ -554,7 +554,7 @@ fn load_training(
     let mut inputs = inputs;
     for p in &mut inputs.projectors {
         if !training.contains(&p.k) {
-            p.geometry = Vec::new();
+            p.geometry = GeometryMap::default();
         }
     }
     Ok((inputs, training))
@@ -567,7 +567,7 @@ fn load_training(
 fn refine_surface(
     inputs: &mut ProfileInputs,
     training: &[usize],
-    geometries: &mut Vec<Vec<Option<PixelGeometry>>>,
+    geometries: &mut Vec<GeometryMap>,
 ) -> Result<ShadingReport, FitStageError> {
     let sweeps: Vec<SlitSweep> = training
         .iter()
@@ -728,7 +728,7 @@ fn release_projector_images(inputs: &mut ProfileInputs) {
         ] {
             *image = Vec::new();
         }
-        p.geometry = Vec::new();
+        p.geometry = GeometryMap::default();
     }
 }
 

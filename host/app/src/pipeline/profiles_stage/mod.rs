@@ -42,7 +42,7 @@ use mlsss_core::calibration::DeviceCalibration;
 use mlsss_core::capture::{Axis, CaptureError, FrameNoise, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_layer_model::profiles::{
-    Falloff, PixelGeometry, ProfileError, ProjectorIllumination, SlitFrame, SlitStack, SlitSweep,
+    Falloff, GeometryMap, ProfileError, ProjectorIllumination, SlitFrame, SlitStack, SlitSweep,
     pixel_geometry,
 };
 use mlsss_layer_model::slit_global::{SlitGlobalError, WhiteSeparation, slit_global};
@@ -416,7 +416,7 @@ pub struct ProjectorInputs {
     /// ([`ProjectorInputs::stack_slits`]; empty until then).
     pub stack: SlitStack,
     /// Per-pixel profile geometry (`None`: off the subject, undecoded, facing away).
-    pub geometry: Vec<Option<PixelGeometry>>,
+    pub geometry: GeometryMap,
 }
 
 impl ProjectorInputs {
@@ -716,7 +716,7 @@ impl ProfileInputs {
                 slits: Vec::new(),
                 stack: SlitStack::default(),
                 coords,
-                geometry: Vec::new(),
+                geometry: GeometryMap::default(),
             };
             if with_slits.contains(&k) {
                 inputs.slits = slit_globals(ctx, &inputs, inputs.blur_px)?;
@@ -939,7 +939,7 @@ fn run_profiles(
             direct_share(p, &inputs.surface.mask, params.direct_fraction_range);
         per_projector.push(ProjectorProfilesReport {
             projector: p.k,
-            pixels_with_profiles: p.geometry.iter().filter(|g| g.is_some()).count(),
+            pixels_with_profiles: p.geometry.lit_count(),
             slit_frames: p.slit_count(),
             blur_px: f64::from(p.blur_px),
             black_level: f64::from(p.black_level),
@@ -978,7 +978,7 @@ fn run_profiles(
         pixels_with_profiles: inputs
             .projectors
             .iter()
-            .map(|p| p.geometry.iter().filter(|g| g.is_some()).count())
+            .map(|p| p.geometry.lit_count())
             .collect(),
     };
     let path = ctx.dir().join(RECORD_FILE);
