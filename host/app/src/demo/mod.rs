@@ -10,6 +10,12 @@
 //! renders), `eval` (the held-out evaluation: reading frames, rendering, metrics) of which
 //! `render` is the rendering, `total` (wall clock of everything).
 //!
+//! `timing_cpu_s` (CPU seconds, user + system, all threads): `simulate` (the scan, the poses and
+//! their calibration together: they share the cores, so the process's CPU time cannot be split
+//! between them), one per pipeline stage (the pipeline's own `timing_cpu_s`), `eval`,
+//! `backscatter` and `total`. Why: on a shared machine a step's wall clock moves with the other
+//! processes' load (the quick demo took 29-78 s wall on one day's VM), its CPU time much less.
+//!
 //! ```text
 //! OUT/
 //!   capture/              the simulated scan (frames + truth/)
@@ -51,7 +57,7 @@ use crate::pose_calibration::{PoseCalibrationError, calibrate_poses};
 use mlsss_core::booth::Booth;
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, Pattern, ProjectorExposure, truth};
-use mlsss_core::resources::peak_memory_mb;
+use mlsss_core::resources::{cpu_seconds, peak_memory_mb};
 use mlsss_layer_model::model_file::{Baseline, ModelFileError, SubsurfaceModel};
 use mlsss_layer_model::render::RenderOptions;
 use mlsss_virtual_booth::{
@@ -259,6 +265,10 @@ pub struct DemoReport {
     /// Wall-clock seconds per step (see the module documentation).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub timing_s: BTreeMap<String, f64>,
+    /// CPU seconds per step (see the module documentation); empty where the platform does not
+    /// report the process's CPU time.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub timing_cpu_s: BTreeMap<String, f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub peak_memory_mb: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -353,21 +363,38 @@ pub struct SeparationSummary {
     pub nayar_direct_rel_rmse: Option<f64>,
 }
 
-/// Wall-clock seconds per step.
+/// Wall-clock and CPU seconds per step.
 #[derive(Debug, Default)]
-struct Timings(BTreeMap<String, f64>);
+struct Timings {
+    wall: BTreeMap<String, f64>,
+    cpu: BTreeMap<String, f64>,
+}
 
 impl Timings {
+    /// Runs `f`, adding its wall-clock and CPU seconds to `key`.
     fn time<T>(&mut self, key: &str, f: impl FnOnce() -> T) -> T {
         let start = Instant::now();
+        let cpu = cpu_seconds();
         let out = f();
         self.add(key, start.elapsed().as_secs_f64());
+        self.add_cpu_since(key, cpu);
         out
     }
 
     fn add(&mut self, key: &str, seconds: f64) {
-        let prev = self.0.get(key).copied().unwrap_or(0.0);
-        self.0.insert(key.to_owned(), prev + seconds);
+        *self.wall.entry(key.to_owned()).or_insert(0.0) += seconds;
+    }
+
+    fn add_cpu(&mut self, key: &str, seconds: f64) {
+        *self.cpu.entry(key.to_owned()).or_insert(0.0) += seconds;
+    }
+
+    /// Adds the process's CPU seconds since the reading `start` to `key` (nothing without a
+    /// reading).
+    fn add_cpu_since(&mut self, key: &str, start: Option<f64>) {
+        if let (Some(start), Some(now)) = (start, cpu_seconds()) {
+            self.add_cpu(key, now - start);
+        }
     }
 }
 
@@ -594,15 +621,18 @@ pub trait DemoProgress: Progress {
 /// Runs the demonstration.
 pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoOutcome, DemoError> {
     let total = Instant::now();
+    let total_cpu = cpu_seconds();
     prepare_output(opts)?;
     let out = &opts.out;
     let mut timing = Timings::default();
     let capture = out.join("capture");
     let simulate_start = Instant::now();
+    let simulate_cpu = cpu_seconds();
     let (sim, calibrated) = simulate(opts, &capture, progress, &mut timing)?;
     let (calib_source, calibration_report) =
         calibration_to_use(opts, &capture, calibrated, &mut timing)?;
     timing.add("simulate", simulate_start.elapsed().as_secs_f64());
+    timing.add_cpu_since("simulate", simulate_cpu);
 
     progress.step("processing (decode .. fit)");
     let processed = out.join("processed");
@@ -610,10 +640,14 @@ pub fn run_demo(opts: &DemoOptions, progress: &dyn DemoProgress) -> Result<DemoO
     for (stage, seconds) in &report.timing_s {
         timing.add(stage, *seconds);
     }
+    for (stage, seconds) in &report.timing_cpu_s {
+        timing.add_cpu(stage, *seconds);
+    }
 
     progress.step("relighting the held-out projector");
     let (relight, figures) = relight_held_out(opts, &capture, &processed, &mut timing)?;
     timing.add("total", total.elapsed().as_secs_f64());
+    timing.add_cpu_since("total", total_cpu);
 
     let html = out.join(HTML_FILE);
     let info = DemoInfo {
@@ -827,7 +861,8 @@ fn demo_report(
         relight: Some(relight),
         fit: report.fit,
         profiles: report.profiles,
-        timing_s: timing.0,
+        timing_s: timing.wall,
+        timing_cpu_s: timing.cpu,
         peak_memory_mb: peak_memory_mb(),
         report_json: None,
         report_html: None,
