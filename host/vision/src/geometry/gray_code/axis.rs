@@ -9,7 +9,6 @@ use super::bits::PixelBits;
 use super::lit_test::Lighting;
 use super::plane::{FitScratch, Sample, jump_limit, robust_plane_at_centre};
 use super::{AxisDecode, DecodeParams, DecodePhases, PixelStatus};
-use mlsss_core::capture::patterns::gray_decode;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Grid {
@@ -191,12 +190,24 @@ fn initial_code(b: &PixelBits, nbits: u32, size: u32, params: &DecodeParams) -> 
     }
     let unreliable = !b.reliable & bit_mask(nbits);
     if unreliable == 0 {
-        return in_range(gray_decode(b.gray as u32), size, PixelStatus::Decoded);
+        return in_range(gray_to_binary(b.gray), size, PixelStatus::Decoded);
     }
     if unreliable.count_ones() > params.max_repaired_bits {
         return (-1, PixelStatus::UnreliableBits);
     }
     (-1, PixelStatus::RepairFailed)
+}
+
+/// The binary value of a reflected Gray code, as a prefix XOR (four shifts). Why not
+/// `patterns::gray_decode`: its loop runs once per bit and the repair decodes up to
+/// `2^max_repaired_bits` candidates per pixel; the same value for every 16-bit code (test).
+fn gray_to_binary(gray: u16) -> u32 {
+    let mut n = u32::from(gray);
+    n ^= n >> 1;
+    n ^= n >> 2;
+    n ^= n >> 4;
+    n ^= n >> 8;
+    n
 }
 
 fn in_range(code: u32, size: u32, status: PixelStatus) -> (i32, PixelStatus) {
@@ -237,7 +248,7 @@ fn repair(
     let mut best: Option<(f64, u32)> = None;
     let mut subset: u16 = 0;
     loop {
-        let code = gray_decode((fixed | subset) as u32);
+        let code = gray_to_binary(fixed | subset);
         let distance = (code as f64 - predicted).abs();
         if code < size && best.is_none_or(|(d, _)| distance < d) {
             best = Some((distance, code));
@@ -477,6 +488,17 @@ mod tests {
                 b
             })
             .collect()
+    }
+
+    /// The prefix-XOR Gray decode equals the capture module's, for every 16-bit code.
+    #[test]
+    fn prefix_xor_gray_decode_equals_the_loop() {
+        for g in 0..=u16::MAX {
+            assert_eq!(
+                gray_to_binary(g),
+                mlsss_core::capture::patterns::gray_decode(u32::from(g))
+            );
+        }
     }
 
     proptest! {
