@@ -50,13 +50,17 @@ pub fn gray_code(n: u32) -> u32 {
     n ^ (n >> 1)
 }
 
-/// Inverse of [`gray_code`].
-pub fn gray_decode(mut g: u32) -> u32 {
+/// Inverse of [`gray_code`]: bit `k` of the value is the XOR of the code's bits `k` and above,
+/// taken as a prefix XOR in five shifts. Why not one shift per bit: the decoder's repair decodes
+/// up to `2^max_repaired_bits` candidate codes per pixel.
+#[inline]
+pub fn gray_decode(g: u32) -> u32 {
     let mut n = g;
-    while g > 1 {
-        g >>= 1;
-        n ^= g;
-    }
+    n ^= n >> 1;
+    n ^= n >> 2;
+    n ^= n >> 4;
+    n ^= n >> 8;
+    n ^= n >> 16;
     n
 }
 
@@ -204,6 +208,16 @@ fn pick(axis: Axis, u: u32, v: u32) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The prefix XOR is the XOR of every shift of the code (the definition, one shift per
+    /// bit): on every 16-bit code and on codes with the top bits set.
+    #[test]
+    fn gray_decode_is_the_xor_of_every_shift() {
+        let by_definition = |g: u32| (0..32).fold(0, |n, k| n ^ (g >> k));
+        for g in (0..=u32::from(u16::MAX)).chain((0..4096).map(|i| u32::MAX - i * 1_048_573)) {
+            assert_eq!(gray_decode(g), by_definition(g), "{g}");
+        }
+    }
 
     #[test]
     fn gray_code_neighbours_differ_in_one_bit_and_decode_inverts() {

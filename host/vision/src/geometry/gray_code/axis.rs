@@ -9,6 +9,7 @@ use super::bits::PixelBits;
 use super::lit_test::Lighting;
 use super::plane::{FitScratch, Sample, jump_limit, robust_plane_at_centre};
 use super::{AxisDecode, DecodeParams, DecodePhases, PixelStatus};
+use mlsss_core::capture::patterns::gray_decode;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Grid {
@@ -192,24 +193,12 @@ fn initial_code(b: &PixelBits, nbits: u32, size: u32, params: &DecodeParams) -> 
     }
     let unreliable = !b.reliable & bit_mask(nbits);
     if unreliable == 0 {
-        return in_range(gray_to_binary(b.gray), size, PixelStatus::Decoded);
+        return in_range(gray_decode(u32::from(b.gray)), size, PixelStatus::Decoded);
     }
     if unreliable.count_ones() > params.max_repaired_bits {
         return (-1, PixelStatus::UnreliableBits);
     }
     (-1, PixelStatus::RepairFailed)
-}
-
-/// The binary value of a reflected Gray code, as a prefix XOR (four shifts). Why not
-/// `patterns::gray_decode`: its loop runs once per bit and the repair decodes up to
-/// `2^max_repaired_bits` candidates per pixel; the same value for every 16-bit code (test).
-fn gray_to_binary(gray: u16) -> u32 {
-    let mut n = u32::from(gray);
-    n ^= n >> 1;
-    n ^= n >> 2;
-    n ^= n >> 4;
-    n ^= n >> 8;
-    n
 }
 
 fn in_range(code: u32, size: u32, status: PixelStatus) -> (i32, PixelStatus) {
@@ -250,7 +239,7 @@ fn repair(
     let mut best: Option<(f64, u32)> = None;
     let mut subset: u16 = 0;
     loop {
-        let code = gray_to_binary(fixed | subset);
+        let code = gray_decode(u32::from(fixed | subset));
         let distance = (code as f64 - predicted).abs();
         if code < size && best.is_none_or(|(d, _)| distance < d) {
             best = Some((distance, code));
@@ -313,16 +302,7 @@ fn smooth_window_sums(grid: Grid, codes: &[(i32, PixelStatus)], radius: usize) -
             max.copy_from_slice(&masked[..inner]);
             for k in 1..side {
                 let shifted = &masked[k..k + inner];
-                for (((s, lo), hi), &m) in sum
-                    .iter_mut()
-                    .zip(min.iter_mut())
-                    .zip(max.iter_mut())
-                    .zip(shifted)
-                {
-                    *s = s.wrapping_add(m);
-                    *lo = (*lo).min(m);
-                    *hi = (*hi).max(m);
-                }
+                fold_window((sum, min, max), (shifted, shifted, shifted));
             }
         });
     // Column pass over `side` rows centred on y, written at the window's centre pixel.
@@ -337,21 +317,11 @@ fn smooth_window_sums(grid: Grid, codes: &[(i32, PixelStatus)], radius: usize) -
             let mut min = row_min[first..first + inner].to_vec();
             let mut max = row_max[first..first + inner].to_vec();
             for k in 1..side {
-                let at = first + k * inner;
-                let rows = row_sum[at..at + inner]
-                    .iter()
-                    .zip(&row_min[at..at + inner])
-                    .zip(&row_max[at..at + inner]);
-                for (((s, lo), hi), ((&rs, &rl), &rh)) in sum
-                    .iter_mut()
-                    .zip(min.iter_mut())
-                    .zip(max.iter_mut())
-                    .zip(rows)
-                {
-                    *s = s.wrapping_add(rs);
-                    *lo = (*lo).min(rl);
-                    *hi = (*hi).max(rh);
-                }
+                let at = first + k * inner..first + (k + 1) * inner;
+                fold_window(
+                    (&mut sum, &mut min, &mut max),
+                    (&row_sum[at.clone()], &row_min[at.clone()], &row_max[at]),
+                );
             }
             for (o, ((&s, &lo), &hi)) in out_row[radius..radius + inner]
                 .iter_mut()
@@ -361,6 +331,24 @@ fn smooth_window_sums(grid: Grid, codes: &[(i32, PixelStatus)], radius: usize) -
             }
         });
     out
+}
+
+/// One step of [`smooth_window_sums`]'s row and column passes: the running window sums,
+/// minima and maxima take in one more column (or row) of `add`'s sums, minima and maxima.
+fn fold_window(
+    (sum, min, max): (&mut [i32], &mut [i32], &mut [i32]),
+    (add_sum, add_min, add_max): (&[i32], &[i32], &[i32]),
+) {
+    for (((s, lo), hi), ((&a, &a_lo), &a_hi)) in sum
+        .iter_mut()
+        .zip(min.iter_mut())
+        .zip(max.iter_mut())
+        .zip(add_sum.iter().zip(add_min).zip(add_max))
+    {
+        *s = s.wrapping_add(a);
+        *lo = (*lo).min(a_lo);
+        *hi = (*hi).max(a_hi);
+    }
 }
 
 /// Pass 3 for one pixel: flag codes that disagree with the neighbours, fit the sub-pixel value.
@@ -645,17 +633,6 @@ mod tests {
                 b
             })
             .collect()
-    }
-
-    /// The prefix-XOR Gray decode equals the capture module's, for every 16-bit code.
-    #[test]
-    fn prefix_xor_gray_decode_equals_the_loop() {
-        for g in 0..=u16::MAX {
-            assert_eq!(
-                gray_to_binary(g),
-                mlsss_core::capture::patterns::gray_decode(u32::from(g))
-            );
-        }
     }
 
     proptest! {
