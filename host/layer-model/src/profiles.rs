@@ -259,11 +259,6 @@ impl GeometryMap {
     pub fn lit_count(&self) -> usize {
         self.values.len()
     }
-
-    /// Every pixel's geometry in pixel order.
-    pub fn iter(&self) -> impl Iterator<Item = Option<&PixelGeometry>> + '_ {
-        (0..self.len()).map(|i| self.get(i))
-    }
 }
 
 impl FromIterator<Option<PixelGeometry>> for GeometryMap {
@@ -675,7 +670,11 @@ mod tests {
             let map = GeometryMap::from_fn(len, |i| dense[i]);
             assert_eq!(map.len(), len);
             assert_eq!(map.lit_count(), dense.iter().flatten().count());
-            assert!(map.iter().eq(dense.iter().map(Option::as_ref)));
+            assert!(
+                (0..len)
+                    .map(|i| map.get(i))
+                    .eq(dense.iter().map(Option::as_ref))
+            );
             assert_eq!(map.get(len), None);
             assert_eq!(dense.iter().copied().collect::<GeometryMap>(), map);
         }
