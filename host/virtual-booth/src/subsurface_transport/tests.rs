@@ -284,3 +284,48 @@ fn a_lit_line_gives_the_brute_force_profile() {
         }
     }
 }
+
+/// Every instruction set this CPU runs gives the baseline's exitance bit for bit, at the pixel
+/// level and the aggregated ones (with their moment corrections), over frame counts that fill a
+/// frame block, leave a tail, and both.
+#[test]
+fn every_instruction_set_gives_the_baseline_bit_for_bit() {
+    let (w, h, pixel_mm) = (80, 60, 0.25);
+    let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
+    let light = Vector3::new(-0.3, 0.2, -0.9).normalize();
+    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    assert!(
+        kernel.levels.len() > 2,
+        "the test must reach aggregated levels"
+    );
+    let entries = plane_entries(w, h, pixel_mm, light);
+    let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
+    for frames in [1, FRAME_BLOCK, FRAME_BLOCK + 3] {
+        // Stripes of different periods per frame, some frames dark in places.
+        let flux: Vec<f32> = (0..w * h * frames)
+            .map(|i| {
+                let (pixel, f) = (i / frames, i % frames);
+                let (x, y) = (pixel % w, pixel / w);
+                let lit = ((x + 2 * y) / (f + 2)) % 2 == 0;
+                if lit {
+                    (0.05 + 0.01 * f as f64) as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let baseline = op.apply_with(&flux, frames, RowIsa::Baseline);
+        assert!(baseline.iter().any(|&v| v > 0.0));
+        for isa in RowIsa::available() {
+            let out = op.apply_with(&flux, frames, isa);
+            let same = out
+                .iter()
+                .zip(&baseline)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(
+                same,
+                "{isa:?} differs from the baseline with {frames} frames"
+            );
+        }
+    }
+}
