@@ -522,6 +522,40 @@ struct Pair {
     gy: [f32; 3],
 }
 
+/// A source cell within reach of one output cell of a tile, for one source offset: the first
+/// pass of [`KernelLevel::gather_tile`] finds them, the second looks their responses up.
+///
+/// Gathering pair by pair, each pair was one long chain of dependent operations (distance,
+/// square root, projection, a second square root and a division, the table index, the texel
+/// loads, the mix over the taps, the bilinear weights) of some 300 instructions, too long
+/// for the core to overlap the next pair's: the gather ran at ~125 cycles a pair whether its
+/// tables were in the L1 cache or not, and fewer instructions in the mix changed nothing.
+/// Split in two passes, the independent pairs of a tile sit side by side in each.
+#[derive(Debug, Clone, Copy, Default)]
+struct Candidate {
+    /// The output cell's place in the tile.
+    slot: u8,
+    source: u32,
+    /// The offset in the source's tangent frame (see [`tangent_offset`]), mm.
+    x: f32,
+    y: f32,
+}
+
+/// The offset `d` (world mm, |d| = r) from source cell `s` in its forward and side axes, where
+/// its band tables are looked up.
+#[inline(always)]
+fn tangent_offset(s: &Cell, d: [f32; 3], r: f32) -> (f32, f32) {
+    let dot = |a: [f32; 3]| a[0] * d[0] + a[1] * d[1] + a[2] * d[2];
+    let (mut x, mut y) = (dot(s.forward), dot(s.side));
+    // Keep the 3-D distance: project the offset onto the tangent plane, then rescale.
+    let t = (x * x + y * y).sqrt();
+    if t > 1e-6 {
+        x *= r / t;
+        y *= r / t;
+    }
+    (x, y)
+}
+
 /// What every output row of one level's evaluation reads.
 struct RowInputs<'a> {
     grid: &'a LevelCells,
@@ -708,10 +742,14 @@ impl KernelLevel {
         for list in &mut pairs.0 {
             list.clear();
         }
+        let mut found = [Candidate::default(); TILE_CELLS];
         for sy in (oy - rad).max(0)..(oy + rad + 1).min(h) {
             let half = disc_half_width(rad, sy - oy);
             for dx in -half..=half {
-                for (ox, list) in tile.clone().zip(pairs.0.iter_mut()) {
+                // Two passes over the tile: the geometry of every candidate first, then the
+                // lookups of those within reach (see [`Candidate`]).
+                let mut count = 0;
+                for (slot, ox) in tile.clone().enumerate() {
                     let sx = ox as isize + dx;
                     if sx < 0 || sx >= w {
                         continue;
@@ -730,10 +768,23 @@ impl KernelLevel {
                         continue;
                     }
                     let Some(s) = &grid.cells[si] else { continue };
+                    let (x, y) = tangent_offset(s, d, r);
+                    found[count] = Candidate {
+                        slot: slot as u8,
+                        source: si as u32,
+                        x,
+                        y,
+                    };
+                    count += 1;
+                }
+                for c in &found[..count] {
+                    let Some(s) = &grid.cells[c.source as usize] else {
+                        continue;
+                    };
                     let response = if gradient {
-                        self.kernel::<true>(s, d, r)
+                        self.tables.lookup::<true>(c.x, c.y, s.taps())
                     } else {
-                        self.kernel::<false>(s, d, r)
+                        self.tables.lookup::<false>(c.x, c.y, s.taps())
                     };
                     let Some([k, gx, gy]) = response else {
                         continue;
@@ -741,8 +792,11 @@ impl KernelLevel {
                     if k == [0.0; 3] && gx == [0.0; 3] && gy == [0.0; 3] {
                         continue;
                     }
+                    let Some(list) = pairs.0.get_mut(c.slot as usize) else {
+                        continue;
+                    };
                     list.push(Pair {
-                        source: si as u32,
+                        source: c.source,
                         k,
                         gx,
                         gy,
@@ -750,22 +804,6 @@ impl KernelLevel {
                 }
             }
         }
-    }
-
-    /// Band response from source cell `s` at offset `d` (world mm, |d| = r), and (when
-    /// `GRADIENT`) its derivatives with respect to the offset along the cell's forward and side
-    /// axes; `None` beyond the tables.
-    #[inline(always)]
-    fn kernel<const GRADIENT: bool>(&self, s: &Cell, d: [f32; 3], r: f32) -> Option<[[f32; 3]; 3]> {
-        let dot = |a: [f32; 3]| a[0] * d[0] + a[1] * d[1] + a[2] * d[2];
-        let (mut x, mut y) = (dot(s.forward), dot(s.side));
-        // Keep the 3-D distance: project the offset onto the tangent plane, then rescale.
-        let t = (x * x + y * y).sqrt();
-        if t > 1e-6 {
-            x *= r / t;
-            y *= r / t;
-        }
-        self.tables.lookup::<GRADIENT>(x, y, s.taps())
     }
 
     /// Adds the bilinear interpolation of this level's cell values to full-resolution pixels,
