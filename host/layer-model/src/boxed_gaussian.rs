@@ -126,8 +126,19 @@ fn tail_with(z: f64, gauss: impl FnOnce() -> f64) -> f64 {
 /// `Q(|z|)` ([`tail_with`] computing its own exponential).
 #[inline]
 fn small_tail(z: f64) -> f64 {
+    if z.abs() >= UNDERFLOW_Z {
+        return 0.0;
+    }
     tail_with(z, || gaussian(z))
 }
+
+/// From this `|z|` on, `exp(-z^2/2)` is exactly 0 (its exponent is below -745.14, where `exp`
+/// underflows past the subnormals), and so are the tail and the density made from it (0 times
+/// Cody's finite rational): [`small_tail`] and [`Edge::new`] return those zeros without the
+/// exponential and the rational. Why: the narrow components (the dipole's finest Gaussians, a
+/// shallow layer's) put many of the period's box edges beyond it. Bit-identical by
+/// construction; the test `edges_beyond_the_underflow_are_the_computed_zeros` checks it.
+const UNDERFLOW_Z: f64 = 38.61;
 
 /// `exp(-z^2/2)`, the unnormalised standard normal density: the one expression both the
 /// density and the tail of an [`Edge`] use, so masses agree bit for bit however they are made.
@@ -155,6 +166,13 @@ impl Edge {
     /// One exponential for both beyond [`SCALED_TAIL_FROM`] (where most edges of a profile
     /// fall): the tail is the density's Gaussian times Cody's rational.
     pub fn new(z: f64) -> Self {
+        if z.abs() >= UNDERFLOW_Z {
+            return Self {
+                z,
+                tail: 0.0,
+                phi: 0.0,
+            };
+        }
         let g = gaussian(z);
         Self {
             z,
@@ -389,6 +407,33 @@ impl BoxedGaussian {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The shortcut beyond [`UNDERFLOW_Z`] gives the bits the full computation gives, at the
+    /// threshold, just past it, far out and at infinity, on both sides (and the computation
+    /// really is zero there: `exp` underflows).
+    #[test]
+    fn edges_beyond_the_underflow_are_the_computed_zeros() {
+        let full = |z: f64| {
+            let g = gaussian(z);
+            (tail_with(z, || g), g * INV_SQRT_2PI)
+        };
+        let mut zs = vec![UNDERFLOW_Z, 40.0, 1e3, 1e150, f64::MAX, f64::INFINITY];
+        zs.extend((0..2000).map(|i| UNDERFLOW_Z + i as f64 * 1e-3));
+        for z in zs.iter().flat_map(|&z| [z, -z]) {
+            let (tail, phi) = full(z);
+            assert_eq!(tail.to_bits(), 0.0f64.to_bits(), "tail at {z}");
+            assert_eq!(phi.to_bits(), 0.0f64.to_bits(), "density at {z}");
+            let edge = Edge::new(z);
+            assert_eq!(edge.tail.to_bits(), tail.to_bits(), "{z}");
+            assert_eq!(edge.phi.to_bits(), phi.to_bits(), "{z}");
+            assert_eq!(Edge::tail_only(z).tail.to_bits(), tail.to_bits(), "{z}");
+        }
+        // Just inside the threshold the Gaussian is still computed (and is 0 or subnormal).
+        let inside = UNDERFLOW_Z - 1e-9;
+        assert_eq!(Edge::new(inside).tail, full(inside).0);
+        // Where the exponential stops being exactly 0: -745.13 in the exponent, z ~ 38.604.
+        assert!(gaussian(38.60) > 0.0);
+    }
 
     fn phi_cdf(x: f64) -> f64 {
         0.5 * libm::erfc(-x / std::f64::consts::SQRT_2)

@@ -53,6 +53,18 @@ impl MeanModel for FreeMeans {
     fn parameter_count(&self, components: usize) -> usize {
         components
     }
+
+    fn free_parameters(&self) -> Vec<f64> {
+        self.0.clone()
+    }
+
+    fn set_free_parameters(&mut self, values: &[f64]) {
+        for (mean, &v) in self.0.iter_mut().zip(values) {
+            if v.is_finite() {
+                *mean = v;
+            }
+        }
+    }
 }
 
 /// Weighted quantile of the sample positions.

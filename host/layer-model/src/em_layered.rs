@@ -73,6 +73,19 @@ impl MeanModel for LayerMeans {
     fn parameter_count(&self, _components: usize) -> usize {
         usize::from(self.estimate.is_some())
     }
+
+    /// The spacing when it is estimated (a fixed one does not move).
+    fn free_parameters(&self) -> Vec<f64> {
+        self.estimate.map(|_| self.spacing).into_iter().collect()
+    }
+
+    fn set_free_parameters(&mut self, values: &[f64]) {
+        if let (Some(max), Some(&d)) = (self.estimate, values.first())
+            && d.is_finite()
+        {
+            self.spacing = d.clamp(0.0, max);
+        }
+    }
 }
 
 /// The conditional M-step of the spacing as normal equations `D = num / den`: maximising

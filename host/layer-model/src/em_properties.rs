@@ -473,3 +473,124 @@ fn pooled_fits_weigh_profiles_by_their_photons_when_the_noise_is_known() {
         pooled(100.0, 1.0)
     );
 }
+
+/// SQUAREM keeps the plain EM's guard rails on the adversarial profiles: a monotone trace,
+/// nothing rejected, finite parameters, for the free fit and the layered one with its spacing
+/// estimated (so the mean model's extrapolation is exercised too).
+#[test]
+fn squarem_em_is_monotone_and_finite_on_adversarial_profiles() {
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+    let cfg = EmConfig {
+        max_iterations: 60,
+        squarem: true,
+        ..EmConfig::default()
+    };
+    let profiles = adversarial_profiles(&mut rng);
+    for (name, profile) in &profiles {
+        let fit = em_free::fit_free(profile, &cfg, None).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_sane(&fit.trace, fit.log_likelihood, name);
+        assert_free_finite(&fit.components, name);
+    }
+    for (g, group) in profiles.chunks(3).enumerate() {
+        let group: Vec<Profile> = group
+            .iter()
+            .enumerate()
+            .map(|(i, p)| Profile {
+                shift_per_depth: [-0.6, 0.1, 0.9][i],
+                ..p.1.clone()
+            })
+            .collect();
+        let spacing = DepthSpacing::Estimate {
+            start: 0.1,
+            max: 0.5,
+        };
+        let fit = em_layered::fit_layered(&group, spacing, &cfg, None)
+            .unwrap_or_else(|e| panic!("group {g}: {e}"));
+        let what = format!("squarem group {g}");
+        assert_sane(&fit.trace, fit.log_likelihood, &what);
+        assert!(fit.depth_spacing.is_finite() && (0.0..=0.5).contains(&fit.depth_spacing));
+        for l in &fit.layers {
+            assert!(
+                l.weight > 0.0 && l.sigma.is_finite() && l.sigma > 0.0,
+                "{what}: {l:?}"
+            );
+        }
+    }
+}
+
+/// On layered fits whose plain EM crawls (overlapping layers; no pruning or model selection, a
+/// tight tolerance), SQUAREM from the same start ends with a log-likelihood at least the plain
+/// EM's, parameters at least as close to the truth (the profiles are exact, so the truth is the
+/// optimum), and fewer E-steps. Measured when written: 1547, 126 and 4574 E-steps against 5000
+/// (the cap), 476 and 5000.
+#[test]
+fn squarem_reaches_the_plain_em_optimum_in_fewer_e_steps() {
+    let s = grid(W);
+    for (case, (sigmas, spacing)) in [
+        ([0.3, 0.45, 0.6], 0.1),
+        ([0.2, 0.3, 0.9], 0.15),
+        ([0.5, 0.55, 0.7], 0.05),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let truth = LayeredParams {
+            layers: (0..3)
+                .map(|l| Layer {
+                    depth_index: l,
+                    weight: [0.5, 0.3, 0.2][l],
+                    sigma: sigmas[l],
+                })
+                .collect(),
+            depth_spacing: spacing,
+        };
+        let profiles = layered_profiles(&truth, &[-0.8, -0.3, 0.9, 0.2], &s);
+        let plain_cfg = EmConfig {
+            components: 3,
+            max_iterations: 5000,
+            tolerance: 1e-13,
+            prune: false,
+            bic: false,
+            ..EmConfig::default()
+        };
+        let squarem_cfg = EmConfig {
+            squarem: true,
+            ..plain_cfg.clone()
+        };
+        let fixed = DepthSpacing::Fixed(spacing);
+        let plain = em_layered::fit_layered(&profiles, fixed, &plain_cfg, None).unwrap();
+        let fast = em_layered::fit_layered(&profiles, fixed, &squarem_cfg, None).unwrap();
+        let what = format!("case {case}");
+        assert_sane(&fast.trace, fast.log_likelihood, &what);
+        assert!(
+            fast.log_likelihood >= plain.log_likelihood - 1e-12,
+            "{what}: {} vs {}",
+            fast.log_likelihood,
+            plain.log_likelihood
+        );
+        // Largest error of a weight or a relative sigma against the truth.
+        let error = |layers: &[Layer]| {
+            assert_eq!(layers.len(), 3, "{what}: {layers:?}");
+            layers
+                .iter()
+                .zip(&truth.layers)
+                .map(|(a, b)| {
+                    (a.weight - b.weight)
+                        .abs()
+                        .max((a.sigma / b.sigma - 1.0).abs())
+                })
+                .fold(0.0, f64::max)
+        };
+        let (fast_error, plain_error) = (error(&fast.layers), error(&plain.layers));
+        assert!(
+            fast_error <= plain_error + 1e-6,
+            "{what}: error {fast_error} against {plain_error}"
+        );
+        assert!(
+            fast.trace.iterations() < plain.trace.iterations(),
+            "{what}: {} E-steps against {}",
+            fast.trace.iterations(),
+            plain.trace.iterations()
+        );
+    }
+}

@@ -134,6 +134,10 @@ pub struct EmConfig {
     pub bic_iterations: usize,
     /// Number of slit images on each side of a component (0 = ignore the comb).
     pub wrap_images: usize,
+    /// Accelerate the EM by squared extrapolation (SQUAREM, see [`converge_squarem`]): fewer
+    /// E-steps to the same tolerance where the plain EM crawls. Off by default, so the free fit
+    /// (the paper's) and everything built on the default stay the plain EM.
+    pub squarem: bool,
 }
 
 impl Default for EmConfig {
@@ -150,6 +154,7 @@ impl Default for EmConfig {
             bic_counts_per_sample: 1000.0,
             bic_iterations: 30,
             wrap_images: 1,
+            squarem: false,
         }
     }
 }
@@ -185,6 +190,9 @@ pub enum StepKind {
     /// An EM step that lowered the log-likelihood beyond rounding (value recorded) and was undone.
     /// Exact EM never does this; the tests assert it never happens.
     Rejected,
+    /// A SQUAREM extrapolation ([`converge_squarem`]): recorded only when it did not lower the
+    /// log-likelihood (a worse one is dropped, not recorded).
+    Accelerated,
 }
 
 /// The log-likelihood after every step of a fit.
@@ -203,7 +211,12 @@ impl Trace {
             .filter(|s| s.0 != StepKind::Rejected)
             .collect();
         kept.windows(2)
-            .filter(|w| matches!(w[1].0, StepKind::Em | StepKind::Prune))
+            .filter(|w| {
+                matches!(
+                    w[1].0,
+                    StepKind::Em | StepKind::Prune | StepKind::Accelerated
+                )
+            })
             .map(|w| (w[0].1 - w[1].1).max(0.0))
             .fold(0.0, f64::max)
     }
@@ -216,9 +229,12 @@ impl Trace {
             .count()
     }
 
-    /// Number of EM iterations run.
+    /// Number of EM iterations run (E-steps of kept parameters: plain and accelerated).
     pub fn iterations(&self) -> usize {
-        self.steps.iter().filter(|s| s.0 == StepKind::Em).count()
+        self.steps
+            .iter()
+            .filter(|s| matches!(s.0, StepKind::Em | StepKind::Accelerated))
+            .count()
     }
 }
 
@@ -233,6 +249,12 @@ pub(crate) trait MeanModel: Clone {
     fn remove(&mut self, l: usize);
     /// Free mean parameters per component (for BIC) and shared ones.
     fn parameter_count(&self, components: usize) -> usize;
+    /// The mean parameters the M-step moves, for SQUAREM's extrapolation (none by default).
+    fn free_parameters(&self) -> Vec<f64> {
+        Vec::new()
+    }
+    /// Sets the parameters of [`MeanModel::free_parameters`] (projected onto their bounds).
+    fn set_free_parameters(&mut self, _values: &[f64]) {}
 }
 
 /// Sufficient statistics of one E-step, per profile `p` and component `l` (flattened `p * K + l`):
@@ -686,7 +708,8 @@ fn remove_component<M: MeanModel>(state: &mut State<M>, l: usize) {
 }
 
 /// EM to convergence from `state`, appending to `trace`. Returns the final log-likelihood.
-/// One E-step per iteration: it scores the parameters of the previous M-step and gives the
+/// With [`EmConfig::squarem`], [`converge_squarem`]; else the plain EM: one E-step per
+/// iteration: it scores the parameters of the previous M-step and gives the
 /// statistics of the next.
 ///
 /// `first`: the kind of step the starting log-likelihood is recorded as in `trace` (`None`: not
@@ -702,6 +725,9 @@ fn converge<M: MeanModel>(
     trace: &mut Trace,
     first: Option<StepKind>,
 ) -> f64 {
+    if cfg.squarem {
+        return converge_squarem(data, state, cfg, trace, first);
+    }
     let fresh = |k: usize| Stats::new(data.profiles.len(), k);
     let mut stats = fresh(state.weights.len());
     let mut ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
@@ -715,7 +741,7 @@ fn converge<M: MeanModel>(
         m_step(data, state, &stats, cfg);
         next_stats.reset(data.profiles.len(), state.weights.len());
         let next = e_step(data, state, cfg.wrap_images, Some(&mut next_stats));
-        if !next.is_finite() || next < ll - 1e-12 * ll.abs().max(1.0) {
+        if !keeps(ll, next) {
             // Rounding made a step worse: keep the better parameters and stop.
             trace.steps.push((StepKind::Rejected, next));
             *state = before;
@@ -725,6 +751,162 @@ fn converge<M: MeanModel>(
         let gain = next - ll;
         ll = next;
         std::mem::swap(&mut stats, &mut next_stats);
+        if gain < cfg.tolerance {
+            break;
+        }
+    }
+    ll
+}
+
+/// One plain EM step from `state`, whose E-step statistics are `stats`: the M-step, then the
+/// E-step of the new parameters into `next`. Returns their log-likelihood.
+fn em_step<M: MeanModel>(
+    data: &Data,
+    state: &mut State<M>,
+    stats: &Stats,
+    next: &mut Stats,
+    cfg: &EmConfig,
+) -> f64 {
+    m_step(data, state, stats, cfg);
+    next.reset(data.profiles.len(), state.weights.len());
+    e_step(data, state, cfg.wrap_images, Some(next))
+}
+
+/// Whether a plain EM step from log-likelihood `ll` to `next` is kept: the exact EM never
+/// lowers it, so only rounding (or a non-finite value) can, and such a step is undone.
+fn keeps(ll: f64, next: f64) -> bool {
+    next.is_finite() && next >= ll - 1e-12 * ll.abs().max(1.0)
+}
+
+/// Parameters of `state` in the unconstrained coordinates SQUAREM extrapolates in: log weights,
+/// log sigmas, then the mean model's [`MeanModel::free_parameters`].
+fn squarem_coordinates<M: MeanModel>(state: &State<M>) -> Vec<f64> {
+    let mut u: Vec<f64> = state.weights.iter().map(|w| w.ln()).collect();
+    u.extend(state.sigmas.iter().map(|s| s.ln()));
+    u.extend(state.means.free_parameters());
+    u
+}
+
+/// SQUAREM's step length (scheme S3, `-|r| / |v|` with `r = u1 - u0`, `v = u2 - 2 u1 + u0`),
+/// as its magnitude; `None` when there is nothing to extrapolate (no curvature, a non-finite
+/// coordinate, or a step of at most 1: a step of 1 is `u2` itself).
+fn squarem_step(u: [&[f64]; 3]) -> Option<f64> {
+    let (mut rr, mut vv) = (0.0, 0.0);
+    for ((a, b), c) in u[0].iter().zip(u[1]).zip(u[2]) {
+        let r = b - a;
+        let v = c - 2.0 * b + a;
+        rr += r * r;
+        vv += v * v;
+    }
+    let step = (rr / vv).sqrt();
+    (step.is_finite() && step > 1.0).then_some(step)
+}
+
+/// The SQUAREM point `u0 + 2 a r + a^2 v` (`a` the step magnitude) mapped back to parameters:
+/// weights water-filled to the floor, sigmas clamped, the means projected by their model. The
+/// result satisfies every constraint the M-step keeps, so the EM can continue from it.
+fn squarem_point<M: MeanModel>(
+    like: &State<M>,
+    u: [&[f64]; 3],
+    step: f64,
+    cfg: &EmConfig,
+) -> State<M> {
+    let x: Vec<f64> = (0..u[0].len())
+        .map(|i| {
+            let (r, v) = (u[1][i] - u[0][i], u[2][i] - 2.0 * u[1][i] + u[0][i]);
+            u[0][i] + 2.0 * step * r + step * step * v
+        })
+        .collect();
+    let k = like.weights.len();
+    let mut state = like.clone();
+    let raw: Vec<f64> = x[..k].iter().map(|l| l.exp()).collect();
+    state.weights = water_fill(&raw, cfg.weight_floor);
+    state.sigmas = x[k..2 * k]
+        .iter()
+        .map(|l| l.exp().clamp(cfg.sigma_floor, cfg.sigma_ceiling))
+        .collect();
+    state.means.set_free_parameters(&x[2 * k..]);
+    state
+}
+
+/// [`converge`] accelerated by SQUAREM (Varadhan & Roland 2008, "Simple and globally convergent
+/// methods for accelerating the convergence of any EM algorithm", Scand. J. Stat. 35): two plain
+/// EM steps `u0 -> u1 -> u2`, then the extrapolated point `u0 + 2 a r + a^2 v` (scheme S3, in
+/// log weights and log sigmas), kept only if its log-likelihood is not below `u2`'s, so the
+/// trace stays monotone; the next cycle's first plain step starts from it (their stabilising
+/// step). The step cap starts at 1 and grows 4x whenever the step reaches it, shrinks 4x when an
+/// extrapolation is dropped (their `step.max0 = 1, mstep = 4`).
+///
+/// Why: the full-size head's fits spent much of their E-steps in long linear crawls (a ninth of
+/// its 57 855 main fits ran 31 plain steps or more, up to the cap of 200), which SQUAREM
+/// shortens. The stopping rule is the plain EM's, a plain step gaining less than `tolerance`,
+/// and `max_iterations` counts every E-step (extrapolations included). [`fit`]'s
+/// model-selection trials stay plain (see there).
+fn converge_squarem<M: MeanModel>(
+    data: &Data,
+    state: &mut State<M>,
+    cfg: &EmConfig,
+    trace: &mut Trace,
+    first: Option<StepKind>,
+) -> f64 {
+    let fresh = || Stats::new(data.profiles.len(), state.weights.len());
+    let (mut stats, mut next, mut trial_stats) = (fresh(), fresh(), fresh());
+    let mut ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
+    if let Some(kind) = first {
+        trace.steps.push((kind, ll));
+    }
+    let mut e_steps = 0;
+    let mut max_step = 1.0f64;
+    // `path` holds u0 and u1 of the cycle under way.
+    let mut path: Vec<Vec<f64>> = Vec::with_capacity(2);
+    while e_steps < cfg.max_iterations {
+        if path.len() == 2 {
+            let u2 = squarem_coordinates(state);
+            let raw = squarem_step([&path[0], &path[1], &u2]);
+            let u = [path[0].as_slice(), path[1].as_slice(), u2.as_slice()];
+            let trial = match raw {
+                // A step of 1 is u2 itself: nothing to evaluate, but the cap may grow.
+                Some(_) if max_step <= 1.0 => {
+                    max_step = 4.0;
+                    None
+                }
+                Some(raw) => Some((raw.min(max_step), raw >= max_step)),
+                None => None,
+            }
+            .map(|(step, capped)| (squarem_point(state, u, step, cfg), capped));
+            path.clear();
+            let Some((trial, capped)) = trial else {
+                continue;
+            };
+            trial_stats.reset(data.profiles.len(), trial.weights.len());
+            let trial_ll = e_step(data, &trial, cfg.wrap_images, Some(&mut trial_stats));
+            e_steps += 1;
+            if trial_ll.is_finite() && trial_ll >= ll {
+                trace.steps.push((StepKind::Accelerated, trial_ll));
+                *state = trial;
+                ll = trial_ll;
+                std::mem::swap(&mut stats, &mut trial_stats);
+                if capped {
+                    max_step *= 4.0;
+                }
+            } else {
+                max_step = (max_step / 4.0).max(1.0);
+            }
+            continue;
+        }
+        path.push(squarem_coordinates(state));
+        let before = state.clone();
+        let next_ll = em_step(data, state, &stats, &mut next, cfg);
+        e_steps += 1;
+        if !keeps(ll, next_ll) {
+            trace.steps.push((StepKind::Rejected, next_ll));
+            *state = before;
+            break;
+        }
+        trace.steps.push((StepKind::Em, next_ll));
+        let gain = next_ll - ll;
+        ll = next_ll;
+        std::mem::swap(&mut stats, &mut next);
         if gain < cfg.tolerance {
             break;
         }
@@ -796,8 +978,13 @@ pub(crate) fn fit<M: MeanModel>(
             let mut trial = state.clone();
             remove_component(&mut trial, lightest);
             let mut trial_trace = Trace::default();
+            // The trial's plain EM even when the fit is accelerated: its cap of
+            // `bic_iterations` plain steps is part of the criterion (a fifth of the trials on
+            // the full-size head stop at it), and SQUAREM's trials, getting further, dropped
+            // more components (2.184 -> 2.132 per fit) and lost 0.04 dB of held-out PSNR.
             let short = EmConfig {
                 max_iterations: cfg.bic_iterations,
+                squarem: false,
                 ..cfg.clone()
             };
             let trial_ll = converge(

@@ -610,6 +610,7 @@ fn fit_layers(
             components: params.components,
             max_iterations: params.max_iterations,
             tolerance: params.tolerance,
+            squarem: true,
             ..EmConfig::default()
         },
         variant: params.em,
