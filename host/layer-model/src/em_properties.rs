@@ -181,7 +181,12 @@ fn layered_em_is_monotone_and_finite_on_adversarial_profiles() {
         .into_iter()
         .map(|p| p.1)
         .collect();
-    // Joint fits over groups of 3 different profiles with different geometry.
+    assert_layered_groups_sane(&profiles, &cfg, "group");
+}
+
+/// Joint layered fits (spacing estimated) over groups of 3 different `profiles` given different
+/// geometry: each a sane trace, a finite spacing in its range, and finite positive layers.
+fn assert_layered_groups_sane(profiles: &[Profile], cfg: &EmConfig, label: &str) {
     for (g, group) in profiles.chunks(3).enumerate() {
         let group: Vec<Profile> = group
             .iter()
@@ -195,9 +200,9 @@ fn layered_em_is_monotone_and_finite_on_adversarial_profiles() {
             start: 0.1,
             max: 0.5,
         };
-        let fit = em_layered::fit_layered(&group, spacing, &cfg, None)
-            .unwrap_or_else(|e| panic!("group {g}: {e}"));
-        let what = format!("group {g}");
+        let fit = em_layered::fit_layered(&group, spacing, cfg, None)
+            .unwrap_or_else(|e| panic!("{label} {g}: {e}"));
+        let what = format!("{label} {g}");
         assert_sane(&fit.trace, fit.log_likelihood, &what);
         assert!(fit.depth_spacing.is_finite() && (0.0..=0.5).contains(&fit.depth_spacing));
         for l in &fit.layers {
@@ -491,31 +496,8 @@ fn squarem_em_is_monotone_and_finite_on_adversarial_profiles() {
         assert_sane(&fit.trace, fit.log_likelihood, name);
         assert_free_finite(&fit.components, name);
     }
-    for (g, group) in profiles.chunks(3).enumerate() {
-        let group: Vec<Profile> = group
-            .iter()
-            .enumerate()
-            .map(|(i, p)| Profile {
-                shift_per_depth: [-0.6, 0.1, 0.9][i],
-                ..p.1.clone()
-            })
-            .collect();
-        let spacing = DepthSpacing::Estimate {
-            start: 0.1,
-            max: 0.5,
-        };
-        let fit = em_layered::fit_layered(&group, spacing, &cfg, None)
-            .unwrap_or_else(|e| panic!("group {g}: {e}"));
-        let what = format!("squarem group {g}");
-        assert_sane(&fit.trace, fit.log_likelihood, &what);
-        assert!(fit.depth_spacing.is_finite() && (0.0..=0.5).contains(&fit.depth_spacing));
-        for l in &fit.layers {
-            assert!(
-                l.weight > 0.0 && l.sigma.is_finite() && l.sigma > 0.0,
-                "{what}: {l:?}"
-            );
-        }
-    }
+    let profiles: Vec<Profile> = profiles.into_iter().map(|p| p.1).collect();
+    assert_layered_groups_sane(&profiles, &cfg, "squarem group");
 }
 
 /// On layered fits whose plain EM crawls (overlapping layers; no pruning or model selection, a
