@@ -737,39 +737,49 @@ fn converge<M: MeanModel>(
     // Two buffers swapped each iteration instead of fresh statistics per E-step.
     let mut next_stats = fresh(state.weights.len());
     for _ in 0..cfg.max_iterations {
-        let before = state.clone();
-        m_step(data, state, &stats, cfg);
-        next_stats.reset(data.profiles.len(), state.weights.len());
-        let next = e_step(data, state, cfg.wrap_images, Some(&mut next_stats));
-        if !keeps(ll, next) {
-            // Rounding made a step worse: keep the better parameters and stop.
-            trace.steps.push((StepKind::Rejected, next));
-            *state = before;
-            break;
-        }
-        trace.steps.push((StepKind::Em, next));
-        let gain = next - ll;
-        ll = next;
-        std::mem::swap(&mut stats, &mut next_stats);
-        if gain < cfg.tolerance {
+        if !plain_step(
+            data,
+            cfg,
+            trace,
+            state,
+            &mut stats,
+            &mut next_stats,
+            &mut ll,
+        ) {
             break;
         }
     }
     ll
 }
 
-/// One plain EM step from `state`, whose E-step statistics are `stats`: the M-step, then the
-/// E-step of the new parameters into `next`. Returns their log-likelihood.
-fn em_step<M: MeanModel>(
+/// One plain EM step from `state` (E-step statistics `stats`, log-likelihood `ll`), recorded
+/// in `trace`. A step that rounding made worse is undone; a kept one moves `state`, `ll` and
+/// `stats` on (`next` is the other buffer). Returns whether the fit goes on: not after an undone
+/// step, nor after one that gained less than the tolerance.
+fn plain_step<M: MeanModel>(
     data: &Data,
-    state: &mut State<M>,
-    stats: &Stats,
-    next: &mut Stats,
     cfg: &EmConfig,
-) -> f64 {
+    trace: &mut Trace,
+    state: &mut State<M>,
+    stats: &mut Stats,
+    next: &mut Stats,
+    ll: &mut f64,
+) -> bool {
+    let before = state.clone();
     m_step(data, state, stats, cfg);
     next.reset(data.profiles.len(), state.weights.len());
-    e_step(data, state, cfg.wrap_images, Some(next))
+    let next_ll = e_step(data, state, cfg.wrap_images, Some(next));
+    if !keeps(*ll, next_ll) {
+        // Rounding made a step worse: keep the better parameters and stop.
+        trace.steps.push((StepKind::Rejected, next_ll));
+        *state = before;
+        return false;
+    }
+    trace.steps.push((StepKind::Em, next_ll));
+    let gain = next_ll - *ll;
+    *ll = next_ll;
+    std::mem::swap(stats, next);
+    gain >= cfg.tolerance
 }
 
 /// Whether a plain EM step from log-likelihood `ll` to `next` is kept: the exact EM never
@@ -895,19 +905,8 @@ fn converge_squarem<M: MeanModel>(
             continue;
         }
         path.push(squarem_coordinates(state));
-        let before = state.clone();
-        let next_ll = em_step(data, state, &stats, &mut next, cfg);
         e_steps += 1;
-        if !keeps(ll, next_ll) {
-            trace.steps.push((StepKind::Rejected, next_ll));
-            *state = before;
-            break;
-        }
-        trace.steps.push((StepKind::Em, next_ll));
-        let gain = next_ll - ll;
-        ll = next_ll;
-        std::mem::swap(&mut stats, &mut next);
-        if gain < cfg.tolerance {
+        if !plain_step(data, cfg, trace, state, &mut stats, &mut next, &mut ll) {
             break;
         }
     }
