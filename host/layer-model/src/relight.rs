@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use super::profiles::{ProjectorIllumination, irradiance};
 use super::render::{LayerModel, RenderError, RenderOptions, render_global_many};
 use super::surface::{Surface, ViewRay, shift_per_depth};
-use mlsss_core::capture::Pattern;
+use mlsss_core::capture::{Axis, Pattern};
 
 /// Pattern level seen at projector coordinate `(u, v)`: the pattern's pixels (boxes centred at
 /// integers) integrated against a Gaussian of `blur_px` (projector defocus and the camera pixel's
@@ -20,39 +20,30 @@ pub fn pattern_level(pattern: &Pattern, u: f32, v: f32, blur_px: f32) -> f32 {
     if blur_px <= 1e-3 {
         return at(ru, rv);
     }
-    let radius = (3.0 * blur_px).ceil() as i64 + 1;
-    let sigma = f64::from(blur_px) * std::f64::consts::SQRT_2;
-    // Weight of projector pixel j for a coordinate c: the Gaussian's mass over [j - 1/2, j + 1/2].
-    let weights = |c: f32, centre: i64| -> Vec<(i64, f64)> {
-        (centre - radius..=centre + radius)
-            .map(|j| {
-                let lo = (j as f64 - 0.5 - f64::from(c)) / sigma;
-                let hi = (j as f64 + 0.5 - f64::from(c)) / sigma;
-                (
-                    j,
-                    0.5 * (mlsss_core::special::erf(hi) - mlsss_core::special::erf(lo)),
-                )
-            })
-            .collect()
-    };
     // Every pattern varies along one axis at most: integrate along that axis only.
-    let (along_u, along_v) = match *pattern {
+    let along_u = match *pattern {
         Pattern::White | Pattern::Black | Pattern::Grey { .. } => return at(ru, rv),
-        Pattern::Gray { axis, .. } | Pattern::Slit { axis, .. } => match axis {
-            mlsss_core::capture::Axis::X => (true, false),
-            mlsss_core::capture::Axis::Y => (false, true),
-        },
-        Pattern::HighFrequency { .. } => (true, false),
+        Pattern::Gray { axis, .. } | Pattern::Slit { axis, .. } => axis == Axis::X,
+        Pattern::HighFrequency { .. } => true,
     };
+    let (c, centre) = if along_u { (u, ru) } else { (v, rv) };
+    let value = |j: i64| if along_u { at(j, rv) } else { at(ru, j) };
+    let radius = (3.0 * blur_px).ceil() as i64 + 1;
+    let pixels = centre - radius..=centre + radius;
+    // Dark across the blur's reach (most pixels under a slit): the sum below would be zero.
+    if pixels.clone().all(|j| value(j) == 0.0) {
+        return 0.0;
+    }
+    let sigma = f64::from(blur_px) * std::f64::consts::SQRT_2;
+    // Pixel j's weight is the Gaussian's mass over [j - 1/2, j + 1/2], half the difference of
+    // erf at its edges; neighbours share an edge, whose erf is computed once.
+    let edge = |j: i64| mlsss_core::special::erf((j as f64 - 0.5 - f64::from(c)) / sigma);
+    let mut below = edge(centre - radius);
     let mut level = 0.0f64;
-    if along_u {
-        for (j, w) in weights(u, ru) {
-            level += w * f64::from(at(j, rv));
-        }
-    } else if along_v {
-        for (j, w) in weights(v, rv) {
-            level += w * f64::from(at(ru, j));
-        }
+    for j in pixels {
+        let above = edge(j + 1);
+        level += 0.5 * (above - below) * f64::from(value(j));
+        below = above;
     }
     level as f32
 }
@@ -210,6 +201,78 @@ mod tests {
             pattern_level(&rows, 40.0, 1.0, 0.6)
         );
         assert_eq!(pattern_level(&Pattern::White, 3.3, 1.0, 2.0), 1.0);
+    }
+
+    /// The pattern level as first written: every pixel's weight from its own two erf values.
+    fn pattern_level_reference(pattern: &Pattern, u: f32, v: f32, blur_px: f32) -> f32 {
+        let at = |pu: i64, pv: i64| pattern.value(pu.max(0) as u32, pv.max(0) as u32);
+        let (ru, rv) = (u.round() as i64, v.round() as i64);
+        if blur_px <= 1e-3 {
+            return at(ru, rv);
+        }
+        let radius = (3.0 * blur_px).ceil() as i64 + 1;
+        let sigma = f64::from(blur_px) * std::f64::consts::SQRT_2;
+        let weights = |c: f32, centre: i64| -> Vec<(i64, f64)> {
+            (centre - radius..=centre + radius)
+                .map(|j| {
+                    let lo = (j as f64 - 0.5 - f64::from(c)) / sigma;
+                    let hi = (j as f64 + 0.5 - f64::from(c)) / sigma;
+                    let erf = mlsss_core::special::erf;
+                    (j, 0.5 * (erf(hi) - erf(lo)))
+                })
+                .collect()
+        };
+        let along_u = match *pattern {
+            Pattern::White | Pattern::Black | Pattern::Grey { .. } => return at(ru, rv),
+            Pattern::Gray { axis, .. } | Pattern::Slit { axis, .. } => axis == Axis::X,
+            Pattern::HighFrequency { .. } => true,
+        };
+        let mut level = 0.0f64;
+        if along_u {
+            for (j, w) in weights(u, ru) {
+                level += w * f64::from(at(j, rv));
+            }
+        } else {
+            for (j, w) in weights(v, rv) {
+                level += w * f64::from(at(ru, j));
+            }
+        }
+        level as f32
+    }
+
+    /// Shared edges and the dark-window shortcut give the per-pixel weights' level bit for bit,
+    /// over every pattern kind, both axes, sub-pixel positions and blurs from none to 3 pixels.
+    #[test]
+    fn pattern_level_equals_the_per_pixel_weights_bit_for_bit() {
+        let mut patterns = vec![Pattern::White, Pattern::Grey { level_milli: 250 }];
+        for axis in [Axis::X, Axis::Y] {
+            for bit in 0..8 {
+                patterns.push(Pattern::Gray {
+                    axis,
+                    bit,
+                    inverted: bit % 2 == 1,
+                });
+                patterns.push(Pattern::Slit {
+                    axis,
+                    width: 1 + bit,
+                    period: 24,
+                    offset: bit,
+                });
+            }
+        }
+        patterns.extend((1..5).map(|stripe| Pattern::HighFrequency { stripe, shift: 1 }));
+        for pattern in &patterns {
+            for i in 0..400 {
+                // Positions spread over 200 projector pixels on both axes, blurs over [0, 3).
+                let (u, v) = (i as f32 * 0.4993, (400 - i) as f32 * 0.5011);
+                let blur = (i % 31) as f32 * 0.097;
+                assert_eq!(
+                    pattern_level(pattern, u, v, blur).to_bits(),
+                    pattern_level_reference(pattern, u, v, blur).to_bits(),
+                    "{pattern:?} at ({u}, {v}), blur {blur}"
+                );
+            }
+        }
     }
 
     /// A uniform plane lit by one slit from a distant projector at 40 degrees, camera overhead:
