@@ -13,6 +13,7 @@
 use std::fs;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
@@ -420,11 +421,38 @@ impl FrameCodes<'_> {
     }
 }
 
-thread_local! {
-    /// The PNG bytes of the last frame this thread read, reused by the next: a fresh buffer per
-    /// frame (8.5 MB at full size, hundreds of frames a run) was zeroed and page-faulted in by
-    /// the kernel each time.
-    static FRAME_BYTES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+/// PNG bytes buffers of frames read before, for the next reads to reuse: a fresh buffer per
+/// frame (8.5 MB at full size, hundreds of frames a run) was zeroed and page-faulted in by the
+/// kernel each time. One per concurrent reader; [`release_frame_buffers`] empties it.
+static FRAME_BYTES: Mutex<Vec<Vec<u8>>> = Mutex::new(Vec::new());
+
+/// At most this many buffers are kept (one per thread reading frames at once).
+const POOLED_FRAME_BUFFERS: usize = 16;
+
+/// A buffer of [`FRAME_BYTES`], or a new one.
+fn take_frame_buffer() -> Vec<u8> {
+    FRAME_BYTES
+        .lock()
+        .ok()
+        .and_then(|mut pool| pool.pop())
+        .unwrap_or_default()
+}
+
+/// Returns `buffer` to [`FRAME_BYTES`] for the next read.
+fn give_back_frame_buffer(buffer: Vec<u8>) {
+    if let Ok(mut pool) = FRAME_BYTES.lock()
+        && pool.len() < POOLED_FRAME_BUFFERS
+    {
+        pool.push(buffer);
+    }
+}
+
+/// Frees the buffers kept for reading frames (`resources::release_free_memory` calls it between
+/// phases, so they never add to a later phase's peak).
+pub fn release_frame_buffers() {
+    if let Ok(mut pool) = FRAME_BYTES.lock() {
+        *pool = Vec::new();
+    }
 }
 
 /// Calls `convert` with the sensor codes of the 16-bit PNG frame at `path` written by
@@ -472,17 +500,19 @@ fn with_frame_codes<T>(
             path: path.to_owned(),
             reason: "too large".into(),
         })?;
-    FRAME_BYTES.with_borrow_mut(|bytes| {
-        bytes.resize(len, 0);
-        let frame = reader.next_frame(bytes).map_err(png_error)?;
-        Ok(convert(&FrameCodes {
+    let mut bytes = take_frame_buffer();
+    bytes.resize(len, 0);
+    let converted = reader.next_frame(&mut bytes).map(|frame| {
+        convert(&FrameCodes {
             width: frame.width,
             height: frame.height,
             codes: Codes::BigEndian(&bytes[..frame.buffer_size()]),
             shift,
             scale,
-        }))
-    })
+        })
+    });
+    give_back_frame_buffer(bytes);
+    converted.map_err(png_error)
 }
 
 /// Reads a 16-bit RGB, RGBA or grey PNG as 16-bit RGB sensor codes through `image`, refusing
@@ -774,13 +804,18 @@ mod tests {
     }
 
     /// Every reader's numbers straight from the PNG bytes equal those through `image` (the
-    /// plain path before the reused buffer), bit for bit, frame after frame on one thread.
+    /// plain path before the reused buffers), bit for bit, frame after frame, buffers reused
+    /// (smaller or larger than the frame) or freed.
     #[test]
     fn frames_read_from_the_png_bytes_equal_those_read_through_image() {
         let dir = tempfile::tempdir().unwrap();
         for bit_depth in [12, 16] {
             let path = dir.path().join(format!("frame{bit_depth}.png"));
             for (w, h, seed) in [(37u32, 23u32, 1u32), (8, 5, 2), (64, 48, 3)] {
+                if seed == 2 {
+                    // Reads after the kept buffers were freed (between stages) are the same.
+                    release_frame_buffers();
+                }
                 let img = Rgb32FImage::from_fn(w, h, |x, y| {
                     let v = ((x * 7919 + y * 104_729 + seed * 31) % 5000) as f32 / 4500.0;
                     image::Rgb([v, 1.0 - v, if x % 5 == 0 { 2.0 } else { v * 0.3 }])
