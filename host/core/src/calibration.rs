@@ -14,6 +14,9 @@ use std::path::Path;
 use nalgebra::{Matrix3, Point2, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// Fixed-point iterations of [`Intrinsics::undistort`] at most.
+const UNDISTORT_ITERATIONS: usize = 20;
+
 /// Pinhole intrinsics plus OpenCV's 5-parameter distortion.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
@@ -38,12 +41,22 @@ impl Intrinsics {
 
     /// Inverts [`Intrinsics::distort`] by fixed-point iteration (converges for the moderate
     /// distortion of real lenses; 20 iterations reach well below 1e-9 for |k1| < 0.3).
+    ///
+    /// Stops as soon as an iteration leaves `(x, y)` bit for bit unchanged: the step is a
+    /// function of `(x, y)` alone, so every later iteration would leave it unchanged too and the
+    /// result is that of all 20 (bit-identical; `undistort_stops_only_at_an_exact_fixed_point`).
+    /// Undistorted devices (the simulated projectors) then take one iteration instead of 20, a
+    /// real lens about ten: the geometry stage casts five rays per camera pixel.
     pub fn undistort(&self, xd: f64, yd: f64) -> (f64, f64) {
         let (mut x, mut y) = (xd, yd);
-        for _ in 0..20 {
+        for _ in 0..UNDISTORT_ITERATIONS {
             let (dx, dy) = self.distort(x, y);
-            x += xd - dx;
-            y += yd - dy;
+            let (next_x, next_y) = (x + (xd - dx), y + (yd - dy));
+            let fixed = next_x.to_bits() == x.to_bits() && next_y.to_bits() == y.to_bits();
+            (x, y) = (next_x, next_y);
+            if fixed {
+                break;
+            }
         }
         (x, y)
     }
@@ -322,6 +335,60 @@ mod tests {
             err.to_string().contains("projectors[2].intrinsics.fx/fy"),
             "{err}"
         );
+    }
+
+    /// The plain inverse: all 20 fixed-point iterations, as before the early stop.
+    fn undistort_all_iterations(k: &Intrinsics, xd: f64, yd: f64) -> (f64, f64) {
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..UNDISTORT_ITERATIONS {
+            let (dx, dy) = k.distort(x, y);
+            x += xd - dx;
+            y += yd - dy;
+        }
+        (x, y)
+    }
+
+    proptest::proptest! {
+        /// The early stop returns the bits of the full 20 iterations, for real-lens
+        /// distortions, none at all, and points out to the corners of a wide lens.
+        #[test]
+        fn undistort_stops_only_at_an_exact_fixed_point(
+            k1 in -0.3f64..0.3, k2 in -0.1f64..0.1, p1 in -0.003f64..0.003,
+            p2 in -0.003f64..0.003, k3 in -0.02f64..0.02, zero in proptest::bool::ANY,
+            xd in -0.6f64..0.6, yd in -0.45f64..0.45,
+        ) {
+            let k = Intrinsics {
+                fx: 1000.0,
+                fy: 1000.0,
+                cx: 320.0,
+                cy: 240.0,
+                distortion: if zero { [0.0; 5] } else { [k1, k2, p1, p2, k3] },
+            };
+            let (x, y) = k.undistort(xd, yd);
+            let (xa, ya) = undistort_all_iterations(&k, xd, yd);
+            proptest::prop_assert_eq!((x.to_bits(), y.to_bits()), (xa.to_bits(), ya.to_bits()));
+        }
+    }
+
+    #[test]
+    fn undistort_keeps_non_finite_and_signed_zero_inputs_as_before() {
+        let k = Intrinsics {
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 320.0,
+            cy: 240.0,
+            distortion: [-0.08, 0.05, 0.0, 0.0, 0.0],
+        };
+        for &(xd, yd) in &[
+            (-0.0, 0.0),
+            (f64::NAN, 0.1),
+            (f64::INFINITY, -0.2),
+            (1e300, 1.0),
+        ] {
+            let (x, y) = k.undistort(xd, yd);
+            let (xa, ya) = undistort_all_iterations(&k, xd, yd);
+            assert_eq!((x.to_bits(), y.to_bits()), (xa.to_bits(), ya.to_bits()));
+        }
     }
 
     #[test]

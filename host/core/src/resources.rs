@@ -43,8 +43,9 @@ fn parse_stat_cpu_ticks(stat: &str) -> Option<u64> {
 /// Hands the memory the allocator holds free back to the system. Why: glibc keeps what freed
 /// allocations of up to 32 MB leave in its per-thread arenas (a full-size image is 17 MB), so
 /// the memory of a finished phase would add to the next phase's peak. A few milliseconds; a
-/// no-op where the allocator is not glibc's.
+/// no-op where the allocator is not glibc's. The buffers kept for reading frames go first.
 pub fn release_free_memory() {
+    crate::capture::folder::release_frame_buffers();
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: `malloc_trim` takes no pointers and only returns free pages of the allocator's
     // own arenas to the system; it is thread-safe.

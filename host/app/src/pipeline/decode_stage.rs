@@ -13,6 +13,7 @@
 //! all dark is skipped and reported (`skipped`), not fatal.
 
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
@@ -110,55 +111,94 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
     let capture = ctx.capture;
     let booth = &capture.manifest.booth;
     let truth_dir = ctx.truth_dir();
+    let dir = ctx.dir();
+    // Projector k's artefacts are written and compared with the truth while k + 1 decodes:
+    // both are mostly serial, the decoding leaves cores idle between its parallel passes.
+    let finished: Mutex<Vec<Finished>> = Mutex::new(Vec::new());
+    let keep = |k: usize, entry: Result<(ProjectorDecodeReport, Option<f64>), DecodeStageError>| {
+        if let Ok(mut done) = finished.lock() {
+            done.push((k, entry));
+        }
+    };
+    rayon::scope(|scope| -> Result<(), StageFailure> {
+        for (k, proj) in booth.projectors.iter().enumerate() {
+            let frames = code_frames::from_capture(capture, k).map_err(|source| {
+                StageFailure::new(DecodeStageError::Frames {
+                    projector: k,
+                    source,
+                })
+            })?;
+            let params = camera_noise_params(params, capture, k);
+            let decoded = match decode(&frames, (proj.width, proj.height), &params) {
+                Ok(d) => d,
+                Err(err @ (GrayCodeError::NothingLit { .. } | GrayCodeError::Saturated { .. })) => {
+                    let skipped = ProjectorDecodeReport {
+                        projector: k,
+                        skipped: Some(err.to_string()),
+                        counts: None,
+                        truth: None,
+                    };
+                    keep(k, Ok((skipped, None)));
+                    continue;
+                }
+                Err(source) => {
+                    return Err(StageFailure::new(DecodeStageError::Decode {
+                        projector: k,
+                        source,
+                    }));
+                }
+            };
+            drop(frames);
+            let (dir, truth_dir, keep) = (&dir, &truth_dir, &keep);
+            scope.spawn(move |_| keep(k, finish_projector(dir, k, &decoded, truth_dir.as_deref())));
+        }
+        Ok(())
+    })?;
+    let mut finished = finished
+        .into_inner()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    finished.sort_by_key(|(k, _)| *k);
     let mut projectors = Vec::new();
     let mut valid_sum = 0.0;
     let mut decoded_count = 0;
-    for (k, proj) in booth.projectors.iter().enumerate() {
-        let frames = code_frames::from_capture(capture, k).map_err(|source| {
-            StageFailure::new(DecodeStageError::Frames {
-                projector: k,
-                source,
-            })
-        })?;
-        let params = camera_noise_params(params, capture, k);
-        let decoded = match decode(&frames, (proj.width, proj.height), &params) {
-            Ok(d) => d,
-            Err(err @ (GrayCodeError::NothingLit { .. } | GrayCodeError::Saturated { .. })) => {
-                projectors.push(ProjectorDecodeReport {
-                    projector: k,
-                    skipped: Some(err.to_string()),
-                    counts: None,
-                    truth: None,
-                });
-                continue;
-            }
-            Err(source) => {
-                return Err(StageFailure::new(DecodeStageError::Decode {
-                    projector: k,
-                    source,
-                }));
-            }
-        };
-        write_decode(&ctx.dir(), k, &decoded).map_err(StageFailure::new)?;
-        let truth = match &truth_dir {
-            Some(t) => Some(
-                load_coords(
-                    &truth::projector_coords(t, k),
-                    (decoded.width, decoded.height),
-                )
-                .map_err(StageFailure::new)?,
-            ),
-            None => None,
-        };
-        let entry = projector_report(k, &decoded, truth.as_deref());
-        valid_sum += decoded.summary().valid_fraction();
-        decoded_count += 1;
+    for (_, entry) in finished {
+        let (entry, valid) = entry.map_err(StageFailure::new)?;
+        if let Some(valid) = valid {
+            valid_sum += valid;
+            decoded_count += 1;
+        }
         projectors.push(entry);
     }
     Ok(DecodeReport {
         projectors,
         valid_fraction: valid_sum / f64::from(decoded_count.max(1)),
     })
+}
+
+/// A projector's index and its report entry with its valid fraction (`None`: skipped).
+type Finished = (
+    usize,
+    Result<(ProjectorDecodeReport, Option<f64>), DecodeStageError>,
+);
+
+/// Writes projector `k`'s artefacts into `dir` and makes its report entry, compared with the
+/// true coordinates in `truth_dir` if given; with its valid fraction.
+fn finish_projector(
+    dir: &Path,
+    k: usize,
+    decoded: &ProjectorDecode,
+    truth_dir: Option<&Path>,
+) -> Result<(ProjectorDecodeReport, Option<f64>), DecodeStageError> {
+    write_decode(dir, k, decoded)?;
+    let truth = match truth_dir {
+        Some(t) => Some(load_coords(
+            &truth::projector_coords(t, k),
+            (decoded.width, decoded.height),
+        )?),
+        None => None,
+    };
+    let entry = projector_report(k, decoded, truth.as_deref());
+    Ok((entry, Some(decoded.summary().valid_fraction())))
 }
 
 /// The decoder's thresholds with the noise model of the capture's camera at projector `k`'s

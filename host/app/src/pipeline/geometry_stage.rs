@@ -19,6 +19,7 @@
 use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -208,14 +209,16 @@ fn run_geometry(
         });
     }
     let decode_dir = ctx.stage_dir("decode");
-    let mut coords = Vec::new();
-    for k in 0..captured {
-        let path = coords_path(&decode_dir, k);
-        // A projector skipped by decode (all dark) has no map.
-        if path.is_file() {
-            coords.push((k, load_coords(&path, size)?));
-        }
-    }
+    // One map per thread: reading an EXR is mostly serial (its decompression is not).
+    let coords = (0..captured)
+        .into_par_iter()
+        .filter_map(|k| {
+            let path = coords_path(&decode_dir, k);
+            // A projector skipped by decode (all dark) has no map.
+            path.is_file()
+                .then(|| load_coords(&path, size).map(|c| (k, c)))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     if coords.is_empty() {
         return Err(GeometryStageError::NothingDecoded(decode_dir));
     }
@@ -229,14 +232,20 @@ fn run_geometry(
     let map = triangulate(&calib.camera, &views, &params.triangulation);
     let mesh = GridMesh::from_depth_map(&map, params.max_edge_mm);
     let camera_centre = calib.camera.extrinsics.centre();
-    let normals = fit_point_normals(
-        &map.points,
-        map.width,
-        map.height,
-        camera_centre,
-        &params.point_normals,
+    // The point normals' smoothing is mostly serial: the artefacts are written beside it.
+    let (written, normals) = rayon::join(
+        || write_artefacts(ctx, &map, &mesh, camera_centre.coords.into()),
+        || {
+            fit_point_normals(
+                &map.points,
+                map.width,
+                map.height,
+                camera_centre,
+                &params.point_normals,
+            )
+        },
     );
-    write_artefacts(ctx, &map, &mesh, camera_centre.coords.into())?;
+    written?;
     write_point_normals(&ctx.dir(), &normals)?;
 
     let truth = match ctx.truth_dir() {
@@ -269,7 +278,6 @@ fn write_point_normals(dir: &Path, normals: &PointNormals) -> Result<(), ImageIo
     // One normal per pixel by construction; an empty image if that ever broke.
     let image = Rgb32FImage::from_raw(width, height, data)
         .unwrap_or_else(|| Rgb32FImage::new(width, height));
-    imageio::write_exr_rgb(&point_normals_path(dir), &image)?;
     let reliable = GrayF32 {
         width,
         height,
@@ -279,7 +287,12 @@ fn write_point_normals(dir: &Path, normals: &PointNormals) -> Result<(), ImageIo
             .map(|&r| f32::from(u8::from(r)))
             .collect(),
     };
-    imageio::write_exr_gray(&point_normals_reliable_path(dir), &reliable)
+    let (a, b) = rayon::join(
+        || imageio::write_exr_rgb(&point_normals_path(dir), &image),
+        || imageio::write_exr_gray(&point_normals_reliable_path(dir), &reliable),
+    );
+    a?;
+    b
 }
 
 fn write_artefacts(
@@ -289,18 +302,40 @@ fn write_artefacts(
     camera_centre: [f64; 3],
 ) -> Result<(), GeometryStageError> {
     let dir = ctx.dir();
-    let depth = GrayF32 {
-        width: map.width,
-        height: map.height,
-        data: map.depth.clone(),
-    };
-    imageio::write_exr_gray(&dir.join("depth.exr"), &depth)?;
-    let points = Rgb32FImage::from_fn(map.width, map.height, |x, y| {
-        image::Rgb(map.points[(y * map.width + x) as usize])
-    });
-    imageio::write_exr_rgb(&points_path(&dir), &points)?;
-    mesh.write_ply(&dir.join("mesh.ply"))?;
-    let path = dir.join("shaded.png");
-    imageio::write_png(&path, &shaded_preview(map, camera_centre))?;
-    Ok(())
+    // Each file is encoded mostly on one thread: they go side by side.
+    let (images, mesh_and_preview) = rayon::join(
+        || -> Result<(), GeometryStageError> {
+            let (depth, points) = rayon::join(
+                || {
+                    let depth = GrayF32 {
+                        width: map.width,
+                        height: map.height,
+                        data: map.depth.clone(),
+                    };
+                    imageio::write_exr_gray(&dir.join("depth.exr"), &depth)
+                },
+                || {
+                    let points = Rgb32FImage::from_fn(map.width, map.height, |x, y| {
+                        image::Rgb(map.points[(y * map.width + x) as usize])
+                    });
+                    imageio::write_exr_rgb(&points_path(&dir), &points)
+                },
+            );
+            depth?;
+            Ok(points?)
+        },
+        || -> Result<(), GeometryStageError> {
+            let (ply, preview) = rayon::join(
+                || mesh.write_ply(&dir.join("mesh.ply")),
+                || {
+                    let path = dir.join("shaded.png");
+                    imageio::write_png(&path, &shaded_preview(map, camera_centre))
+                },
+            );
+            ply?;
+            Ok(preview?)
+        },
+    );
+    images?;
+    mesh_and_preview
 }

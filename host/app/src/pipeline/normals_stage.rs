@@ -20,6 +20,7 @@
 use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -297,21 +298,34 @@ fn run_normals(
     clock.lap("photometric_stereo");
     let photometric = map.normal_image();
     let mut report = NormalsReport::new(&map.stats(), params);
-    imageio::write_exr_rgb(&photometric_normals_path(&ctx.dir()), &photometric)?;
-    clock.lap("write");
-    let normals = match params.source {
-        NormalSource::Photometric => photometric,
-        NormalSource::Fused => {
-            let (normals, counts) = fused_normals(ctx, &map, &lights, params)?;
+    // The fusion is mostly serial (its low-pass filter): photometric stereo's normals are
+    // written beside it (phase `fusion`), as are the artefacts beside the truth check (phase
+    // `write`; `truth` then only books what is left of the check).
+    let (written, fused) = rayon::join(
+        || imageio::write_exr_rgb(&photometric_normals_path(&ctx.dir()), &photometric),
+        || match params.source {
+            NormalSource::Photometric => Ok(None),
+            NormalSource::Fused => fused_normals(ctx, &map, &lights, params).map(Some),
+        },
+    );
+    written?;
+    let normals = match fused? {
+        Some((normals, counts)) => {
             report.fusion = Some(counts);
             normals
         }
+        None => photometric,
     };
     clock.lap("fusion");
-    write_artefacts(&ctx.dir(), &map, &normals)?;
+    let truth_dir = ctx.truth_dir();
+    let (written, truth) = rayon::join(
+        || write_artefacts(&ctx.dir(), &map, &normals),
+        || truth_dir.map(|t| truth_errors(&t, &normals)).transpose(),
+    );
+    written?;
     clock.lap("write");
-    if let Some(t) = ctx.truth_dir() {
-        report.truth = truth_errors(&t, &normals)?;
+    if let Some(errors) = truth? {
+        report.truth = errors;
     }
     clock.lap("truth");
     report.timing = clock.finish();
@@ -367,7 +381,9 @@ fn read_images(
     captured: usize,
 ) -> Result<Vec<Rgb32FImage>, NormalsStageError> {
     let sep_dir = ctx.stage_dir("separate");
+    // One file per thread: reading an EXR is mostly serial (its decompression is not).
     let images = (0..captured)
+        .into_par_iter()
         .map(|k| {
             let path = match input {
                 PsInput::Direct => direct_path(&sep_dir, k),
@@ -405,27 +421,54 @@ fn write_artefacts(
     normals: &Rgb32FImage,
 ) -> Result<(), NormalsStageError> {
     let (width, height) = normals.dimensions();
-    imageio::write_exr_rgb(&dir.join("normals.exr"), normals)?;
-    imageio::write_exr_rgb(&dir.join("albedo.exr"), &map.albedo_image())?;
+    // Each file is encoded mostly on one thread: the four go side by side.
+    let (normals_and_albedo, used_and_preview) = rayon::join(
+        || -> Result<(), NormalsStageError> {
+            let (a, b) = rayon::join(
+                || imageio::write_exr_rgb(&dir.join("normals.exr"), normals),
+                || imageio::write_exr_rgb(&dir.join("albedo.exr"), &map.albedo_image()),
+            );
+            a?;
+            Ok(b?)
+        },
+        || -> Result<(), NormalsStageError> {
+            let (a, b) = rayon::join(
+                || write_lights_used(&dir.join("lights_used.exr"), map, (width, height)),
+                || write_preview(&dir.join("normals.png"), normals),
+            );
+            a?;
+            b
+        },
+    );
+    normals_and_albedo?;
+    used_and_preview
+}
+
+/// Writes how many lights photometric stereo used per pixel (0 where it flagged the pixel).
+fn write_lights_used(
+    path: &Path,
+    map: &NormalMap,
+    (width, height): (u32, u32),
+) -> Result<(), ImageIoError> {
+    let data = map
+        .pixels
+        .iter()
+        .map(|p| {
+            if p.normal == [0.0; 3] {
+                0.0
+            } else {
+                p.lights_used() as f32
+            }
+        })
+        .collect();
     imageio::write_exr_gray(
-        &dir.join("lights_used.exr"),
+        path,
         &GrayF32 {
             width,
             height,
-            data: map
-                .pixels
-                .iter()
-                .map(|p| {
-                    if p.normal == [0.0; 3] {
-                        0.0
-                    } else {
-                        p.lights_used() as f32
-                    }
-                })
-                .collect(),
+            data,
         },
-    )?;
-    write_preview(&dir.join("normals.png"), normals)
+    )
 }
 
 /// The normals' angular errors against the simulator's in `truth_dir`, over the solved pixels

@@ -419,6 +419,9 @@ fn run_separate(
     let mut per_projector = Vec::new();
     let mut outputs = Vec::new();
     let mut baseline = Vec::new();
+    // The Nayar direct parts and the cleaned whites, written beside the lobe (each file is
+    // encoded mostly on one thread, the lobe leaves cores idle).
+    let mut early = Vec::new();
     for (k, frames) in frames.into_iter().enumerate() {
         let offset = stray.as_ref().map(|s| &s[k]);
         let cleaned = CleanFrames::new(frames, offset);
@@ -440,19 +443,28 @@ fn run_separate(
             SeparationMethod::Kernel => nayar_split(&setup, &cleaned)?,
         };
         clock.lap("nayar");
-        imageio::write_exr_rgb(&nayar_direct_path(&dir, k), &nayar.direct)?;
-        if truth_dir.is_some() {
+        let nayar_direct = if truth_dir.is_some() {
+            let direct = nayar.direct.clone();
             baseline.push(nayar);
-        }
-        imageio::write_exr_rgb(&white_path(&dir, k), &cleaned.white)?;
-        clock.lap("write");
+            direct
+        } else {
+            nayar.direct
+        };
+        early.push((nayar_direct_path(&dir, k), nayar_direct));
+        early.push((white_path(&dir, k), cleaned.white));
         per_projector.push(entry);
         outputs.push(split);
     }
-    let lobe = match calib.filter(|_| lobe_runs) {
-        Some(calib) => lobe_direct_parts(ctx, calib, &mut outputs, params.direct_smoothing_px)?,
-        None => None,
-    };
+    let (written, lobe) = rayon::join(
+        || write_all(&early),
+        || match calib.filter(|_| lobe_runs) {
+            Some(calib) => lobe_direct_parts(ctx, calib, &mut outputs, params.direct_smoothing_px),
+            None => Ok(None),
+        },
+    );
+    written?;
+    drop(early);
+    let lobe = lobe?;
     if lobe_runs && lobe.is_none() && !with_slits {
         // The lobe found no body colour: the colour rule stands in, on the leak-corrected
         // split, so the slit sweep is needed after all.
@@ -468,11 +480,36 @@ fn run_separate(
             split.read_deferred_direct(params.direct_model, params.direct_smoothing_px);
         }
     }
+    // Phase `lobe` holds the early writes beside it, `write` the truth comparison beside the
+    // writes.
     clock.lap("lobe");
-    for (k, split) in outputs.iter().enumerate() {
-        imageio::write_exr_rgb(&direct_path(&dir, k), &split.direct)?;
-        imageio::write_exr_rgb(&global_path(&dir, k), &split.global)?;
-    }
+    let late: Vec<(PathBuf, &Rgb32FImage)> = outputs
+        .iter()
+        .enumerate()
+        .flat_map(|(k, split)| {
+            [
+                (direct_path(&dir, k), &split.direct),
+                (global_path(&dir, k), &split.global),
+            ]
+        })
+        .collect();
+    let (written, compared) = rayon::join(
+        || write_all(&late),
+        || -> Result<_, SeparateStageError> {
+            match &truth_dir {
+                Some(t) => {
+                    let mask = read_mask(&truth::mask(t));
+                    let pairs = read_true_separation(t, captured)?;
+                    let errors = relative_errors(&outputs, &pairs, mask.as_deref());
+                    let nayar = relative_errors(&baseline, &pairs, mask.as_deref());
+                    Ok(Some((pairs, errors, nayar)))
+                }
+                None => Ok(None),
+            }
+        },
+    );
+    written?;
+    let compared = compared?;
     clock.lap("write");
     let mut report = SeparateReport {
         method: params.method,
@@ -485,12 +522,9 @@ fn run_separate(
         nayar_total_rel_rmse: None,
         timing: PhaseTimes::default(),
     };
-    let truth_images = match truth_dir {
-        Some(t) => {
-            let mask = read_mask(&truth::mask(&t));
-            let pairs = read_true_separation(&t, captured)?;
-            report.truth = Some(relative_errors(&outputs, &pairs, mask.as_deref()));
-            let nayar = relative_errors(&baseline, &pairs, mask.as_deref());
+    let truth_images = match compared {
+        Some((pairs, errors, nayar)) => {
+            report.truth = Some(errors);
             report.nayar_direct_rel_rmse = Some(nayar.direct_rel_rmse);
             report.nayar_global_rel_rmse = Some(nayar.global_rel_rmse);
             report.nayar_total_rel_rmse = Some(nayar.total_rel_rmse);
@@ -506,6 +540,17 @@ fn run_separate(
     clock.lap("truth");
     report.timing = clock.finish();
     Ok(report)
+}
+
+/// Writes each `(path, image)` as an EXR, the files side by side (each is encoded mostly on
+/// one thread).
+fn write_all<I>(files: &[(PathBuf, I)]) -> Result<(), ImageIoError>
+where
+    I: std::borrow::Borrow<Rgb32FImage> + Sync,
+{
+    files
+        .par_iter()
+        .try_for_each(|(path, image)| imageio::write_exr_rgb(path, image.borrow()))
 }
 
 /// A projector's frames less the stray light of the others.

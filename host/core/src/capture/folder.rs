@@ -13,6 +13,7 @@
 use std::fs;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use image::Rgb32FImage;
 use serde::{Deserialize, Serialize};
@@ -306,42 +307,53 @@ impl Capture {
     /// Reads frame `index` as linear RGB in [0, 1] at the nominal exposure (a metered frame is
     /// divided by its exposure scale, so it may exceed 1 where the camera did not saturate).
     pub fn read_frame(&self, index: u32) -> Result<Rgb32FImage, CaptureError> {
-        let (path, codes) = self.read_codes(index)?;
-        let data = codes.samples().collect();
-        Rgb32FImage::from_raw(codes.width(), codes.height(), data).ok_or_else(|| {
-            CaptureError::BadFrame {
-                path,
-                reason: "buffer size mismatch".into(),
-            }
+        let (path, (width, height, data)) =
+            self.read_codes(index, |codes| (codes.width, codes.height, codes.samples()))?;
+        Rgb32FImage::from_raw(width, height, data).ok_or_else(|| CaptureError::BadFrame {
+            path,
+            reason: "buffer size mismatch".into(),
         })
     }
 
     /// Frame `index` as linear RGB pixels in [0, 1], row-major: what the per-pixel stages index,
     /// made in one pass from the sensor codes (no `Rgb32FImage` to copy from).
     pub fn read_frame_pixels(&self, index: u32) -> Result<Vec<[f32; 3]>, CaptureError> {
-        let (_, codes) = self.read_codes(index)?;
-        Ok(codes.pixels().collect())
+        let (_, pixels) = self.read_codes(index, |codes| codes.map_pixels(|p| p))?;
+        Ok(pixels)
     }
 
     /// Frame `index`'s luminance, the mean of its linear RGB, row-major (what Gray-code decoding
     /// compares), made in one pass from the sensor codes.
     pub fn read_frame_luminance(&self, index: u32) -> Result<Vec<f32>, CaptureError> {
-        let (_, codes) = self.read_codes(index)?;
-        Ok(codes.pixels().map(|p| (p[0] + p[1] + p[2]) / 3.0).collect())
+        let (_, luminance) = self.read_codes(index, |codes| {
+            codes.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0)
+        })?;
+        Ok(luminance)
     }
 
-    /// Path and sensor codes of frame `index`.
-    fn read_codes(&self, index: u32) -> Result<(PathBuf, FrameCodes), CaptureError> {
+    /// Path of frame `index` and what `convert` makes of its sensor codes.
+    fn read_codes<T>(
+        &self,
+        index: u32,
+        convert: impl FnOnce(&FrameCodes) -> T,
+    ) -> Result<(PathBuf, T), CaptureError> {
         let count = self.manifest.plan.len();
         if index as usize >= count {
             return Err(CaptureError::NoSuchFrame { index, count });
         }
         let cam = &self.manifest.booth.camera;
         let path = self.root.join(frame_file(index));
-        let mut codes = read_frame_codes(&path, self.manifest.bit_depth, (cam.width, cam.height))?;
         // Back to the nominal exposure, so every stage sees the same units whatever the metering.
-        codes.scale /= self.manifest.frame_exposure_scale(index) as f32;
-        Ok((path, codes))
+        let exposure = self.manifest.frame_exposure_scale(index) as f32;
+        let size = (cam.width, cam.height);
+        let converted = with_frame_codes(&path, self.manifest.bit_depth, size, |codes| {
+            let codes = FrameCodes {
+                scale: codes.scale / exposure,
+                ..*codes
+            };
+            convert(&codes)
+        })?;
+        Ok((path, converted))
     }
 
     /// Reads the frame described by `spec`.
@@ -351,47 +363,164 @@ impl Capture {
 }
 
 /// A frame's sensor codes as stored (MSB-aligned in 16 bits) and their scale to linear [0, 1].
-struct FrameCodes {
-    rgb16: image::ImageBuffer<image::Rgb<u16>, Vec<u16>>,
+#[derive(Clone, Copy)]
+struct FrameCodes<'a> {
+    width: u32,
+    height: u32,
+    codes: Codes<'a>,
     /// Right shift from the stored 16 bits to the sensor's `bit_depth`.
     shift: u32,
     /// One sensor code in linear units: `1 / (2^bit_depth - 1)`.
     scale: f32,
 }
 
-impl FrameCodes {
-    fn width(&self) -> u32 {
-        self.rgb16.width()
-    }
+/// R, G, B codes of each pixel in row-major order.
+#[derive(Clone, Copy)]
+enum Codes<'a> {
+    /// As the PNG stores them: big-endian, 6 bytes a pixel.
+    BigEndian(&'a [u8]),
+    /// Native 16-bit values.
+    Native(&'a [u16]),
+}
 
-    fn height(&self) -> u32 {
-        self.rgb16.height()
-    }
-
+impl FrameCodes<'_> {
     /// Linear samples, R, G, B of each pixel in row-major order.
-    fn samples(&self) -> impl Iterator<Item = f32> + '_ {
-        self.rgb16.as_raw().iter().map(|&c| self.linear(c))
+    fn samples(&self) -> Vec<f32> {
+        match self.codes {
+            Codes::BigEndian(bytes) => bytes
+                .chunks_exact(2)
+                .map(|c| self.linear(u16::from_be_bytes([c[0], c[1]])))
+                .collect(),
+            Codes::Native(codes) => codes.iter().map(|&c| self.linear(c)).collect(),
+        }
     }
 
-    /// Linear RGB of each pixel in row-major order.
-    fn pixels(&self) -> impl Iterator<Item = [f32; 3]> + '_ {
-        self.rgb16
-            .as_raw()
-            .chunks_exact(3)
-            .map(|p| [self.linear(p[0]), self.linear(p[1]), self.linear(p[2])])
+    /// `f` of the linear RGB of each pixel, in row-major order.
+    fn map_pixels<T>(&self, f: impl Fn([f32; 3]) -> T) -> Vec<T> {
+        match self.codes {
+            Codes::BigEndian(bytes) => bytes
+                .chunks_exact(6)
+                .map(|p| {
+                    f([
+                        self.linear(u16::from_be_bytes([p[0], p[1]])),
+                        self.linear(u16::from_be_bytes([p[2], p[3]])),
+                        self.linear(u16::from_be_bytes([p[4], p[5]])),
+                    ])
+                })
+                .collect(),
+            Codes::Native(codes) => codes
+                .chunks_exact(3)
+                .map(|p| f([self.linear(p[0]), self.linear(p[1]), self.linear(p[2])]))
+                .collect(),
+        }
     }
 
+    #[inline(always)]
     fn linear(&self, code: u16) -> f32 {
         (code >> self.shift) as f32 * self.scale
     }
 }
 
-/// Reads a 16-bit (or 8-bit) RGB PNG written by [`write_frame_png`] as sensor codes.
-fn read_frame_codes(
+/// PNG bytes buffers of frames read before, for the next reads to reuse: a fresh buffer per
+/// frame (8.5 MB at full size, hundreds of frames a run) was zeroed and page-faulted in by the
+/// kernel each time. One per concurrent reader; [`release_frame_buffers`] empties it.
+static FRAME_BYTES: Mutex<Vec<Vec<u8>>> = Mutex::new(Vec::new());
+
+/// At most this many buffers are kept (one per thread reading frames at once).
+const POOLED_FRAME_BUFFERS: usize = 16;
+
+/// A buffer of [`FRAME_BYTES`], or a new one.
+fn take_frame_buffer() -> Vec<u8> {
+    FRAME_BYTES
+        .lock()
+        .ok()
+        .and_then(|mut pool| pool.pop())
+        .unwrap_or_default()
+}
+
+/// Returns `buffer` to [`FRAME_BYTES`] for the next read.
+fn give_back_frame_buffer(buffer: Vec<u8>) {
+    if let Ok(mut pool) = FRAME_BYTES.lock()
+        && pool.len() < POOLED_FRAME_BUFFERS
+    {
+        pool.push(buffer);
+    }
+}
+
+/// Frees the buffers kept for reading frames (`resources::release_free_memory` calls it between
+/// phases, so they never add to a later phase's peak).
+pub fn release_frame_buffers() {
+    if let Ok(mut pool) = FRAME_BYTES.lock() {
+        *pool = Vec::new();
+    }
+}
+
+/// Calls `convert` with the sensor codes of the 16-bit PNG frame at `path` written by
+/// [`write_frame_png`]: read straight into this thread's reused buffer when it is 16-bit RGB,
+/// else through `image` ([`read_frame_codes`], which also refuses what is not a frame).
+fn with_frame_codes<T>(
     path: &Path,
     bit_depth: u32,
     expected_size: (u32, u32),
-) -> Result<FrameCodes, CaptureError> {
+    convert: impl FnOnce(&FrameCodes) -> T,
+) -> Result<T, CaptureError> {
+    let shift = 16 - bit_depth.min(16);
+    let scale = 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32;
+    let image_error = |source| CaptureError::Image {
+        path: path.to_owned(),
+        source,
+    };
+    let file = fs::File::open(path).map_err(|e| image_error(image::ImageError::IoError(e)))?;
+    let png_error = |e: png::DecodingError| {
+        image_error(image::ImageError::Decoding(
+            image::error::DecodingError::new(image::ImageFormat::Png.into(), e),
+        ))
+    };
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .map_err(png_error)?;
+    let info = reader.info();
+    let plain_rgb16 = info.color_type == png::ColorType::Rgb
+        && info.bit_depth == png::BitDepth::Sixteen
+        && !info.interlaced
+        && (info.width, info.height) == expected_size;
+    if !plain_rgb16 {
+        let codes = read_frame_codes(path, expected_size)?;
+        return Ok(convert(&FrameCodes {
+            width: codes.width(),
+            height: codes.height(),
+            codes: Codes::Native(codes.as_raw()),
+            shift,
+            scale,
+        }));
+    }
+    let len = reader
+        .output_buffer_size()
+        .ok_or_else(|| CaptureError::BadFrame {
+            path: path.to_owned(),
+            reason: "too large".into(),
+        })?;
+    let mut bytes = take_frame_buffer();
+    bytes.resize(len, 0);
+    let converted = reader.next_frame(&mut bytes).map(|frame| {
+        convert(&FrameCodes {
+            width: frame.width,
+            height: frame.height,
+            codes: Codes::BigEndian(&bytes[..frame.buffer_size()]),
+            shift,
+            scale,
+        })
+    });
+    give_back_frame_buffer(bytes);
+    converted.map_err(png_error)
+}
+
+/// Reads a 16-bit RGB, RGBA or grey PNG as 16-bit RGB sensor codes through `image`, refusing
+/// 8-bit frames and frames of the wrong size.
+fn read_frame_codes(
+    path: &Path,
+    expected_size: (u32, u32),
+) -> Result<image::ImageBuffer<image::Rgb<u16>, Vec<u16>>, CaptureError> {
     let img = image::open(path).map_err(|source| CaptureError::Image {
         path: path.to_owned(),
         source,
@@ -421,11 +550,7 @@ fn read_frame_codes(
             ),
         });
     }
-    Ok(FrameCodes {
-        rgb16: img.into_rgb16(),
-        shift: 16 - bit_depth.min(16),
-        scale: 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32,
-    })
+    Ok(img.into_rgb16())
 }
 
 /// `x.round() as u16` for `0 <= x < 65536` (halves away from zero), without the `roundf` call
@@ -676,6 +801,87 @@ mod tests {
             cap.read_frame(999),
             Err(CaptureError::NoSuchFrame { .. })
         ));
+    }
+
+    /// Every reader's numbers straight from the PNG bytes equal those through `image` (the
+    /// plain path before the reused buffers), bit for bit, frame after frame, buffers reused
+    /// (smaller or larger than the frame) or freed.
+    #[test]
+    fn frames_read_from_the_png_bytes_equal_those_read_through_image() {
+        let dir = tempfile::tempdir().unwrap();
+        for bit_depth in [12, 16] {
+            let path = dir.path().join(format!("frame{bit_depth}.png"));
+            for (w, h, seed) in [(37u32, 23u32, 1u32), (8, 5, 2), (64, 48, 3)] {
+                if seed == 2 {
+                    // Reads after the kept buffers were freed (between stages) are the same.
+                    release_frame_buffers();
+                }
+                let img = Rgb32FImage::from_fn(w, h, |x, y| {
+                    let v = ((x * 7919 + y * 104_729 + seed * 31) % 5000) as f32 / 4500.0;
+                    image::Rgb([v, 1.0 - v, if x % 5 == 0 { 2.0 } else { v * 0.3 }])
+                });
+                write_frame_png(&path, &img, bit_depth).unwrap();
+                let by_image = read_frame_codes(&path, (w, h)).unwrap();
+                let plain = FrameCodes {
+                    width: w,
+                    height: h,
+                    codes: Codes::Native(by_image.as_raw()),
+                    shift: 16 - bit_depth,
+                    scale: 1.0 / ((1u32 << bit_depth) - 1) as f32 / 0.7,
+                };
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                let (samples, pixels, luminance) =
+                    with_frame_codes(&path, bit_depth, (w, h), |c| {
+                        let c = FrameCodes {
+                            scale: c.scale / 0.7,
+                            ..*c
+                        };
+                        assert!(matches!(c.codes, Codes::BigEndian(_)));
+                        (
+                            c.samples(),
+                            c.map_pixels(|p| p),
+                            c.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0),
+                        )
+                    })
+                    .unwrap();
+                assert_eq!(bits(&samples), bits(&plain.samples()));
+                assert_eq!(
+                    bits(pixels.as_flattened()),
+                    bits(plain.map_pixels(|p| p).as_flattened())
+                );
+                assert_eq!(
+                    bits(&luminance),
+                    bits(&plain.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0))
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn an_eight_bit_or_wrongly_sized_frame_is_still_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frame.png");
+        let img = Rgb32FImage::from_fn(8, 5, |x, _| image::Rgb([x as f32 / 7.0; 3]));
+        write_frame_png(&path, &img, 12).unwrap();
+        let wrong = with_frame_codes(&path, 12, (9, 5), |c| c.samples());
+        assert!(
+            matches!(wrong, Err(CaptureError::BadFrame { .. })),
+            "{wrong:?}"
+        );
+        image::DynamicImage::ImageRgb32F(img)
+            .to_rgb8()
+            .save(&path)
+            .unwrap();
+        let eight = with_frame_codes(&path, 12, (8, 5), |c| c.samples());
+        assert!(
+            matches!(eight, Err(CaptureError::BadFrame { .. })),
+            "{eight:?}"
+        );
+        let missing = with_frame_codes(&dir.path().join("none.png"), 12, (8, 5), |c| c.samples());
+        assert!(
+            matches!(missing, Err(CaptureError::Image { .. })),
+            "{missing:?}"
+        );
     }
 
     #[test]

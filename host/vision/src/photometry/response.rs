@@ -19,7 +19,8 @@
 //!   `b_k = c_kk / (1 + c_kk)`. Ambient light is assumed absent (a dark booth).
 
 use image::Rgb32FImage;
-use nalgebra::{DMatrix, DVector, Matrix4, Vector4};
+use nalgebra::{DMatrix, DVector, Matrix4};
+use rayon::prelude::*;
 
 use mlsss_core::calibration::ProjectorResponse;
 
@@ -295,27 +296,64 @@ pub fn stray_light(whites: &[&Rgb32FImage], black_levels: &[f64]) -> Option<Vec<
     if whites.iter().any(|i| i.dimensions() != (w, h)) {
         return None;
     }
-    let mut out = vec![Rgb32FImage::new(w, h); n];
-    for (i, _) in whites[0].as_raw().iter().enumerate() {
-        let mut white = Vector4::zeros();
-        for k in 0..n {
-            white[k] = whites[k].as_raw()[i] as f64;
-        }
-        let own = &inverse * white.rows(0, n);
-        for k in 0..n {
-            let stray = (white[k] - own[k]).max(0.0);
-            let raw: &mut [f32] = &mut out[k];
-            raw[i] = if stray.is_finite() { stray as f32 } else { 0.0 };
+    let mut rows = [[0.0f64; 4]; 4];
+    for (k, row) in rows.iter_mut().enumerate().take(n) {
+        for (j, entry) in row.iter_mut().enumerate().take(n) {
+            *entry = inverse[(k, j)];
         }
     }
+    let mut out: Vec<Rgb32FImage> = (0..n).map(|_| Rgb32FImage::new(w, h)).collect();
+    // The samples are independent: blocks of them go to the threads, each block writing its
+    // part of every projector's image.
+    let mut blocks: Vec<Vec<&mut [f32]>> = Vec::new();
+    for image in &mut out {
+        let raw: &mut [f32] = image;
+        for (b, part) in raw.chunks_mut(STRAY_BLOCK).enumerate() {
+            if b == blocks.len() {
+                blocks.push(Vec::with_capacity(n));
+            }
+            blocks[b].push(part);
+        }
+    }
+    blocks
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(b, mut parts)| {
+            let start = b * STRAY_BLOCK;
+            for i in 0..parts[0].len() {
+                let mut white = [0.0f64; 4];
+                for (k, v) in white.iter_mut().enumerate().take(n) {
+                    *v = f64::from(whites[k].as_raw()[start + i]);
+                }
+                for (k, part) in parts.iter_mut().enumerate() {
+                    let stray = (white[k] - own_light(&rows[k], &white, n)).max(0.0);
+                    part[i] = if stray.is_finite() { stray as f32 } else { 0.0 };
+                }
+            }
+        });
     Some(out)
+}
+
+/// Samples per block of [`stray_light`]'s parallel loop.
+const STRAY_BLOCK: usize = 1 << 16;
+
+/// Row `row` of the inverse times the first `n` white readings, summed column by column as
+/// nalgebra's matrix-vector product does (the same bits as the `DMatrix * DVector` this
+/// replaces, without its heap vector per sample: `stray_light_matches_the_matrix_product`).
+#[inline]
+fn own_light(row: &[f64; 4], white: &[f64; 4], n: usize) -> f64 {
+    let mut own = white[0] * row[0];
+    for j in 1..n {
+        own += white[j] * row[j];
+    }
+    own
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use mlsss_core::capture::frame_plan::RESPONSE_LEVELS_MILLI;
-    use nalgebra::{Point3, Vector3};
+    use nalgebra::{Point3, Vector3, Vector4};
     use rand::SeedableRng;
 
     const GAMMA: [f64; 4] = [2.2, 2.1, 2.3, 2.2];
@@ -461,6 +499,66 @@ mod tests {
             estimate_responses(&dark),
             Err(ResponseError::TooFewPixels(0))
         ));
+    }
+
+    /// The plain per-pixel solve `stray_light` had: nalgebra's product of the inverse with
+    /// each pixel's white readings.
+    fn stray_light_by_matrix_product(whites: &[&Rgb32FImage], black: &[f64]) -> Vec<Vec<f32>> {
+        let n = whites.len();
+        let mut m = Matrix4::<f64>::identity();
+        for k in 0..n {
+            for j in 0..n {
+                if j != k {
+                    m[(k, j)] = black[j];
+                }
+            }
+        }
+        let inverse = m.view((0, 0), (n, n)).into_owned().try_inverse().unwrap();
+        let mut out = vec![vec![0.0f32; whites[0].as_raw().len()]; n];
+        for (i, _) in whites[0].as_raw().iter().enumerate() {
+            let mut white = Vector4::zeros();
+            for k in 0..n {
+                white[k] = whites[k].as_raw()[i] as f64;
+            }
+            let own = &inverse * white.rows(0, n);
+            for k in 0..n {
+                let stray = (white[k] - own[k]).max(0.0);
+                out[k][i] = if stray.is_finite() { stray as f32 } else { 0.0 };
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn stray_light_matches_the_matrix_product() {
+        use rand::Rng;
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(19);
+        for n in 1..=4 {
+            // Wider than one block of the parallel loop, not a multiple of it.
+            let (w, h) = (301, 229);
+            let black: Vec<f64> = (0..n).map(|_| rng.gen_range(0.0..0.05)).collect();
+            let whites: Vec<Rgb32FImage> = (0..n)
+                .map(|_| {
+                    Rgb32FImage::from_fn(w, h, |x, _| {
+                        let v: f32 = rng.gen_range(0.0..1.5);
+                        // Saturated, dark and broken readings too.
+                        image::Rgb(match x % 97 {
+                            0 => [f32::NAN, f32::INFINITY, 0.0],
+                            1 => [0.0, -0.0, 1.0],
+                            _ => [v, v * 0.7, v * 0.4],
+                        })
+                    })
+                })
+                .collect();
+            let refs: Vec<&Rgb32FImage> = whites.iter().collect();
+            let fast = stray_light(&refs, &black).unwrap();
+            let plain = stray_light_by_matrix_product(&refs, &black);
+            for (k, (f, p)) in fast.iter().zip(&plain).enumerate() {
+                let f_bits: Vec<u32> = f.as_raw().iter().map(|v| v.to_bits()).collect();
+                let p_bits: Vec<u32> = p.iter().map(|v| v.to_bits()).collect();
+                assert!(f_bits == p_bits, "{n} projectors, projector {k} differs");
+            }
+        }
     }
 
     #[test]
