@@ -10,7 +10,6 @@
 use std::sync::OnceLock;
 
 use nalgebra::{Point3, Vector3};
-use rayon::prelude::*;
 
 /// A Gaussian bump added to the face depth: negative `amplitude_mm` comes towards the camera.
 #[derive(Debug, Clone, Copy)]
@@ -126,6 +125,10 @@ struct FeatureTable {
 static FEATURE_TABLE: OnceLock<FeatureTable> = OnceLock::new();
 
 impl FeatureTable {
+    /// On one thread: it runs inside [`OnceLock::get_or_init`], usually from a rayon worker; a
+    /// parallel build would let that worker, waiting for its stolen halves, steal another ray's
+    /// job, which would call `get_or_init` again on the same thread (a deadlock). Serially the
+    /// ~530k samples take a few tens of milliseconds, once per process.
     fn build() -> Self {
         // Two samples beyond the ellipse on every side: the 4 x 4 stencil of any point inside.
         let pad = 2.0 * GUIDE_SPACING_MM;
@@ -133,7 +136,6 @@ impl FeatureTable {
         let nx = ((2.0 * (HALF_WIDTH + pad)) / GUIDE_SPACING_MM).ceil() as usize + 1;
         let ny = ((2.0 * (HALF_HEIGHT + pad)) / GUIDE_SPACING_MM).ceil() as usize + 1;
         let values = (0..nx * ny)
-            .into_par_iter()
             .map(|i| {
                 let x = x0 + (i % nx) as f64 * GUIDE_SPACING_MM;
                 let y = y0 + (i / nx) as f64 * GUIDE_SPACING_MM;
