@@ -728,14 +728,9 @@ fn converge<M: MeanModel>(
     if cfg.squarem {
         return converge_squarem(data, state, cfg, trace, first);
     }
-    let fresh = |k: usize| Stats::new(data.profiles.len(), k);
-    let mut stats = fresh(state.weights.len());
-    let mut ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
-    if let Some(kind) = first {
-        trace.steps.push((kind, ll));
-    }
+    let (mut stats, mut ll) = first_e_step(data, state, cfg, trace, first);
     // Two buffers swapped each iteration instead of fresh statistics per E-step.
-    let mut next_stats = fresh(state.weights.len());
+    let mut next_stats = Stats::new(data.profiles.len(), state.weights.len());
     for _ in 0..cfg.max_iterations {
         if !plain_step(
             data,
@@ -750,6 +745,23 @@ fn converge<M: MeanModel>(
         }
     }
     ll
+}
+
+/// The statistics and log-likelihood of `state`'s first E-step, the log-likelihood recorded in
+/// `trace` as `first` (see [`converge`]).
+fn first_e_step<M: MeanModel>(
+    data: &Data,
+    state: &State<M>,
+    cfg: &EmConfig,
+    trace: &mut Trace,
+    first: Option<StepKind>,
+) -> (Stats, f64) {
+    let mut stats = Stats::new(data.profiles.len(), state.weights.len());
+    let ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
+    if let Some(kind) = first {
+        trace.steps.push((kind, ll));
+    }
+    (stats, ll)
 }
 
 /// One plain EM step from `state` (E-step statistics `stats`, log-likelihood `ll`), recorded
@@ -859,12 +871,9 @@ fn converge_squarem<M: MeanModel>(
     trace: &mut Trace,
     first: Option<StepKind>,
 ) -> f64 {
+    let (mut stats, mut ll) = first_e_step(data, state, cfg, trace, first);
     let fresh = || Stats::new(data.profiles.len(), state.weights.len());
-    let (mut stats, mut next, mut trial_stats) = (fresh(), fresh(), fresh());
-    let mut ll = e_step(data, state, cfg.wrap_images, Some(&mut stats));
-    if let Some(kind) = first {
-        trace.steps.push((kind, ll));
-    }
+    let (mut next, mut trial_stats) = (fresh(), fresh());
     let mut e_steps = 0;
     let mut max_step = 1.0f64;
     // `path` holds u0 and u1 of the cycle under way.
