@@ -456,8 +456,9 @@ pub fn release_frame_buffers() {
 }
 
 /// Calls `convert` with the sensor codes of the 16-bit PNG frame at `path` written by
-/// [`write_frame_png`]: read straight into this thread's reused buffer when it is 16-bit RGB,
-/// else through `image` ([`read_frame_codes`], which also refuses what is not a frame).
+/// [`write_frame_png`]: read straight into a buffer from the pool [`FRAME_BYTES`] when it is
+/// 16-bit RGB, else through `image` ([`read_frame_codes`], which also refuses what is not a
+/// frame).
 fn with_frame_codes<T>(
     path: &Path,
     bit_depth: u32,
