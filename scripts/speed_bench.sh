@@ -35,12 +35,12 @@ timed() {
 echo "== speed bench, $(git rev-parse --short HEAD), $(date -u +%FT%TZ), $(nproc) cores" | tee "$SUMMARY"
 if [ "${SKIP_MCML:-}" != 1 ]; then
     echo "-- Monte Carlo against MCML (per CPU second, one thread each)" | tee -a "$SUMMARY"
-    # A disagreement (some |z| > 3 among the 30 quantities; MCML draws new random numbers every
-    # run, so this happens by chance in a few per cent of sittings) is reported, not fatal: the
-    # timings that follow are still measured.
+    # A disagreement (some |z| > 3 among the 9 quantities pooled over the rounds; MCML draws new
+    # random numbers every run, so this happens by chance in about 2 % of sittings) is reported,
+    # not fatal: the timings that follow are still measured.
     if ! python3 host/monte-carlo/benches/mcml_race.py "$MCML" --photons 100000 --rounds 3 \
         --mlsss "$BIN" | tee -a "$SUMMARY"; then
-        echo "   MC race: the agreement check failed (largest |z| above 3, see above)" | tee -a "$SUMMARY"
+        echo "   MC race: the agreement check failed (largest pooled |z| above 3, see above)" | tee -a "$SUMMARY"
     fi
 fi
 echo "-- full-size booth (268 frames, 1379x1029), empty Monte Carlo cache" | tee -a "$SUMMARY"
