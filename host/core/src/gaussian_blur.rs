@@ -294,7 +294,8 @@ pub fn blur_1d<W: KernelFloat, S: Sample<W>>(
 }
 
 /// In-place separable blur of a row-major `width` x `height` image: rows, then columns, both
-/// with `kernel` under `border`.
+/// with `kernel` under `border`. On the calling thread (callers that already run in parallel,
+/// such as the renderer's bins, keep it so); see [`blur_2d_parallel`].
 pub fn blur_2d<W: KernelFloat, S: Sample<W>>(
     image: &mut [S],
     width: usize,
@@ -302,6 +303,61 @@ pub fn blur_2d<W: KernelFloat, S: Sample<W>>(
     kernel: &GaussianKernel<W>,
     border: Border,
 ) -> Result<(), BlurError> {
+    if !needs_blur(image, width, height, kernel)? {
+        return Ok(());
+    }
+    let r = kernel.radius();
+    let mut line = vec![S::ZERO; width + 2 * r];
+    for row in image.chunks_exact_mut(width) {
+        blur_row(row, &mut line, kernel, border);
+    }
+    let src = image.to_vec();
+    for (y, out) in image.chunks_exact_mut(width).enumerate() {
+        blur_column_row(out, y, &src, (width, height), kernel, border);
+    }
+    Ok(())
+}
+
+/// [`blur_2d`] with its rows, then its output rows of the column pass, shared across rayon's
+/// threads. Every output is computed exactly as in [`blur_2d`] (the same numbers); for a
+/// full-size image blurred on an otherwise idle pool (the point normals, the normal fusion),
+/// not from inside a parallel loop.
+pub fn blur_2d_parallel<W, S>(
+    image: &mut [S],
+    width: usize,
+    height: usize,
+    kernel: &GaussianKernel<W>,
+    border: Border,
+) -> Result<(), BlurError>
+where
+    W: KernelFloat + Sync,
+    S: Sample<W> + Send + Sync,
+{
+    use rayon::prelude::*;
+    if !needs_blur(image, width, height, kernel)? {
+        return Ok(());
+    }
+    let r = kernel.radius();
+    image.par_chunks_exact_mut(width).for_each_init(
+        || vec![S::ZERO; width + 2 * r],
+        |line, row| blur_row(row, line, kernel, border),
+    );
+    let src = image.to_vec();
+    image
+        .par_chunks_exact_mut(width)
+        .enumerate()
+        .for_each(|(y, out)| blur_column_row(out, y, &src, (width, height), kernel, border));
+    Ok(())
+}
+
+/// Checks the image's shape; whether blurring it changes anything (not for the identity kernel
+/// or an empty image).
+fn needs_blur<W: KernelFloat, S>(
+    image: &[S],
+    width: usize,
+    height: usize,
+    kernel: &GaussianKernel<W>,
+) -> Result<bool, BlurError> {
     if width.checked_mul(height) != Some(image.len()) {
         return Err(BlurError::Shape {
             len: image.len(),
@@ -309,33 +365,45 @@ pub fn blur_2d<W: KernelFloat, S: Sample<W>>(
             height,
         });
     }
-    if kernel.is_identity() || image.is_empty() {
-        return Ok(());
-    }
+    Ok(!(kernel.is_identity() || image.is_empty()))
+}
+
+/// The row pass over one row, in place; `line` is scratch of `row.len() + 2 radius`.
+#[inline]
+fn blur_row<W: KernelFloat, S: Sample<W>>(
+    row: &mut [S],
+    line: &mut [S],
+    kernel: &GaussianKernel<W>,
+    border: Border,
+) {
+    pad(line, row, kernel.radius(), border, S::ZERO);
+    convolve_padded(row, line, kernel);
+}
+
+/// Output row `y` of the column pass over `src` (`width` x `height`, the row pass's result):
+/// a weighted sum of whole input rows, in kernel order.
+#[inline]
+fn blur_column_row<W: KernelFloat, S: Sample<W>>(
+    out: &mut [S],
+    y: usize,
+    src: &[S],
+    (width, height): (usize, usize),
+    kernel: &GaussianKernel<W>,
+    border: Border,
+) {
     let r = kernel.radius();
-    // Rows.
-    let mut line = vec![S::ZERO; width + 2 * r];
-    for row in image.chunks_exact_mut(width) {
-        pad(&mut line, row, r, border, S::ZERO);
-        convolve_padded(row, &line, kernel);
-    }
-    // Columns: each output row is a weighted sum of whole input rows, in kernel order.
-    let src = image.to_vec();
-    for (y, out) in image.chunks_exact_mut(width).enumerate() {
-        out.fill(S::ZERO);
-        for (j, &w) in kernel.weights.iter().enumerate() {
-            let Some(yy) = border.index((y + j) as isize - r as isize, height) else {
-                continue;
-            };
-            for (o, &v) in out.iter_mut().zip(&src[yy * width..(yy + 1) * width]) {
-                *o = o.add_weighted(w, v);
-            }
-        }
-        if kernel.divisor.is_some() {
-            out.iter_mut().for_each(|o| *o = kernel.finish(*o));
+    out.fill(S::ZERO);
+    for (j, &w) in kernel.weights.iter().enumerate() {
+        let Some(yy) = border.index((y + j) as isize - r as isize, height) else {
+            continue;
+        };
+        for (o, &v) in out.iter_mut().zip(&src[yy * width..(yy + 1) * width]) {
+            *o = o.add_weighted(w, v);
         }
     }
-    Ok(())
+    if kernel.divisor.is_some() {
+        out.iter_mut().for_each(|o| *o = kernel.finish(*o));
+    }
 }
 
 #[cfg(test)]

@@ -251,6 +251,37 @@ fn border() -> impl Strategy<Value = Border> {
 
 proptest! {
     #[test]
+    fn parallel_blur_is_bit_identical_to_the_serial_one(
+        (w, h, data) in image(48),
+        sigma in 0.3..6.0f64,
+        truncate in 1.0..4.0f64,
+        border in border(),
+        outputs in any::<bool>(),
+    ) {
+        let normalisation = if outputs { Normalisation::Outputs } else { Normalisation::Weights };
+        let kernel = GaussianKernel::new(sigma, truncate, normalisation);
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let (mut serial, mut parallel) = (data.clone(), data.clone());
+        blur_2d(&mut serial, w, h, &kernel, border).unwrap();
+        blur_2d_parallel(&mut parallel, w, h, &kernel, border).unwrap();
+        prop_assert_eq!(bits(&parallel), bits(&serial));
+        // Multi-channel samples in f64 (the point normals' moments, the fusion's sums) and
+        // f32 samples with f32 weights (the renderer's images).
+        let tuples: Vec<[f64; 10]> = data.iter().map(|&v| std::array::from_fn(|k| v * k as f64 - 1.0)).collect();
+        let (mut serial, mut parallel) = (tuples.clone(), tuples);
+        blur_2d(&mut serial, w, h, &kernel, border).unwrap();
+        blur_2d_parallel(&mut parallel, w, h, &kernel, border).unwrap();
+        prop_assert_eq!(bits(serial.as_flattened()), bits(parallel.as_flattened()));
+        let kernel = kernel.to_f32();
+        let floats: Vec<f32> = data.iter().map(|&v| v as f32).collect();
+        let (mut serial, mut parallel) = (floats.clone(), floats);
+        blur_2d(&mut serial, w, h, &kernel, border).unwrap();
+        blur_2d_parallel(&mut parallel, w, h, &kernel, border).unwrap();
+        let bits32 = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        prop_assert_eq!(bits32(&parallel), bits32(&serial));
+    }
+
+    #[test]
     fn matches_the_naive_double_sum_under_every_border(
         (w, h, data) in image(12),
         sigma in 0.3..4.0f64,
@@ -395,6 +426,15 @@ fn identity_and_bad_shapes() {
         })
     );
     assert_eq!(blur_2d(&mut img, 3, 2, &k, Border::Zero), Ok(()));
+    assert_eq!(
+        blur_2d_parallel(&mut img, 4, 2, &k, Border::Zero),
+        Err(BlurError::Shape {
+            len: 6,
+            width: 4,
+            height: 2
+        })
+    );
+    assert_eq!(blur_2d_parallel(&mut img, 3, 2, &k, Border::Zero), Ok(()));
     assert_eq!(
         blur_2d(&mut [] as &mut [f64], 0, 5, &k, Border::Clamp),
         Ok(())

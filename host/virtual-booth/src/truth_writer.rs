@@ -12,7 +12,8 @@ use super::VirtualBoothError;
 use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::subjects::Chessboard;
 use mlsss_core::capture::{Pattern, truth};
-use mlsss_core::imageio::{GrayF32, linear_to_srgb, write_exr_gray, write_exr_rgb};
+// The truth is run-length coded: kept with the capture, and mostly background zeros.
+use mlsss_core::imageio::{GrayF32, linear_to_srgb, write_exr_gray_compact, write_exr_rgb_compact};
 
 fn rgb_image(w: u32, h: u32, f: impl Fn(usize) -> [f32; 3]) -> Rgb32FImage {
     Rgb32FImage::from_fn(w, h, |x, y| image::Rgb(f((y * w + x) as usize)))
@@ -47,16 +48,16 @@ pub fn write_geometry(
             .map(|hit| hit.map_or(0.0, |hit| extr.world_to_device(&hit.point).z as f32))
             .collect(),
     };
-    write_exr_gray(&truth::depth(dir), &depth)?;
+    write_exr_gray_compact(&truth::depth(dir), &depth)?;
     let points = rgb_image(w, h, |i| {
         geo.centre[i].map_or([0.0; 3], |hit| hit.point.coords.map(|v| v as f32).into())
     });
-    write_exr_rgb(&truth::points(dir), &points)?;
+    write_exr_rgb_compact(&truth::points(dir), &points)?;
     let normals = rgb_image(w, h, |i| {
         geo.centre[i].map_or([0.0; 3], |hit| hit.normal.map(|v| v as f32).into())
     });
-    write_exr_rgb(&truth::normals(dir), &normals)?;
-    write_exr_rgb(
+    write_exr_rgb_compact(&truth::normals(dir), &normals)?;
+    write_exr_rgb_compact(
         &truth::material_maps(dir),
         &rgb_image(w, h, |i| geo.materials[i]),
     )?;
@@ -69,7 +70,7 @@ pub fn write_projector_coords(
     view: &ProjectorTransport,
     (w, h): (u32, u32),
 ) -> Result<(), VirtualBoothError> {
-    write_exr_rgb(
+    write_exr_rgb_compact(
         &truth::projector_coords(dir, view.k),
         &rgb_image(w, h, |i| view.coords[i]),
     )?;
@@ -84,11 +85,11 @@ pub fn write_components(
     frame: &FrameRadiance,
     (w, h): (u32, u32),
 ) -> Result<(), VirtualBoothError> {
-    write_exr_rgb(
+    write_exr_rgb_compact(
         &truth::direct(dir, k, pattern),
         &rgb_image(w, h, |i| [frame.direct[i]; 3]),
     )?;
-    write_exr_rgb(
+    write_exr_rgb_compact(
         &truth::global(dir, k, pattern),
         &rgb_image(w, h, |i| frame.global[i]),
     )?;
@@ -102,7 +103,7 @@ pub fn write_stray(
     stray: &[[f32; 3]],
     (w, h): (u32, u32),
 ) -> Result<(), VirtualBoothError> {
-    write_exr_rgb(&truth::stray_light(dir, k), &rgb_image(w, h, |i| stray[i]))?;
+    write_exr_rgb_compact(&truth::stray_light(dir, k), &rgb_image(w, h, |i| stray[i]))?;
     Ok(())
 }
 

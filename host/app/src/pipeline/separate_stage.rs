@@ -777,9 +777,10 @@ fn lobe_direct_parts(
         .iter()
         .map(|s| {
             s.direct
-                .pixels()
-                .zip(s.global.pixels())
-                .map(|(d, g)| std::array::from_fn(|c| d.0[c] + g.0[c]))
+                .as_raw()
+                .par_chunks_exact(3)
+                .zip(s.global.as_raw().par_chunks_exact(3))
+                .map(|(d, g)| std::array::from_fn(|c| d[c] + g[c]))
                 .collect()
         })
         .collect();

@@ -25,7 +25,7 @@
 //! Conventions: unit normals in one frame (the world's), row-major per camera pixel, zero where
 //! unknown.
 
-use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d};
+use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d_parallel};
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -299,7 +299,7 @@ fn normalise(v: [f64; 3]) -> Option<[f32; 3]> {
 /// weight), normalised; zero where no normal is within reach.
 fn low_pass(normals: &[[f32; 3]], width: usize, height: usize, sigma: f64) -> Vec<[f32; 3]> {
     let mut sums: Vec<[f64; 4]> = normals
-        .iter()
+        .par_iter()
         .map(|n| {
             if is_normal(*n) {
                 [n[0].into(), n[1].into(), n[2].into(), 1.0]
@@ -309,10 +309,11 @@ fn low_pass(normals: &[[f32; 3]], width: usize, height: usize, sigma: f64) -> Ve
         })
         .collect();
     let kernel = GaussianKernel::new(sigma, 3.0, Normalisation::Weights);
-    if blur_2d(&mut sums, width, height, &kernel, Border::Zero).is_err() {
+    // On every core (the same numbers as on one thread): it was the fusion's serial stretch.
+    if blur_2d_parallel(&mut sums, width, height, &kernel, Border::Zero).is_err() {
         return vec![[0.0; 3]; normals.len()];
     }
-    sums.iter()
+    sums.par_iter()
         .map(|s| normalise([s[0], s[1], s[2]]).unwrap_or([0.0; 3]))
         .collect()
 }

@@ -458,11 +458,11 @@ impl ProjectorInputs {
     /// profiles stage's peak at full size (every projector's) and 1 GB of the fit's (the
     /// training ones, held through the EM, the spatial prior and the dipole baseline).
     pub fn stack_slits(&mut self, keep: impl Fn(usize) -> bool) -> Result<(), ProfileError> {
-        self.stack = if self.slits.is_empty() {
-            self.stack.restrict(keep)
+        if self.slits.is_empty() {
+            self.stack.retain_pixels(keep);
         } else {
-            SlitStack::new(&self.slit_frames(), self.coords.len(), keep)?
-        };
+            self.stack = SlitStack::new(&self.slit_frames(), self.coords.len(), keep)?;
+        }
         self.slits = Vec::new();
         Ok(())
     }
@@ -619,8 +619,8 @@ impl ProfileInputs {
             Some(inputs) if inputs.params == *params => inputs,
             _ => Self::load(ctx, params, with_slits)?,
         };
-        // The other projectors' slits go first: restricting a stack copies it, and with the
-        // held-out projector's still held that copy was the run's peak at full size.
+        // The other projectors' slits go first (restricting a stack once copied it, and with
+        // the held-out projector's still held that copy was the run's peak at full size).
         for p in &mut inputs.projectors {
             if !with_slits.contains(&p.k) {
                 p.slits = Vec::new();
