@@ -24,6 +24,7 @@
 
 mod fast_math;
 mod fresnel;
+mod gaussian;
 mod lane_rng;
 mod layers_file;
 mod medium;
@@ -39,6 +40,7 @@ mod transport;
 use std::path::PathBuf;
 
 pub use fresnel::{fresnel_reflectance, refracted_cos};
+pub use gaussian::NormalStream;
 pub use layers_file::LayersFile;
 pub use medium::{Layer, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
