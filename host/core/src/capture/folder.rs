@@ -554,13 +554,30 @@ fn read_frame_codes(
     Ok(img.into_rgb16())
 }
 
-/// `x.round() as u16` for `0 <= x < 65536` (halves away from zero), without the `roundf` call
-/// the baseline x86-64 target makes of `round` (a twentieth of a calibration pose's CPU time):
-/// truncation and the fraction are exact in this range.
+/// The sensor code of linear value `v` for codes up to `max_code` (at most 65535): `v` clamped
+/// to [0, 1] (NaN reads 0), times `max_code`, rounded half away from zero.
+#[inline(always)]
+#[allow(clippy::manual_clamp)]
+fn sensor_code(v: f32, max_code: f32) -> u16 {
+    // `max`/`min`, not `clamp`: they turn a NaN into 0, `clamp` would keep it.
+    round_non_negative(v.max(0.0).min(1.0) * max_code)
+}
+
+/// `x.round() as u16` for `0 <= x <= 65535`: halves away from zero.
+///
+/// Without `round` (a `roundf` call on the baseline x86-64 target, a twentieth of a calibration
+/// pose's CPU time) and without `as` casts from float to integer (Rust's saturating casts, whose
+/// NaN and range checks kept the frame's loop scalar): adding 2^23 rounds x in [0, 2^23) to the
+/// nearest integer, ties to even, in the float's low mantissa bits, and a tie that went down is
+/// put up. Every step is exact (test below). The frame's loop vectorises: 0.45 ms per quick frame
+/// (473k values) against 1.2 ms with the truncate-and-compare this replaced.
 #[inline(always)]
 fn round_non_negative(x: f32) -> u16 {
-    let whole = x as u16;
-    whole + u16::from(x - f32::from(whole) >= 0.5)
+    const TWO_POW_23: f32 = 8_388_608.0;
+    let shifted = x + TWO_POW_23;
+    let nearest_even = shifted.to_bits() - TWO_POW_23.to_bits();
+    let tie_down = x - (shifted - TWO_POW_23) >= 0.5;
+    (nearest_even + u32::from(tie_down)) as u16
 }
 
 /// Writes linear RGB in [0, 1] as sensor codes of `bit_depth` bits, MSB-aligned in a 16-bit PNG.
@@ -571,18 +588,24 @@ fn round_non_negative(x: f32) -> u16 {
 /// frames) for most of the time spent writing and reading it (DESIGN section 8: frames load
 /// fast; any PNG reader still reads them).
 pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result<(), CaptureError> {
+    if !(1..=16).contains(&bit_depth) {
+        return Err(CaptureError::BadFrame {
+            path: path.to_owned(),
+            reason: format!("cannot store {bit_depth}-bit codes in a 16-bit PNG"),
+        });
+    }
     let max_code = ((1u32 << bit_depth) - 1) as f32;
     let shift = 16 - bit_depth;
-    let raw = img.as_raw();
-    // Big-endian samples, as PNG stores them, written in place: handed to `png` directly, not
-    // through `image`'s encoder, which takes native-endian samples and reorders them into a
-    // second buffer (with the per-sample `Vec` pushes before, the conversions were a fifth of
-    // the frame writing's CPU time; the file is the same byte for byte).
-    let mut bytes = vec![0u8; raw.len() * 2];
-    for (out, &v) in bytes.chunks_exact_mut(2).zip(raw) {
-        let code = round_non_negative(v.clamp(0.0, 1.0) * max_code);
-        out.copy_from_slice(&(code << shift).to_be_bytes());
-    }
+    // Big-endian samples, as PNG stores them, handed to `png` directly, not through `image`'s
+    // encoder, which takes native-endian samples and reorders them into a second buffer (with
+    // the per-sample `Vec` pushes before, the conversions were a fifth of the frame writing's
+    // CPU time; the file is the same byte for byte).
+    let samples: Vec<[u8; 2]> = img
+        .as_raw()
+        .iter()
+        .map(|&v| (sensor_code(v, max_code) << shift).to_be_bytes())
+        .collect();
+    let bytes = samples.as_flattened();
     let image_err = |e: png::EncodingError| CaptureError::Image {
         path: path.to_owned(),
         source: image::ImageError::IoError(e.into()),
@@ -594,7 +617,7 @@ pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result
     encoder.set_compression(png::Compression::NoCompression);
     encoder.set_filter(png::Filter::NoFilter);
     let mut writer = encoder.write_header().map_err(image_err)?;
-    writer.write_image_data(&bytes).map_err(image_err)?;
+    writer.write_image_data(bytes).map_err(image_err)?;
     writer.finish().map_err(image_err)
 }
 
@@ -745,8 +768,29 @@ mod tests {
             values.extend([half, half.next_down(), half.next_up(), c as f32]);
         }
         values.extend((0..1_000_000).map(|i| i as f32 * max_code / 1e6));
+        values.extend([65534.5, 65534.5f32.next_down(), 65535.0, 32767.5, 4096.5]);
         for x in values {
             assert_eq!(round_non_negative(x), x.round() as u16, "{x}");
+        }
+        // Linear values outside [0, 1], and NaN, clamp to the end codes.
+        for bits in [16, 12, 8, 1] {
+            let max_code = ((1u32 << bits) - 1) as f32;
+            for v in [
+                -1.0,
+                -0.0,
+                0.0,
+                1e-9,
+                0.25,
+                0.999_999_9,
+                1.0,
+                1.5,
+                f32::INFINITY,
+            ] {
+                let want = (v.clamp(0.0, 1.0) * max_code).round() as u16;
+                assert_eq!(sensor_code(v, max_code), want, "{v} at {bits} bits");
+            }
+            assert_eq!(sensor_code(f32::NAN, max_code), 0);
+            assert_eq!(sensor_code(f32::NEG_INFINITY, max_code), 0);
         }
     }
 
