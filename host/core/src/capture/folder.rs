@@ -596,20 +596,11 @@ pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result
     }
     let max_code = ((1u32 << bit_depth) - 1) as f32;
     let shift = 16 - bit_depth;
-    // Big-endian samples, as PNG stores them, handed to `png` directly, not through `image`'s
-    // encoder, which takes native-endian samples and reorders them into a second buffer (with
-    // the per-sample `Vec` pushes before, the conversions were a fifth of the frame writing's
-    // CPU time; the file is the same byte for byte).
-    let samples: Vec<[u8; 2]> = img
-        .as_raw()
-        .iter()
-        .map(|&v| (sensor_code(v, max_code) << shift).to_be_bytes())
-        .collect();
-    let bytes = samples.as_flattened();
     let image_err = |e: png::EncodingError| CaptureError::Image {
         path: path.to_owned(),
         source: image::ImageError::IoError(e.into()),
     };
+    let idat = stored_zlib_rows(img, max_code, shift).map_err(io_err(path))?;
     let file = fs::File::create(path).map_err(io_err(path))?;
     let mut encoder = png::Encoder::new(BufWriter::new(file), img.width(), img.height());
     encoder.set_color(png::ColorType::Rgb);
@@ -617,8 +608,35 @@ pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result
     encoder.set_compression(png::Compression::NoCompression);
     encoder.set_filter(png::Filter::NoFilter);
     let mut writer = encoder.write_header().map_err(image_err)?;
-    writer.write_image_data(bytes).map_err(image_err)?;
+    writer
+        .write_chunk(png::chunk::IDAT, &idat)
+        .map_err(image_err)?;
     writer.finish().map_err(image_err)
+}
+
+/// The zlib stream of a frame's PNG image data, stored (no compression), rows unfiltered: what
+/// `png`'s `write_image_data` makes of the big-endian samples with `NoCompression` (the same
+/// `fdeflate` compressor fed the same bytes, so the file is the same byte for byte; test below),
+/// without its two frame-sized copies: the samples are converted a row at a time into a buffer
+/// that stays in L1 (`png` takes them as one frame-sized slice), and the compressor writes into
+/// a buffer of its final size (`png` grows its buffer from empty, reallocating).
+fn stored_zlib_rows(img: &Rgb32FImage, max_code: f32, shift: u32) -> std::io::Result<Vec<u8>> {
+    let row_values = img.width() as usize * 3;
+    let raw_size = (2 * row_values + 1) * img.height() as usize;
+    let out = Vec::with_capacity(fdeflate::StoredOnlyCompressor::<()>::compressed_size(
+        raw_size,
+    ));
+    let mut zlib = fdeflate::StoredOnlyCompressor::new(std::io::Cursor::new(out))?;
+    let mut row = vec![[0u8; 2]; row_values];
+    for values in img.as_raw().chunks_exact(row_values.max(1)) {
+        // Big-endian samples, as PNG stores them, behind the row's filter byte (0: none).
+        for (out, &v) in row.iter_mut().zip(values) {
+            *out = (sensor_code(v, max_code) << shift).to_be_bytes();
+        }
+        zlib.write_data(&[0])?;
+        zlib.write_data(row.as_flattened())?;
+    }
+    Ok(zlib.finish()?.into_inner())
 }
 
 /// Writes a capture folder atomically: frames go to a hidden sibling folder, renamed into place by
@@ -792,6 +810,53 @@ mod tests {
             assert_eq!(sensor_code(f32::NAN, max_code), 0);
             assert_eq!(sensor_code(f32::NEG_INFINITY, max_code), 0);
         }
+    }
+
+    /// The frame writer's file against `png`'s own encoder fed the codes computed the plain way
+    /// (`f32::round`): byte for byte, over several stored blocks, with values out of range.
+    #[test]
+    fn frames_are_written_as_png_writes_them() {
+        let (w, h, bits) = (37u32, 1213u32, 12u32);
+        let img = Rgb32FImage::from_fn(w, h, |x, y| {
+            let t = (x * 7919 + y * 104_729) as f32;
+            image::Rgb([
+                (t * 0.618_034).fract() * 1.2 - 0.1,
+                if (x + y) % 97 == 0 {
+                    f32::NAN
+                } else {
+                    (t * 0.414_214).fract()
+                },
+                (x as f32 + 0.5) / 4095.0,
+            ])
+        });
+        let dir = tempfile::tempdir().unwrap();
+        let ours = dir.path().join("ours.png");
+        write_frame_png(&ours, &img, bits).unwrap();
+
+        let max_code = ((1u32 << bits) - 1) as f32;
+        let bytes: Vec<u8> = img
+            .as_raw()
+            .iter()
+            .flat_map(|&v| {
+                let code = if v.is_nan() {
+                    0.0
+                } else {
+                    (v.clamp(0.0, 1.0) * max_code).round()
+                };
+                ((code as u16) << (16 - bits)).to_be_bytes()
+            })
+            .collect();
+        let mut want = Vec::new();
+        let mut encoder = png::Encoder::new(&mut want, w, h);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Sixteen);
+        encoder.set_compression(png::Compression::NoCompression);
+        encoder.set_filter(png::Filter::NoFilter);
+        let mut writer = encoder.write_header().unwrap();
+        writer.write_image_data(&bytes).unwrap();
+        writer.finish().unwrap();
+        assert!(bytes.len() > 3 * 65_535, "several stored blocks");
+        assert_eq!(fs::read(&ours).unwrap(), want);
     }
 
     fn tiny_booth() -> Booth {
