@@ -7,6 +7,9 @@
 //!
 //! This is the ground truth of the virtual booth: it knows nothing of the MLSSS Gaussian model.
 //!
+//! The same random lanes and fast maths also give standard normal deviates in bulk (`NormalStream`,
+//! Box-Muller in f32), which the virtual booth draws its camera noise from.
+//!
 //! Conventions
 //! - Units: lengths in mm, coefficients in 1/mm, angles in degrees at the API.
 //! - Frame: the surface is the plane z = 0 and z grows INTO the medium. Layer 0 is the top layer.
