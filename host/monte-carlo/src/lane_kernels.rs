@@ -212,6 +212,17 @@ pub(crate) fn azimuth(bits: U32s) -> (F32s, F32s) {
     (half_turn.select(-c, c), half_turn.select(-s, s))
 }
 
+/// Two independent standard normal deviates for every lane, by Box-Muller (1958):
+/// r = sqrt(-2 ln u) with u uniform in (0, 1] from one draw of the lane's stream, and
+/// (r cos phi, r sin phi) with phi the uniform `azimuth` of the next draw. Error bound and
+/// range in `gaussian`.
+#[inline(always)]
+pub(crate) fn normal_pair(rng: &mut LaneRng) -> (F32s, F32s) {
+    let r = (F32s::splat(-2.0) * ln(units_open(next_bits(rng)))).sqrt();
+    let (cos_p, sin_p) = azimuth(next_bits(rng));
+    (r * cos_p, r * sin_p)
+}
+
 /// Turns directions by a polar angle and azimuth (cos_p, sin_p) about themselves (MCML's
 /// formulas). The sine of the old polar angle is taken from ux^2 + uy^2, not 1 - uz^2: in f32 the
 /// latter loses the small sines of near-vertical directions, and the new direction would then not

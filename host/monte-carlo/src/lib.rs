@@ -7,6 +7,9 @@
 //!
 //! This is the ground truth of the virtual booth: it knows nothing of the MLSSS Gaussian model.
 //!
+//! The same random lanes and fast maths also give standard normal deviates in bulk (`NormalStream`,
+//! Box-Muller in f32), which the virtual booth draws its camera noise from.
+//!
 //! Conventions
 //! - Units: lengths in mm, coefficients in 1/mm, angles in degrees at the API.
 //! - Frame: the surface is the plane z = 0 and z grows INTO the medium. Layer 0 is the top layer.
@@ -24,6 +27,7 @@
 
 mod fast_math;
 mod fresnel;
+mod gaussian;
 mod lane_rng;
 mod layers_file;
 mod medium;
@@ -39,6 +43,7 @@ mod transport;
 use std::path::PathBuf;
 
 pub use fresnel::{fresnel_reflectance, refracted_cos};
+pub use gaussian::NormalStream;
 pub use layers_file::LayersFile;
 pub use medium::{Layer, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};

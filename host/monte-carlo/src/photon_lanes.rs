@@ -371,7 +371,7 @@ pub(crate) mod portable {
 
 /// The vector step on AVX2 registers.
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
+pub(crate) mod avx2 {
     use super::{Lanes, StepOutcome};
     use crate::fast_math;
     use crate::lane_rng::LaneRng;
@@ -382,7 +382,7 @@ mod avx2 {
 
 /// The vector step on AVX-512 registers.
 #[cfg(target_arch = "x86_64")]
-mod avx512 {
+pub(crate) mod avx512 {
     use super::{Lanes, StepOutcome};
     use crate::fast_math;
     use crate::lane_rng::LaneRng;

@@ -10,11 +10,9 @@
 
 use std::f64::consts::PI;
 
-use rand::Rng;
-
 use mlsss_core::booth::Booth;
 use mlsss_core::calibration::DeviceCalibration;
-use rand_distr::StandardNormal;
+use mlsss_mc::NormalStream;
 
 /// Camera value per unit radiance: a white Lambertian surface under unit irradiance (radiance
 /// 1/pi) reads 0.85, leaving headroom below saturation for skin, not for strong highlights.
@@ -41,27 +39,39 @@ impl CameraModel {
         }
     }
 
-    /// Adds photon shot noise and read noise to noise-free camera values. Poisson statistics
-    /// are approximated by a Gaussian of the same variance (exact enough above ~20 electrons,
-    /// and read noise dominates below).
-    pub fn add_noise<R: Rng>(&self, values: &mut [f32], rng: &mut R) {
-        self.add_noise_with_gain(values, 1.0, rng);
+    /// Adds photon shot noise and read noise to noise-free camera values, one deviate of
+    /// `normals` per value in order. Poisson statistics are approximated by a Gaussian of the
+    /// same variance (exact enough above ~20 electrons, and read noise dominates below).
+    pub fn add_noise(&self, values: &mut [f32], normals: &mut NormalStream) {
+        self.add_noise_with_gain(values, 1.0, normals);
     }
 
     /// [`Self::add_noise`] at analog gain `gain`: camera values are `gain` times the electrons'
     /// share of the full well, so the shot noise grows with the gain; the read noise (after the
     /// amplifier) does not.
-    pub fn add_noise_with_gain<R: Rng>(&self, values: &mut [f32], gain: f64, rng: &mut R) {
-        // rand_distr's ziggurat deviates: no logarithm or square root for almost every value
-        // (the noise was a quarter of a calibration capture's CPU time with polar Box-Muller).
-        // The shot term's division is taken out of the loop (it was a tenth of the frame
-        // finishing's time): `v * (gain / full_well)` instead of `gain * v / full_well`, which
-        // differ by at most one f64 ulp, far below the f32 the value is stored in.
-        let shot = gain / self.full_well_e;
-        let read = self.read_noise.powi(2);
-        for v in values.iter_mut() {
-            let sigma = (f64::from(*v).max(0.0) * shot + read).sqrt();
-            *v = (f64::from(*v) + sigma * rng.sample::<f64, _>(StandardNormal)) as f32;
+    ///
+    ///
+    /// In f32, with f32 deviates (`NormalStream`: Box-Muller over SIMD lanes, within 2e-6 of
+    /// exact; it replaced `rand_distr`'s ziggurat on a `Pcg64` with an f64 square root, see
+    /// `benches/noise.rs`): the variance v shot + read is rounded to f32 (6e-8 relative, 3e-8 in
+    /// the standard deviation) and v + sigma z to f32 in two roundings instead of one, an error
+    /// below 2^-24 (|sigma z| + |v + sigma z|): 5e-4 of a 12-bit code even at saturation, and the
+    /// value is stored in f32 anyway.
+    pub fn add_noise_with_gain(&self, values: &mut [f32], gain: f64, normals: &mut NormalStream) {
+        // Deviates a chunk at a time, into a buffer that stays in L1, so that the loop below
+        // (square root, multiply-add) vectorises and the generator runs whole SIMD blocks.
+        const CHUNK: usize = 1024;
+        let shot = (gain / self.full_well_e) as f32;
+        let read = self.read_noise.powi(2) as f32;
+        let mut z = [0.0f32; CHUNK];
+        for chunk in values.chunks_mut(CHUNK) {
+            let z = &mut z[..chunk.len()];
+            normals.fill(z);
+            for (v, &z) in chunk.iter_mut().zip(z.iter()) {
+                // No `mul_add`: the baseline x86-64 target has no FMA and would call libm's.
+                let sigma = (v.max(0.0) * shot + read).sqrt();
+                *v += sigma * z;
+            }
         }
     }
 
@@ -79,12 +89,11 @@ impl CameraModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rand::SeedableRng;
 
     #[test]
     fn noise_has_the_shot_plus_read_variance() {
         let cam = CameraModel::new(&Booth::builtin(true));
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let mut rng = NormalStream::new(3, 0);
         let level = 0.4;
         let mut values = vec![level as f32; 200_000];
         cam.add_noise(&mut values, &mut rng);

@@ -8,8 +8,8 @@
 //! - light below the surface from Monte Carlo exit responses of layered skin (`skin_optics`,
 //!   `material_maps`, `subsurface`), blended by the material maps and interpolated over the angle
 //!   of incidence;
-//! - a camera with distortion, shot and read noise (`rand_distr` normal deviates), saturation
-//!   and 12-bit codes (`camera`).
+//! - a camera with distortion, shot and read noise (normal deviates of `mlsss_mc::NormalStream`),
+//!   saturation and 12-bit codes (`camera`).
 
 pub mod camera;
 pub mod complement_frames;

@@ -6,14 +6,13 @@
 //! for its frame and for the other projectors' stray light): exposure only scales the frames
 //! when they are finished, after rendering, so metering needs no render of its own.
 
-use rand::SeedableRng;
-use rand_pcg::Pcg64;
-
 use super::frame_render::Scene;
 use mlsss_core::booth::TimingSpec;
 use mlsss_core::capture::exposure::{MeteringTarget, ProjectorExposure, meter};
+use mlsss_mc::NormalStream;
 
-/// Seed offset of the metering frames' noise (apart from every scan frame's stream).
+/// Noise stream of projector 0's metering frame, the next ones after it (apart from every scan
+/// frame's stream).
 const METERING_NOISE_STREAM: u64 = 0x3e7e_0000;
 
 /// The metered exposure of projector `k` of `scene`, from its noise-free white at the nominal
@@ -27,8 +26,8 @@ pub fn meter_projector(
     seed: u64,
 ) -> ProjectorExposure {
     let mut noisy: Vec<f32> = white.iter().flatten().copied().collect();
-    let mut rng = Pcg64::seed_from_u64(seed ^ (METERING_NOISE_STREAM + k as u64));
-    scene.camera.add_noise(&mut noisy, &mut rng);
+    let mut normals = NormalStream::new(seed, METERING_NOISE_STREAM + k as u64);
+    scene.camera.add_noise(&mut noisy, &mut normals);
     let brightest_channel: Vec<f32> = noisy
         .chunks_exact(3)
         .map(|p| p[0].max(p[1]).max(p[2]).min(1.0))

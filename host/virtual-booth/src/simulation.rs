@@ -36,6 +36,7 @@ use mlsss_core::capture::folder::CaptureKind;
 use mlsss_core::capture::{
     CaptureManifest, CaptureWriter, FramePlan, FrameSpec, Pattern, ProjectorExposure, TriggerRecord,
 };
+use mlsss_mc::NormalStream;
 
 /// Receives progress (the CLI shows it as a bar).
 pub trait Progress: Sync {
@@ -592,6 +593,10 @@ fn stray_light(
     Ok(stray)
 }
 
+/// Noise stream of frame 0; frame i's is this + i (the metering frames' are apart, see
+/// `metering`).
+const FRAME_NOISE_STREAM: u64 = 0x5eed_0000;
+
 /// Adds stray light and camera noise to a frame's noise-free values and writes it.
 struct FrameFinisher<'a> {
     scene: &'a Scene,
@@ -620,10 +625,11 @@ impl FrameFinisher<'_> {
                 v[c] = (t[c] + s[c]) * scale;
             }
         }
-        let mut rng = Pcg64::seed_from_u64(self.seed ^ (0x5eed_0000 + spec.index as u64) << 8);
+        // The frame's own noise stream: the same draws whichever thread finishes it, when.
+        let mut normals = NormalStream::new(self.seed, FRAME_NOISE_STREAM + u64::from(spec.index));
         self.scene
             .camera
-            .add_noise_with_gain(&mut values, gain, &mut rng);
+            .add_noise_with_gain(&mut values, gain, &mut normals);
         let img = Rgb32FImage::from_raw(geo.width, geo.height, values)
             .ok_or(VirtualBoothError::Internal("frame buffer size mismatch"))?;
         self.writer.write_frame(spec.index, &img)?;

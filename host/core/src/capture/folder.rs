@@ -554,13 +554,30 @@ fn read_frame_codes(
     Ok(img.into_rgb16())
 }
 
-/// `x.round() as u16` for `0 <= x < 65536` (halves away from zero), without the `roundf` call
-/// the baseline x86-64 target makes of `round` (a twentieth of a calibration pose's CPU time):
-/// truncation and the fraction are exact in this range.
+/// The sensor code of linear value `v` for codes up to `max_code` (at most 65535): `v` clamped
+/// to [0, 1] (NaN reads 0), times `max_code`, rounded half away from zero.
+#[inline(always)]
+#[allow(clippy::manual_clamp)]
+fn sensor_code(v: f32, max_code: f32) -> u16 {
+    // `max`/`min`, not `clamp`: they turn a NaN into 0, `clamp` would keep it.
+    round_non_negative(v.max(0.0).min(1.0) * max_code)
+}
+
+/// `x.round() as u16` for `0 <= x <= 65535`: halves away from zero.
+///
+/// Without `round` (a `roundf` call on the baseline x86-64 target, a twentieth of a calibration
+/// pose's CPU time) and without `as` casts from float to integer (Rust's saturating casts, whose
+/// NaN and range checks kept the frame's loop scalar): adding 2^23 rounds x in [0, 2^23) to the
+/// nearest integer, ties to even, in the float's low mantissa bits, and a tie that went down is
+/// put up. Every step is exact (test below). The frame's loop vectorises: 0.45 ms per quick frame
+/// (473k values) against 1.2 ms with the truncate-and-compare this replaced.
 #[inline(always)]
 fn round_non_negative(x: f32) -> u16 {
-    let whole = x as u16;
-    whole + u16::from(x - f32::from(whole) >= 0.5)
+    const TWO_POW_23: f32 = 8_388_608.0;
+    let shifted = x + TWO_POW_23;
+    let nearest_even = shifted.to_bits() - TWO_POW_23.to_bits();
+    let tie_down = x - (shifted - TWO_POW_23) >= 0.5;
+    (nearest_even + u32::from(tie_down)) as u16
 }
 
 /// Writes linear RGB in [0, 1] as sensor codes of `bit_depth` bits, MSB-aligned in a 16-bit PNG.
@@ -571,22 +588,19 @@ fn round_non_negative(x: f32) -> u16 {
 /// frames) for most of the time spent writing and reading it (DESIGN section 8: frames load
 /// fast; any PNG reader still reads them).
 pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result<(), CaptureError> {
+    if !(1..=16).contains(&bit_depth) {
+        return Err(CaptureError::BadFrame {
+            path: path.to_owned(),
+            reason: format!("cannot store {bit_depth}-bit codes in a 16-bit PNG"),
+        });
+    }
     let max_code = ((1u32 << bit_depth) - 1) as f32;
     let shift = 16 - bit_depth;
-    let raw = img.as_raw();
-    // Big-endian samples, as PNG stores them, written in place: handed to `png` directly, not
-    // through `image`'s encoder, which takes native-endian samples and reorders them into a
-    // second buffer (with the per-sample `Vec` pushes before, the conversions were a fifth of
-    // the frame writing's CPU time; the file is the same byte for byte).
-    let mut bytes = vec![0u8; raw.len() * 2];
-    for (out, &v) in bytes.chunks_exact_mut(2).zip(raw) {
-        let code = round_non_negative(v.clamp(0.0, 1.0) * max_code);
-        out.copy_from_slice(&(code << shift).to_be_bytes());
-    }
     let image_err = |e: png::EncodingError| CaptureError::Image {
         path: path.to_owned(),
         source: image::ImageError::IoError(e.into()),
     };
+    let idat = stored_zlib_rows(img, max_code, shift).map_err(io_err(path))?;
     let file = fs::File::create(path).map_err(io_err(path))?;
     let mut encoder = png::Encoder::new(BufWriter::new(file), img.width(), img.height());
     encoder.set_color(png::ColorType::Rgb);
@@ -594,8 +608,35 @@ pub fn write_frame_png(path: &Path, img: &Rgb32FImage, bit_depth: u32) -> Result
     encoder.set_compression(png::Compression::NoCompression);
     encoder.set_filter(png::Filter::NoFilter);
     let mut writer = encoder.write_header().map_err(image_err)?;
-    writer.write_image_data(&bytes).map_err(image_err)?;
+    writer
+        .write_chunk(png::chunk::IDAT, &idat)
+        .map_err(image_err)?;
     writer.finish().map_err(image_err)
+}
+
+/// The zlib stream of a frame's PNG image data, stored (no compression), rows unfiltered: what
+/// `png`'s `write_image_data` makes of the big-endian samples with `NoCompression` (the same
+/// `fdeflate` compressor fed the same bytes, so the file is the same byte for byte; test below),
+/// without its two frame-sized copies: the samples are converted a row at a time into a buffer
+/// that stays in L1 (`png` takes them as one frame-sized slice), and the compressor writes into
+/// a buffer of its final size (`png` grows its buffer from empty, reallocating).
+fn stored_zlib_rows(img: &Rgb32FImage, max_code: f32, shift: u32) -> std::io::Result<Vec<u8>> {
+    let row_values = img.width() as usize * 3;
+    let raw_size = (2 * row_values + 1) * img.height() as usize;
+    let out = Vec::with_capacity(fdeflate::StoredOnlyCompressor::<()>::compressed_size(
+        raw_size,
+    ));
+    let mut zlib = fdeflate::StoredOnlyCompressor::new(std::io::Cursor::new(out))?;
+    let mut row = vec![[0u8; 2]; row_values];
+    for values in img.as_raw().chunks_exact(row_values.max(1)) {
+        // Big-endian samples, as PNG stores them, behind the row's filter byte (0: none).
+        for (out, &v) in row.iter_mut().zip(values) {
+            *out = (sensor_code(v, max_code) << shift).to_be_bytes();
+        }
+        zlib.write_data(&[0])?;
+        zlib.write_data(row.as_flattened())?;
+    }
+    Ok(zlib.finish()?.into_inner())
 }
 
 /// Writes a capture folder atomically: frames go to a hidden sibling folder, renamed into place by
@@ -745,9 +786,77 @@ mod tests {
             values.extend([half, half.next_down(), half.next_up(), c as f32]);
         }
         values.extend((0..1_000_000).map(|i| i as f32 * max_code / 1e6));
+        values.extend([65534.5, 65534.5f32.next_down(), 65535.0, 32767.5, 4096.5]);
         for x in values {
             assert_eq!(round_non_negative(x), x.round() as u16, "{x}");
         }
+        // Linear values outside [0, 1], and NaN, clamp to the end codes.
+        for bits in [16, 12, 8, 1] {
+            let max_code = ((1u32 << bits) - 1) as f32;
+            for v in [
+                -1.0,
+                -0.0,
+                0.0,
+                1e-9,
+                0.25,
+                0.999_999_9,
+                1.0,
+                1.5,
+                f32::INFINITY,
+            ] {
+                let want = (v.clamp(0.0, 1.0) * max_code).round() as u16;
+                assert_eq!(sensor_code(v, max_code), want, "{v} at {bits} bits");
+            }
+            assert_eq!(sensor_code(f32::NAN, max_code), 0);
+            assert_eq!(sensor_code(f32::NEG_INFINITY, max_code), 0);
+        }
+    }
+
+    /// The frame writer's file against `png`'s own encoder fed the codes computed the plain way
+    /// (`f32::round`): byte for byte, over several stored blocks, with values out of range.
+    #[test]
+    fn frames_are_written_as_png_writes_them() {
+        let (w, h, bits) = (37u32, 1213u32, 12u32);
+        let img = Rgb32FImage::from_fn(w, h, |x, y| {
+            let t = (x * 7919 + y * 104_729) as f32;
+            image::Rgb([
+                (t * 0.618_034).fract() * 1.2 - 0.1,
+                if (x + y) % 97 == 0 {
+                    f32::NAN
+                } else {
+                    (t * 0.414_214).fract()
+                },
+                (x as f32 + 0.5) / 4095.0,
+            ])
+        });
+        let dir = tempfile::tempdir().unwrap();
+        let ours = dir.path().join("ours.png");
+        write_frame_png(&ours, &img, bits).unwrap();
+
+        let max_code = ((1u32 << bits) - 1) as f32;
+        let bytes: Vec<u8> = img
+            .as_raw()
+            .iter()
+            .flat_map(|&v| {
+                let code = if v.is_nan() {
+                    0.0
+                } else {
+                    (v.clamp(0.0, 1.0) * max_code).round()
+                };
+                ((code as u16) << (16 - bits)).to_be_bytes()
+            })
+            .collect();
+        let mut want = Vec::new();
+        let mut encoder = png::Encoder::new(&mut want, w, h);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Sixteen);
+        encoder.set_compression(png::Compression::NoCompression);
+        encoder.set_filter(png::Filter::NoFilter);
+        let mut writer = encoder.write_header().unwrap();
+        writer.write_image_data(&bytes).unwrap();
+        writer.finish().unwrap();
+        assert!(bytes.len() > 3 * 65_535, "several stored blocks");
+        assert_eq!(fs::read(&ours).unwrap(), want);
     }
 
     fn tiny_booth() -> Booth {
