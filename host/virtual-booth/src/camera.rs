@@ -50,7 +50,6 @@ impl CameraModel {
     /// share of the full well, so the shot noise grows with the gain; the read noise (after the
     /// amplifier) does not.
     ///
-    ///
     /// In f32, with f32 deviates (`NormalStream`: Box-Muller over SIMD lanes, within 2e-6 of
     /// exact; it replaced `rand_distr`'s ziggurat on a `Pcg64` with an f64 square root, see
     /// `benches/noise.rs`): the variance v shot + read is rounded to f32 (6e-8 relative, 3e-8 in
