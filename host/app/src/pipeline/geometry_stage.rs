@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::decode_stage::{DecodeStageError, coords_path, load_coords};
-use super::{Stage, StageContext, StageFailure};
+use super::{Stage, StageContext, StageFailure, write_side_by_side};
 use mlsss_core::capture::truth;
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::geometry::grid_mesh::{GridMesh, GridMeshError, shaded_preview};
@@ -287,12 +287,10 @@ fn write_point_normals(dir: &Path, normals: &PointNormals) -> Result<(), ImageIo
             .map(|&r| f32::from(u8::from(r)))
             .collect(),
     };
-    let (a, b) = rayon::join(
-        || imageio::write_exr_rgb(&point_normals_path(dir), &image),
-        || imageio::write_exr_gray(&point_normals_reliable_path(dir), &reliable),
-    );
-    a?;
-    b
+    write_side_by_side(vec![
+        Box::new(|| imageio::write_exr_rgb(&point_normals_path(dir), &image)),
+        Box::new(|| imageio::write_exr_gray(&point_normals_reliable_path(dir), &reliable)),
+    ])
 }
 
 fn write_artefacts(
@@ -301,41 +299,26 @@ fn write_artefacts(
     mesh: &GridMesh,
     camera_centre: [f64; 3],
 ) -> Result<(), GeometryStageError> {
-    let dir = ctx.dir();
-    // Each file is encoded mostly on one thread: they go side by side.
-    let (images, mesh_and_preview) = rayon::join(
-        || -> Result<(), GeometryStageError> {
-            let (depth, points) = rayon::join(
-                || {
-                    let depth = GrayF32 {
-                        width: map.width,
-                        height: map.height,
-                        data: map.depth.clone(),
-                    };
-                    imageio::write_exr_gray(&dir.join("depth.exr"), &depth)
-                },
-                || {
-                    let points = Rgb32FImage::from_fn(map.width, map.height, |x, y| {
-                        image::Rgb(map.points[(y * map.width + x) as usize])
-                    });
-                    imageio::write_exr_rgb(&points_path(&dir), &points)
-                },
-            );
-            depth?;
-            Ok(points?)
-        },
-        || -> Result<(), GeometryStageError> {
-            let (ply, preview) = rayon::join(
-                || mesh.write_ply(&dir.join("mesh.ply")),
-                || {
-                    let path = dir.join("shaded.png");
-                    imageio::write_png(&path, &shaded_preview(map, camera_centre))
-                },
-            );
-            ply?;
-            Ok(preview?)
-        },
-    );
-    images?;
-    mesh_and_preview
+    let dir = &ctx.dir();
+    write_side_by_side::<GeometryStageError>(vec![
+        Box::new(|| {
+            let depth = GrayF32 {
+                width: map.width,
+                height: map.height,
+                data: map.depth.clone(),
+            };
+            Ok(imageio::write_exr_gray(&dir.join("depth.exr"), &depth)?)
+        }),
+        Box::new(|| {
+            let points = Rgb32FImage::from_fn(map.width, map.height, |x, y| {
+                image::Rgb(map.points[(y * map.width + x) as usize])
+            });
+            Ok(imageio::write_exr_rgb(&points_path(dir), &points)?)
+        }),
+        Box::new(|| Ok(mesh.write_ply(&dir.join("mesh.ply"))?)),
+        Box::new(|| {
+            let preview = shaded_preview(map, camera_centre);
+            Ok(imageio::write_png(&dir.join("shaded.png"), &preview)?)
+        }),
+    ])
 }

@@ -279,6 +279,18 @@ pub fn fragment<R: Serialize>(report: &R) -> Result<Value, StageFailure> {
     serde_json::to_value(report).map_err(StageFailure::new)
 }
 
+/// One artefact write for [`write_side_by_side`].
+pub type ArtefactWrite<'a, E> = Box<dyn FnOnce() -> Result<(), E> + Send + 'a>;
+
+/// Runs a stage's independent artefact writes side by side on rayon's threads: each file is
+/// encoded and written mostly on one thread, so the stage waits for the longest, not the sum.
+/// Every write runs even when one fails; the first error in list order is returned.
+pub fn write_side_by_side<E: Send>(writes: Vec<ArtefactWrite<'_, E>>) -> Result<(), E> {
+    use rayon::prelude::*;
+    let results: Vec<Result<(), E>> = writes.into_par_iter().map(|write| write()).collect();
+    results.into_iter().collect()
+}
+
 /// The report of a pipeline run (`OUT/report.json`, what `mlsss process --json` prints): each
 /// stage's report under its name (only the stages that ran or came from the cache), run times
 /// per stage, and the stages reused from the cache.
@@ -827,6 +839,30 @@ mod tests {
             handed.take::<u32>("profiles", Some(&k1)),
             None,
             "taken once"
+        );
+    }
+
+    #[test]
+    fn side_by_side_writes_all_run_and_the_first_error_in_order_comes_back() {
+        let ran = std::sync::atomic::AtomicUsize::new(0);
+        let write = |result: Result<(), &'static str>| -> ArtefactWrite<'_, &'static str> {
+            let ran = &ran;
+            Box::new(move || {
+                ran.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                result
+            })
+        };
+        let writes = vec![
+            write(Ok(())),
+            write(Err("second")),
+            write(Err("third")),
+            write(Ok(())),
+        ];
+        assert_eq!(write_side_by_side(writes), Err("second"));
+        assert_eq!(ran.load(std::sync::atomic::Ordering::SeqCst), 4);
+        assert_eq!(
+            write_side_by_side(vec![write(Ok(())), write(Ok(()))]),
+            Ok(())
         );
     }
 

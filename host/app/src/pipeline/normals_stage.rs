@@ -28,7 +28,7 @@ use super::geometry_stage::{GeometryReadError, load_point_normals, load_points_f
 use super::phase_clock::{PhaseClock, PhaseTimes};
 use super::projector_lights::ProjectorLights;
 use super::separate_stage::{direct_path, global_path, nayar_direct_path, white_path};
-use super::{Stage, StageContext, StageFailure};
+use super::{Stage, StageContext, StageFailure, write_side_by_side};
 use mlsss_core::capture::{CaptureManifest, truth};
 use mlsss_core::imageio::{self, GrayF32, ImageIoError};
 use mlsss_vision::geometry::point_normals::{PointNormalParams, fit_point_normals};
@@ -421,27 +421,23 @@ fn write_artefacts(
     normals: &Rgb32FImage,
 ) -> Result<(), NormalsStageError> {
     let (width, height) = normals.dimensions();
-    // Each file is encoded mostly on one thread: the four go side by side.
-    let (normals_and_albedo, used_and_preview) = rayon::join(
-        || -> Result<(), NormalsStageError> {
-            let (a, b) = rayon::join(
-                || imageio::write_exr_rgb(&dir.join("normals.exr"), normals),
-                || imageio::write_exr_rgb(&dir.join("albedo.exr"), &map.albedo_image()),
-            );
-            a?;
-            Ok(b?)
-        },
-        || -> Result<(), NormalsStageError> {
-            let (a, b) = rayon::join(
-                || write_lights_used(&dir.join("lights_used.exr"), map, (width, height)),
-                || write_preview(&dir.join("normals.png"), normals),
-            );
-            a?;
-            b
-        },
-    );
-    normals_and_albedo?;
-    used_and_preview
+    write_side_by_side::<NormalsStageError>(vec![
+        Box::new(|| Ok(imageio::write_exr_rgb(&dir.join("normals.exr"), normals)?)),
+        Box::new(|| {
+            Ok(imageio::write_exr_rgb(
+                &dir.join("albedo.exr"),
+                &map.albedo_image(),
+            )?)
+        }),
+        Box::new(|| {
+            Ok(write_lights_used(
+                &dir.join("lights_used.exr"),
+                map,
+                (width, height),
+            )?)
+        }),
+        Box::new(|| write_preview(&dir.join("normals.png"), normals)),
+    ])
 }
 
 /// Writes how many lights photometric stereo used per pixel (0 where it flagged the pixel).
