@@ -172,6 +172,12 @@ impl FeatureTable {
     }
 }
 
+/// The signed vertical gap from `p` to the face's depth `depth` at its (x, y); outside the face
+/// ellipse (`None`) a point counts as far in front of it.
+fn gap_to(p: &Point3<f64>, depth: Option<f64>) -> f64 {
+    depth.map_or(-1e3, |z| p.z - z)
+}
+
 /// Catmull-Rom weights of the four samples around fraction `t` in [0, 1).
 fn catmull_rom(t: f64) -> [f64; 4] {
     let (t2, t3) = (t * t, t * t * t);
@@ -238,18 +244,12 @@ impl Head {
 
     /// Signed vertical gap: negative in front of the face (outside the head), positive behind it.
     fn gap(&self, p: &Point3<f64>) -> f64 {
-        match self.depth(p.x, p.y) {
-            Some(z) => p.z - z,
-            None => -1e3,
-        }
+        gap_to(p, self.depth(p.x, p.y))
     }
 
     /// [`Self::gap`] from [`Self::guide_depth`].
     fn guide_gap(&self, p: &Point3<f64>) -> f64 {
-        match self.guide_depth(p.x, p.y) {
-            Some(z) => p.z - z,
-            None => -1e3,
-        }
+        gap_to(p, self.guide_depth(p.x, p.y))
     }
 
     /// First intersection of the ray `origin + t dir` (t in `(t_min, t_max)`) with the face.
