@@ -209,7 +209,7 @@ fn run_geometry(
         });
     }
     let decode_dir = ctx.stage_dir("decode");
-    // One map per thread: reading an EXR is mostly serial (its decompression is not).
+    // One map per thread: reading an EXR is mostly serial.
     let coords = (0..captured)
         .into_par_iter()
         .filter_map(|k| {
@@ -232,7 +232,8 @@ fn run_geometry(
     let map = triangulate(&calib.camera, &views, &params.triangulation);
     let mesh = GridMesh::from_depth_map(&map, params.max_edge_mm);
     let camera_centre = calib.camera.extrinsics.centre();
-    // The point normals' smoothing is mostly serial: the artefacts are written beside it.
+    // The artefacts are written beside the point normals (their writes are mostly one thread
+    // each, the smoothing's passes leave cores idle between them).
     let (written, normals) = rayon::join(
         || write_artefacts(ctx, &map, &mesh, camera_centre.coords.into()),
         || {

@@ -298,9 +298,9 @@ fn run_normals(
     clock.lap("photometric_stereo");
     let photometric = map.normal_image();
     let mut report = NormalsReport::new(&map.stats(), params);
-    // The fusion is mostly serial (its low-pass filter): photometric stereo's normals are
-    // written beside it (phase `fusion`), as are the artefacts beside the truth check (phase
-    // `write`; `truth` then only books what is left of the check).
+    // Photometric stereo's normals are written beside the fusion (phase `fusion`), as are the
+    // artefacts beside the truth check (phase `write`; `truth` then only books what is left of
+    // the check).
     let (written, fused) = rayon::join(
         || imageio::write_exr_rgb(&photometric_normals_path(&ctx.dir()), &photometric),
         || match params.source {
@@ -381,7 +381,7 @@ fn read_images(
     captured: usize,
 ) -> Result<Vec<Rgb32FImage>, NormalsStageError> {
     let sep_dir = ctx.stage_dir("separate");
-    // One file per thread: reading an EXR is mostly serial (its decompression is not).
+    // One file per thread: reading an EXR is mostly serial.
     let images = (0..captured)
         .into_par_iter()
         .map(|k| {

@@ -67,8 +67,9 @@ pub fn fit_point_normals(
     let (w, h) = (width as usize, height as usize);
     let mut moments: Vec<Moments> = points.par_iter().map(|p| point_moments(*p)).collect();
     let kernel = GaussianKernel::new(params.sigma_px, 3.0, Normalisation::Weights);
-    // On every core: the pool is idle here, and the blur of ten f64 moments per pixel was one
-    // of the geometry stage's serial stretches (the same numbers as on one thread).
+    // On every core (shared with the artefact writes the geometry stage runs beside it): the
+    // blur of ten f64 moments per pixel was one of that stage's serial stretches (the same
+    // numbers as on one thread).
     if blur_2d_parallel(&mut moments, w, h, &kernel, Border::Zero).is_err() {
         return PointNormals {
             width,
