@@ -308,6 +308,9 @@ pub(crate) struct Data<'a> {
     /// Sample weights per profile: `y / total` times the profile's [`relative_information`]
     /// (they sum to that over a profile with signal; empty otherwise).
     pub weights: Vec<Vec<f64>>,
+    /// Per profile, its samples with weight in order of position (for [`walk_boxes`]). Sorted
+    /// once here: the samples do not move between E-steps, which sorted them every time.
+    pub orders: Vec<Vec<usize>>,
     pub samples: usize,
 }
 
@@ -351,9 +354,15 @@ impl<'a> Data<'a> {
         if samples == 0 {
             return Err(EmError::NoSignal);
         }
+        let orders = profiles
+            .iter()
+            .zip(&weights)
+            .map(|(prof, w)| by_position(prof, w))
+            .collect();
         Ok(Self {
             profiles,
             weights,
+            orders,
             samples,
         })
     }
@@ -361,6 +370,14 @@ impl<'a> Data<'a> {
     fn profiles_with_signal(&self) -> usize {
         self.weights.iter().filter(|w| !w.is_empty()).count()
     }
+}
+
+/// The samples of `prof` with positive weight in `weights`, in order of position (none when
+/// `weights` is empty: a profile without signal).
+fn by_position(prof: &Profile, weights: &[f64]) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..weights.len()).filter(|&j| weights[j] > 0.0).collect();
+    order.sort_by(|&a, &b| prof.samples[a].s.total_cmp(&prof.samples[b].s));
+    order
 }
 
 /// Per profile, the weight of its samples in a pooled likelihood: its
@@ -480,7 +497,7 @@ fn e_step_in<M: MeanModel>(
                 },
             )
         }));
-        linear.fill(components, prof, weights, wrap, with_stats);
+        linear.fill(components, prof, &data.orders[p], wrap, with_stats);
         let mut ll = 0.0;
         for (j, (sample, &y)) in prof.samples.iter().zip(weights).enumerate() {
             if y <= 0.0 {
@@ -522,16 +539,15 @@ fn e_step_in<M: MeanModel>(
 struct LinearTerms {
     terms: Vec<Vec<Term>>,
     sums: Vec<f64>,
-    /// Samples with weight, by position.
-    order: Vec<usize>,
 }
 
 impl LinearTerms {
+    /// `order`: the samples with weight, by position ([`Data::orders`]).
     fn fill(
         &mut self,
         components: &[(usize, f64, BoxedGaussian)],
         prof: &Profile,
-        weights: &[f64],
+        order: &[usize],
         wrap: usize,
         with_stats: bool,
     ) {
@@ -540,16 +556,12 @@ impl LinearTerms {
         self.terms.iter_mut().for_each(Vec::clear);
         self.sums.clear();
         self.sums.resize(n, 0.0);
-        self.order.clear();
-        self.order.extend((0..n).filter(|&j| weights[j] > 0.0));
-        self.order
-            .sort_by(|&a, &b| prof.samples[a].s.total_cmp(&prof.samples[b].s));
         for &(l, w, ref g) in components {
             for offset in images(prof, wrap) {
                 walk_boxes(
                     g,
                     offset,
-                    &self.order,
+                    order,
                     |j| prof.samples[j].s,
                     |s| image_reaches(g, offset, s),
                     with_stats,
