@@ -217,7 +217,7 @@ pub fn mass_between(a: &Edge, b: &Edge) -> f64 {
 /// Two slit boxes whose facing edges (standardised) differ by at most this fraction of the box
 /// width share one edge evaluation: a sweep places them edge to edge, and they differ only by
 /// the rounding of the sample positions (~1e-13 of the width).
-const SHARED_EDGE: f64 = 1e-9;
+pub(crate) const SHARED_EDGE: f64 = 1e-9;
 
 /// The boxes of one component's slit image at `offset` over the samples at `positions`, walked
 /// in the order `order` (by position): calls `visit(j, lower, upper)` with the edges of sample

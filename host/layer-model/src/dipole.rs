@@ -16,10 +16,10 @@
 
 use std::f64::consts::PI;
 
-use super::boxed_gaussian::{BoxedGaussian, walk_boxes};
+use super::boxed_gaussian::{BoxedGaussian, Edge, SHARED_EDGE, mass_between};
 #[cfg(test)]
 use super::em_free::{self, Component};
-use super::mixture::image_reaches;
+use super::mixture::{NEGLIGIBLE_SIGMAS, image_reaches};
 use super::mixture::{Profile, relative_information};
 use super::render::SplatLayer;
 
@@ -343,9 +343,89 @@ fn brent(
 /// density underflows is summed in log space instead. Equal to the EM's likelihood summed over
 /// the profiles to ~1e-12 relative.
 struct PreparedProfiles<'a> {
-    /// Per usable profile: the profile, its normalised sample weights, and its samples with
-    /// weight in order of position (for [`walk_boxes`]).
-    profiles: Vec<(&'a Profile, Vec<f64>, Vec<usize>)>,
+    profiles: Vec<PreparedProfile<'a>>,
+}
+
+/// One usable profile of [`PreparedProfiles`].
+struct PreparedProfile<'a> {
+    profile: &'a Profile,
+    /// Normalised weight of each sample.
+    weights: Vec<f64>,
+    /// The slit images (one, or three with a period), their boxes in order of position.
+    images: Vec<PreparedImage>,
+}
+
+/// The boxes of the samples with weight seen from one slit image.
+struct PreparedImage {
+    offset: f64,
+    boxes: Vec<PreparedBox>,
+}
+
+/// A sample's slit box relative to an image's centre, in mm: what `BoxedGaussian::interval`
+/// and `image_reaches` computed from the position at every score, made once per fit. Why: the
+/// score (~7 per pixel-channel, ~600 boxes each at full size) spent most of its time in the
+/// two divisions by sigma per box and the one by the slit width per density; with the edges in
+/// mm a component standardises them by one multiplication (`ext / width`), and its weight
+/// takes the slit width's division once.
+#[derive(Debug, Clone, Copy)]
+struct PreparedBox {
+    sample: usize,
+    /// `s - offset - W/2` and `s - offset + W/2`.
+    lower: f64,
+    upper: f64,
+    /// `|s - offset| - W/2`: how far the box is from the image's centre (the reach test).
+    distance: f64,
+    /// The lower edge is the previous box's upper edge (a sweep puts slits edge to edge; the
+    /// criterion of [`walk_boxes`](crate::boxed_gaussian::walk_boxes)): it is computed once.
+    shares_lower: bool,
+}
+
+impl PreparedImage {
+    /// The boxes of the samples `order` (by position) of `prof` seen from the image at `offset`.
+    fn new(prof: &Profile, order: &[usize], offset: f64) -> Self {
+        let half = 0.5 * prof.slit_width;
+        let mut previous_upper = f64::NAN;
+        let boxes = order
+            .iter()
+            .map(|&j| {
+                let x = prof.samples[j].s - offset;
+                let (lower, upper) = (x - half, x + half);
+                let shares_lower = (lower - previous_upper).abs() <= SHARED_EDGE * (upper - lower);
+                previous_upper = upper;
+                PreparedBox {
+                    sample: j,
+                    lower,
+                    upper,
+                    distance: x.abs() - half,
+                    shares_lower,
+                }
+            })
+            .collect();
+        Self { offset, boxes }
+    }
+
+    /// Adds `weight` times the mass of the centred Gaussian of standard deviation `1 / scale`
+    /// in each box (`scale`: `ext / width`) to `densities`, skipping the boxes of a side image
+    /// further than [`NEGLIGIBLE_SIGMAS`] sigmas (as `image_reaches`); shared edges are
+    /// computed once.
+    fn add_masses(&self, scale: f64, weight: f64, densities: &mut [f64]) {
+        let reach = NEGLIGIBLE_SIGMAS / scale;
+        let central = self.offset == 0.0;
+        let mut previous: Option<Edge> = None;
+        for b in &self.boxes {
+            if !central && b.distance > reach {
+                previous = None;
+                continue;
+            }
+            let lower = match previous {
+                Some(e) if b.shares_lower => e,
+                _ => Edge::tail_only(b.lower * scale),
+            };
+            let upper = Edge::tail_only(b.upper * scale);
+            densities[b.sample] += weight * mass_between(&lower, &upper);
+            previous = Some(upper);
+        }
+    }
 }
 
 /// Below this a sample's summed density is recomputed in log space.
@@ -368,16 +448,7 @@ impl<'a> PreparedProfiles<'a> {
                 .zip(trust)
                 .filter_map(|(p, trust)| {
                     let total = p.total();
-                    (total > 0.0).then(|| {
-                        let w: Vec<f64> = p
-                            .samples
-                            .iter()
-                            .map(|s| trust * s.y.max(0.0) / total)
-                            .collect();
-                        let mut order: Vec<usize> = (0..w.len()).filter(|&j| w[j] > 0.0).collect();
-                        order.sort_by(|&a, &b| p.samples[a].s.total_cmp(&p.samples[b].s));
-                        (p, w, order)
-                    })
+                    (total > 0.0).then(|| PreparedProfile::new(p, trust, total))
                 })
                 .collect(),
         }
@@ -386,65 +457,96 @@ impl<'a> PreparedProfiles<'a> {
     /// Sum over the profiles of the mean log-density per unit weight of the centred mixture
     /// `components` (`(weight, width in units of 1/s_t')`) at reduced extinction `ext`, each
     /// Gaussian boxed by the slit and wrapped over one period either side (images further than
-    /// `NEGLIGIBLE_SIGMAS` left out, as the EM leaves them out). The linear densities walk the
-    /// boxes by position, sharing the edges of neighbouring slits ([`walk_boxes`]).
+    /// `NEGLIGIBLE_SIGMAS` left out, as the EM leaves them out).
     fn log_likelihood(&self, components: &[(f64, f64)], ext: f64) -> f64 {
-        let mut total = 0.0;
         let mut densities = Vec::new();
-        for (prof, weights, order) in &self.profiles {
-            let offsets = match prof.period {
-                Some(t) => [-t, 0.0, t],
-                None => [0.0, f64::NAN, f64::NAN],
-            };
-            let gaussian = |width: f64| BoxedGaussian {
-                mean: 0.0,
-                sigma: width / ext,
-                width: prof.slit_width,
-            };
-            densities.clear();
-            densities.resize(prof.samples.len(), 0.0);
-            for &(weight, width) in components.iter().filter(|c| c.0 > 0.0) {
-                let g = gaussian(width);
-                for o in offsets.into_iter().filter(|o| o.is_finite()) {
-                    walk_boxes(
-                        &g,
-                        o,
-                        order,
-                        |j| prof.samples[j].s,
-                        |s| image_reaches(&g, o, s),
-                        false,
-                        |j, lower, upper| densities[j] += weight * g.density_between(lower, upper),
-                    );
-                }
-            }
-            let mut ll = 0.0;
-            for (j, (sample, &y)) in prof.samples.iter().zip(weights).enumerate() {
-                if y <= 0.0 {
-                    continue;
-                }
-                let density = densities[j];
-                let ln_density = if density > LINEAR_DENSITY_FLOOR {
-                    density.ln()
-                } else {
-                    let ln: Vec<f64> = components
-                        .iter()
-                        .filter(|c| c.0 > 0.0)
-                        .flat_map(|&(weight, width)| {
-                            let g = gaussian(width);
-                            offsets
-                                .into_iter()
-                                .filter(move |&o| image_reaches(&g, o, sample.s))
-                                .map(move |o| weight.ln() + g.ln_density(sample.s - o))
-                        })
-                        .collect();
-                    let max = ln.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-                    max + ln.iter().map(|t| (t - max).exp()).sum::<f64>().ln()
-                };
-                ll += y * ln_density;
-            }
-            total += ll;
+        self.profiles
+            .iter()
+            .map(|p| p.log_likelihood(components, ext, &mut densities))
+            .sum()
+    }
+}
+
+impl<'a> PreparedProfile<'a> {
+    /// `trust`: the profile's relative information; `total`: its total signal (positive).
+    fn new(profile: &'a Profile, trust: f64, total: f64) -> Self {
+        let weights: Vec<f64> = profile
+            .samples
+            .iter()
+            .map(|s| trust * s.y.max(0.0) / total)
+            .collect();
+        let mut order: Vec<usize> = (0..weights.len()).filter(|&j| weights[j] > 0.0).collect();
+        order.sort_by(|&a, &b| profile.samples[a].s.total_cmp(&profile.samples[b].s));
+        let images = Self::offsets(profile)
+            .into_iter()
+            .filter(|o| o.is_finite())
+            .map(|o| PreparedImage::new(profile, &order, o))
+            .collect();
+        Self {
+            profile,
+            weights,
+            images,
         }
-        total
+    }
+
+    /// The images' offsets, NaN for none.
+    fn offsets(profile: &Profile) -> [f64; 3] {
+        match profile.period {
+            Some(t) => [-t, 0.0, t],
+            None => [0.0, f64::NAN, f64::NAN],
+        }
+    }
+
+    /// This profile's term of [`PreparedProfiles::log_likelihood`]; `densities` is scratch.
+    fn log_likelihood(&self, components: &[(f64, f64)], ext: f64, densities: &mut Vec<f64>) -> f64 {
+        let prof = self.profile;
+        densities.clear();
+        densities.resize(prof.samples.len(), 0.0);
+        let per_width = 1.0 / prof.slit_width;
+        for &(weight, width) in components.iter().filter(|c| c.0 > 0.0) {
+            let scale = ext / width;
+            for image in &self.images {
+                image.add_masses(scale, weight * per_width, densities);
+            }
+        }
+        let mut ll = 0.0;
+        for (j, (sample, &y)) in prof.samples.iter().zip(&self.weights).enumerate() {
+            if y <= 0.0 {
+                continue;
+            }
+            let density = densities[j];
+            let ln_density = if density > LINEAR_DENSITY_FLOOR {
+                density.ln()
+            } else {
+                self.ln_density_far(components, ext, sample.s)
+            };
+            ll += y * ln_density;
+        }
+        ll
+    }
+
+    /// The log-density at `s` summed in log space, for a sample whose linear density
+    /// underflows.
+    fn ln_density_far(&self, components: &[(f64, f64)], ext: f64, s: f64) -> f64 {
+        let prof = self.profile;
+        let offsets = Self::offsets(prof);
+        let ln: Vec<f64> = components
+            .iter()
+            .filter(|c| c.0 > 0.0)
+            .flat_map(|&(weight, width)| {
+                let g = BoxedGaussian {
+                    mean: 0.0,
+                    sigma: width / ext,
+                    width: prof.slit_width,
+                };
+                offsets
+                    .into_iter()
+                    .filter(move |&o| image_reaches(&g, o, s))
+                    .map(move |o| weight.ln() + g.ln_density(s - o))
+            })
+            .collect();
+        let max = ln.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        max + ln.iter().map(|t| (t - max).exp()).sum::<f64>().ln()
     }
 }
 
