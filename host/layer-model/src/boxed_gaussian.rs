@@ -182,6 +182,29 @@ impl Edge {
         }
     }
 
+    /// [`Edge::tail_only`] with the far tail's one-division form
+    /// ([`normal_tail_scaled_far`](mlsss_core::special::normal_tail_scaled_far)) beyond
+    /// `sqrt 32`: a few ulps from [`Edge::tail_only`] there, the same value below. For the
+    /// dipole's extinction search, whose narrow Gaussians put most edges that far; the EM keeps
+    /// [`Edge::tail_only`] and [`Edge::new`] (its results stay bit for bit).
+    #[inline]
+    pub fn tail_only_fast(z: f64) -> Self {
+        const SQRT_32: f64 = 5.656_854_249_492_381;
+        let y = z.abs();
+        let tail = if y >= UNDERFLOW_Z {
+            0.0
+        } else if y > SQRT_32 {
+            gaussian(z) * mlsss_core::special::normal_tail_scaled_far(y)
+        } else {
+            tail_with(z, || gaussian(z))
+        };
+        Self {
+            z,
+            tail,
+            phi: f64::NAN,
+        }
+    }
+
     /// The tail at `z` alone (for masses; [`BoxedGaussian::posterior_between`] needs [`Edge::new`]).
     #[inline]
     pub fn tail_only(z: f64) -> Self {

@@ -419,9 +419,9 @@ impl PreparedImage {
             }
             let lower = match previous {
                 Some(e) if b.shares_lower => e,
-                _ => Edge::tail_only(b.lower * scale),
+                _ => Edge::tail_only_fast(b.lower * scale),
             };
-            let upper = Edge::tail_only(b.upper * scale);
+            let upper = Edge::tail_only_fast(b.upper * scale);
             densities[b.sample] += weight * mass_between(&lower, &upper);
             previous = Some(upper);
         }
