@@ -554,18 +554,42 @@ impl<'a> PreparedProfile<'a> {
 #[derive(Debug, Clone)]
 pub struct DipoleTable {
     albedos: Vec<f64>,
+    /// The rows' weights as fitted (the tests compare them; the fits use `components`).
+    #[cfg(test)]
     weights: Vec<Vec<f64>>,
     /// Total diffuse reflectance at the midpoint between consecutive `albedos` (increasing, as
     /// the reflectance is in the albedo): the row nearest in albedo to a measured reflectance
     /// is found by a binary search here instead of inverting the reflectance per pixel (60
     /// bisection steps of two exponentials, for ~4 million pixel-channels at full size).
     midpoint_reflectances: Vec<f64>,
+    /// Per row, its Gaussians with weight as `(weight / row total, width)`, in order of width;
+    /// `None` for a row whose total is not positive. Made once here: every fit and both
+    /// passes of the model's construction (~4 million pixel-channels each at full size)
+    /// summed and normalised the row again.
+    components: Vec<Option<Vec<(f64, f64)>>>,
+}
+
+/// `(weight / total, width)` of the Gaussians with weight of one table row, `None` when the
+/// row's total is not positive (no representation).
+fn row_components(weights: &[f64]) -> Option<Vec<(f64, f64)>> {
+    let total: f64 = weights.iter().sum();
+    if total <= 0.0 {
+        return None;
+    }
+    Some(
+        WIDTHS
+            .iter()
+            .zip(weights)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(&s, &w)| (w / total, s))
+            .collect(),
+    )
 }
 
 impl DipoleTable {
     pub fn new(eta: f64) -> Self {
         let albedos: Vec<f64> = (0..24).map(|i| 1.0 - 0.6 * 0.75f64.powi(i)).collect();
-        let weights = albedos
+        let weights: Vec<Vec<f64>> = albedos
             .iter()
             .map(|&a| gaussian_representation(a, eta))
             .collect();
@@ -573,10 +597,13 @@ impl DipoleTable {
             .windows(2)
             .map(|a| total_reflectance(0.5 * (a[0] + a[1]), eta))
             .collect();
+        let components = weights.iter().map(|w| row_components(w)).collect();
         Self {
             albedos,
+            #[cfg(test)]
             weights,
             midpoint_reflectances,
+            components,
         }
     }
 
@@ -609,19 +636,9 @@ impl DipoleTable {
         if reflectance.is_nan() || reflectance <= 0.0 {
             return None;
         }
-        let weights = &self.weights[self.row_for_reflectance(reflectance)];
-        let total: f64 = weights.iter().sum();
-        if total <= 0.0 {
-            return None;
-        }
-        let components: Vec<(f64, f64)> = WIDTHS
-            .iter()
-            .zip(weights)
-            .filter(|(_, w)| **w > 0.0)
-            .map(|(&s, &w)| (w / total, s))
-            .collect();
+        let components = self.components[self.row_for_reflectance(reflectance)].as_deref()?;
         let prepared = PreparedProfiles::new(profiles);
-        let score = |ext: f64| prepared.log_likelihood(&components, ext);
+        let score = |ext: f64| prepared.log_likelihood(components, ext);
         let best = match hint {
             Some(h) if h.is_finite() && h > 0.0 => {
                 maximise_in_log_near(score, h, EXTINCTION_RANGE, EXTINCTION_RESOLUTION)
@@ -657,20 +674,14 @@ impl DipoleTable {
         if reflectance.is_nan() || reflectance <= 0.0 || extinction.is_nan() || extinction <= 0.0 {
             return None;
         }
-        let weights = &self.weights[self.row_for_reflectance(reflectance)];
-        let total: f64 = weights.iter().sum();
-        if total <= 0.0 {
-            return None;
-        }
+        let components = self.components[self.row_for_reflectance(reflectance)].as_deref()?;
         Some(
-            WIDTHS
+            components
                 .iter()
-                .zip(weights)
-                .filter(|(_, w)| **w > 0.0)
                 .enumerate()
-                .map(move |(j, (&s, &w))| SplatLayer {
+                .map(move |(j, &(w, s))| SplatLayer {
                     index: j as u16,
-                    weight: (w / total * reflectance) as f32,
+                    weight: (w * reflectance) as f32,
                     sigma_mm: (s / extinction) as f32,
                     depth_mm: 0.0,
                 }),
