@@ -41,6 +41,7 @@ pub const STAGE: Stage = Stage {
     inputs: &["decode"],
     uses_calibration: true,
     run,
+    head_start: None,
 };
 
 /// Parameters of the geometry stage.

@@ -76,6 +76,7 @@ pub const STAGE: Stage = Stage {
     inputs: &["profiles"],
     uses_calibration: true,
     run,
+    head_start: None,
 };
 
 /// Name of the model file in the stage folder.

@@ -56,6 +56,7 @@ pub const STAGE: Stage = Stage {
     inputs: &["decode", "geometry", "separate", "normals"],
     uses_calibration: true,
     run,
+    head_start: None,
 };
 
 /// Name of the record file in the stage folder.
