@@ -325,9 +325,7 @@ impl Capture {
     /// Frame `index`'s luminance, the mean of its linear RGB, row-major (what Gray-code decoding
     /// compares), made in one pass from the sensor codes.
     pub fn read_frame_luminance(&self, index: u32) -> Result<Vec<f32>, CaptureError> {
-        let (_, luminance) = self.read_codes(index, |codes| {
-            codes.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0)
-        })?;
+        let (_, luminance) = self.read_codes(index, |codes| codes.luminance())?;
         Ok(luminance)
     }
 
@@ -415,10 +413,64 @@ impl FrameCodes<'_> {
         }
     }
 
+    /// `map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0)`, the same operations in the same order per
+    /// pixel, block by block: the block's samples made linear in one contiguous loop, then each
+    /// pixel's three summed. Why: per pixel from the 6 big-endian bytes the loop ran one pixel at
+    /// a time and was a sixth of the decode stage (perf, 2.3 ns a pixel); both loops of a block
+    /// vectorise (test: bit for bit the per-pixel values).
+    fn luminance(&self) -> Vec<f32> {
+        let Codes::BigEndian(bytes) = self.codes else {
+            return self.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0);
+        };
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2, the one feature `luminance_avx2` is compiled for.
+            return unsafe { luminance_avx2(bytes, self.shift, self.scale) };
+        }
+        luminance_portable(bytes, self.shift, self.scale)
+    }
+
     #[inline(always)]
     fn linear(&self, code: u16) -> f32 {
         (code >> self.shift) as f32 * self.scale
     }
+}
+
+/// Pixels per block of [`FrameCodes::luminance`] (its linear samples stay in the L1 cache).
+const LUMINANCE_BLOCK: usize = 1024;
+
+/// [`luminance_portable`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn luminance_avx2(bytes: &[u8], shift: u32, scale: f32) -> Vec<f32> {
+    luminance_portable(bytes, shift, scale)
+}
+
+/// The body of [`FrameCodes::luminance`] on big-endian 16-bit RGB `bytes` (inlined into each
+/// instruction-set variant; no FMA is enabled, so no product is fused: the same bits).
+#[inline(always)]
+fn luminance_portable(bytes: &[u8], shift: u32, scale: f32) -> Vec<f32> {
+    let (samples, _) = bytes.as_chunks::<2>();
+    let pixels = samples.len() / 3;
+    let mut out = vec![0.0f32; pixels];
+    let mut linear = [0.0f32; 3 * LUMINANCE_BLOCK];
+    for (out, codes) in out
+        .chunks_mut(LUMINANCE_BLOCK)
+        .zip(samples[..3 * pixels].chunks(3 * LUMINANCE_BLOCK))
+    {
+        let linear = &mut linear[..codes.len()];
+        for (l, c) in linear.iter_mut().zip(codes) {
+            *l = (u16::from_be_bytes(*c) >> shift) as f32 * scale;
+        }
+        let (rgb, _) = linear.as_chunks::<3>();
+        for (o, p) in out.iter_mut().zip(rgb) {
+            *o = (p[0] + p[1] + p[2]) / 3.0;
+        }
+    }
+    out
 }
 
 /// PNG bytes buffers of frames read before, for the next reads to reuse: a fresh buffer per
@@ -921,7 +973,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for bit_depth in [12, 16] {
             let path = dir.path().join(format!("frame{bit_depth}.png"));
-            for (w, h, seed) in [(37u32, 23u32, 1u32), (8, 5, 2), (64, 48, 3)] {
+            for (w, h, seed) in [(37u32, 23u32, 1u32), (8, 5, 2), (64, 48, 3), (50, 45, 4)] {
                 if seed == 2 {
                     // Reads after the kept buffers were freed (between stages) are the same.
                     release_frame_buffers();
@@ -940,7 +992,7 @@ mod tests {
                     scale: 1.0 / ((1u32 << bit_depth) - 1) as f32 / 0.7,
                 };
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                let (samples, pixels, luminance) =
+                let (samples, pixels, luminance, blocked) =
                     with_frame_codes(&path, bit_depth, (w, h), |c| {
                         let c = FrameCodes {
                             scale: c.scale / 0.7,
@@ -951,9 +1003,12 @@ mod tests {
                             c.samples(),
                             c.map_pixels(|p| p),
                             c.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0),
+                            c.luminance(),
                         )
                     })
                     .unwrap();
+                assert_eq!(bits(&blocked), bits(&luminance));
+                assert_eq!(bits(&plain.luminance()), bits(&luminance));
                 assert_eq!(bits(&samples), bits(&plain.samples()));
                 assert_eq!(
                     bits(pixels.as_flattened()),
