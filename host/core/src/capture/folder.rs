@@ -325,8 +325,22 @@ impl Capture {
     /// Frame `index`'s luminance, the mean of its linear RGB, row-major (what Gray-code decoding
     /// compares), made in one pass from the sensor codes.
     pub fn read_frame_luminance(&self, index: u32) -> Result<Vec<f32>, CaptureError> {
-        let (_, luminance) = self.read_codes(index, |codes| codes.luminance())?;
+        let mut luminance = Vec::new();
+        self.read_frame_luminance_into(index, &mut luminance)?;
         Ok(luminance)
+    }
+
+    /// [`Capture::read_frame_luminance`] into `out`, whose allocation is reused when it is large
+    /// enough. Why: a fresh 5.7 MB buffer per frame (full size) came from the system as new
+    /// zeroed pages, and their page faults were a visible share of loading a projector's 42
+    /// frames; the next projector's frames can go into the previous one's buffers.
+    pub fn read_frame_luminance_into(
+        &self,
+        index: u32,
+        out: &mut Vec<f32>,
+    ) -> Result<(), CaptureError> {
+        self.read_codes(index, |codes| codes.luminance_into(out))?;
+        Ok(())
     }
 
     /// Path of frame `index` and what `convert` makes of its sensor codes.
@@ -418,16 +432,37 @@ impl FrameCodes<'_> {
     /// pixel's three summed. Why: per pixel from the 6 big-endian bytes the loop ran one pixel at
     /// a time and was a sixth of the decode stage (perf, 2.3 ns a pixel); both loops of a block
     /// vectorise (test: bit for bit the per-pixel values).
-    fn luminance(&self) -> Vec<f32> {
+    /// Written into `out` (resized to the frame, its allocation reused when large enough).
+    fn luminance_into(&self, out: &mut Vec<f32>) {
         let Codes::BigEndian(bytes) = self.codes else {
-            return self.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0);
+            *out = self.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0);
+            return;
         };
+        let pixels = bytes.len() / 6;
+        if out.len() != pixels {
+            if out.capacity() >= pixels {
+                out.clear();
+                out.resize(pixels, 0.0);
+            } else {
+                // Zeroed pages straight from the allocator, not written twice.
+                *out = vec![0.0; pixels];
+            }
+        }
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2, the one feature `luminance_avx2` is compiled for.
-            return unsafe { luminance_avx2(bytes, self.shift, self.scale) };
+            unsafe { luminance_avx2(bytes, self.shift, self.scale, out) };
+            return;
         }
-        luminance_portable(bytes, self.shift, self.scale)
+        luminance_portable(bytes, self.shift, self.scale, out);
+    }
+
+    /// [`FrameCodes::luminance_into`] a new buffer.
+    #[cfg(test)]
+    fn luminance(&self) -> Vec<f32> {
+        let mut out = Vec::new();
+        self.luminance_into(&mut out);
+        out
     }
 
     #[inline(always)]
@@ -445,17 +480,17 @@ const LUMINANCE_BLOCK: usize = 1024;
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn luminance_avx2(bytes: &[u8], shift: u32, scale: f32) -> Vec<f32> {
-    luminance_portable(bytes, shift, scale)
+unsafe fn luminance_avx2(bytes: &[u8], shift: u32, scale: f32, out: &mut [f32]) {
+    luminance_portable(bytes, shift, scale, out);
 }
 
-/// The body of [`FrameCodes::luminance`] on big-endian 16-bit RGB `bytes` (inlined into each
-/// instruction-set variant; no FMA is enabled, so no product is fused: the same bits).
+/// The body of [`FrameCodes::luminance_into`] on big-endian 16-bit RGB `bytes`, one value per
+/// pixel into `out` (inlined into each instruction-set variant; no FMA is enabled, so no product
+/// is fused: the same bits).
 #[inline(always)]
-fn luminance_portable(bytes: &[u8], shift: u32, scale: f32) -> Vec<f32> {
+fn luminance_portable(bytes: &[u8], shift: u32, scale: f32, out: &mut [f32]) {
     let (samples, _) = bytes.as_chunks::<2>();
-    let pixels = samples.len() / 3;
-    let mut out = vec![0.0f32; pixels];
+    let pixels = (samples.len() / 3).min(out.len());
     let mut linear = [0.0f32; 3 * LUMINANCE_BLOCK];
     for (out, codes) in out
         .chunks_mut(LUMINANCE_BLOCK)
@@ -470,7 +505,6 @@ fn luminance_portable(bytes: &[u8], shift: u32, scale: f32) -> Vec<f32> {
             *o = (p[0] + p[1] + p[2]) / 3.0;
         }
     }
-    out
 }
 
 /// PNG bytes buffers of frames read before, for the next reads to reuse: a fresh buffer per
@@ -992,7 +1026,7 @@ mod tests {
                     scale: 1.0 / ((1u32 << bit_depth) - 1) as f32 / 0.7,
                 };
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                let (samples, pixels, luminance, blocked) =
+                let (samples, pixels, luminance, blocked, reused) =
                     with_frame_codes(&path, bit_depth, (w, h), |c| {
                         let c = FrameCodes {
                             scale: c.scale / 0.7,
@@ -1004,10 +1038,20 @@ mod tests {
                             c.map_pixels(|p| p),
                             c.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0),
                             c.luminance(),
+                            // Into a reused buffer, smaller or larger than the frame or of its
+                            // size.
+                            [0, 7, w as usize * h as usize, 5000].map(|len| {
+                                let mut reused = vec![9.0f32; len];
+                                c.luminance_into(&mut reused);
+                                reused
+                            }),
                         )
                     })
                     .unwrap();
                 assert_eq!(bits(&blocked), bits(&luminance));
+                for reused in &reused {
+                    assert_eq!(bits(reused), bits(&luminance));
+                }
                 assert_eq!(bits(&plain.luminance()), bits(&luminance));
                 assert_eq!(bits(&samples), bits(&plain.samples()));
                 assert_eq!(
