@@ -28,6 +28,36 @@ pub(super) fn robust_plane_at_centre(
     params: &DecodeParams,
     scratch: &mut FitScratch,
 ) -> Option<f64> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2, the one feature `robust_plane_avx2` is compiled for.
+        return unsafe { robust_plane_avx2(samples, params, scratch) };
+    }
+    robust_plane_portable(samples, params, scratch)
+}
+
+/// [`robust_plane_portable`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn robust_plane_avx2(
+    samples: &[Sample],
+    params: &DecodeParams,
+    scratch: &mut FitScratch,
+) -> Option<f64> {
+    robust_plane_portable(samples, params, scratch)
+}
+
+/// The body of [`robust_plane_at_centre`] (inlined, with the functions it calls, into each
+/// instruction-set variant).
+#[inline(always)]
+fn robust_plane_portable(
+    samples: &[Sample],
+    params: &DecodeParams,
+    scratch: &mut FitScratch,
+) -> Option<f64> {
     let median = median_code(samples, &mut scratch.values)?;
     let limit = jump_limit(params);
     let inliers = &mut scratch.inliers;
@@ -53,6 +83,7 @@ pub(super) fn robust_plane_at_centre(
 /// `retain`, branch-free: every sample is copied down and the count advances only for those
 /// kept (in order). Why: whether a neighbour is an inlier is data-dependent, and `retain`'s
 /// mispredicted branches were a visible share of the fits.
+#[inline(always)]
 fn keep_where(samples: &mut Vec<Sample>, keep: impl Fn(&Sample) -> bool) {
     let mut kept = 0;
     for j in 0..samples.len() {
@@ -71,6 +102,7 @@ const COUNTED_SPAN: usize = 64;
 /// and counting them into a small histogram and walking it to the middle rank is exact and took
 /// a fraction of the time of `select_nth_unstable` (a twelfth of the decode, perf); wider spans
 /// (a depth edge, an outlier) fall back to the selection, in `values`.
+#[inline(always)]
 fn median_code(samples: &[Sample], values: &mut Vec<i32>) -> Option<i32> {
     let first = samples.first()?.code;
     let (min, max) = samples.iter().fold((first, first), |(lo, hi), s| {
@@ -111,6 +143,7 @@ impl Plane {
 
 /// Least-squares plane through the samples; the mean when they are collinear. The sums are
 /// exact integers (i64), converted once.
+#[inline(always)]
 fn fit_plane(samples: &[Sample]) -> Option<Plane> {
     if samples.is_empty() {
         return None;
@@ -134,6 +167,7 @@ fn fit_plane(samples: &[Sample]) -> Option<Plane> {
 
 /// The least-squares plane of `count` samples from their sums `[x, y, v, xx, yy, xy, xv, yv]`;
 /// the mean when the samples are collinear.
+#[inline(always)]
 fn plane_from_sums(count: usize, [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8]) -> Plane {
     let n = count as f64;
     let m = [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]];
@@ -160,6 +194,7 @@ fn plane_from_sums(count: usize, [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8]
 
 /// The determinant of a 3 x 3 matrix (rows), by the cofactor formula of nalgebra's
 /// `Matrix3::determinant`, operation for operation (hence the same bits).
+#[inline(always)]
 fn determinant3(m: &[[f64; 3]; 3]) -> f64 {
     let minor_12_23 = m[1][1] * m[2][2] - m[2][1] * m[1][2];
     let minor_11_23 = m[1][0] * m[2][2] - m[2][0] * m[1][2];
@@ -176,6 +211,7 @@ fn determinant3(m: &[[f64; 3]; 3]) -> f64 {
 /// 3 x 3, so it returns nalgebra's bits (test). The index loops keep nalgebra's loop order
 /// readable beside its source.
 #[allow(clippy::needless_range_loop)]
+#[inline(always)]
 fn lu_solve3(mut m: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
     let mut swaps = [(0usize, 0usize); 3];
     let mut nswaps = 0;
