@@ -58,12 +58,18 @@ fn robust_plane_portable(
     params: &DecodeParams,
     scratch: &mut FitScratch,
 ) -> Option<f64> {
-    let median = median_code(samples, &mut scratch.values)?;
+    let (min, max) = code_range(samples)?;
     let limit = jump_limit(params);
     let inliers = &mut scratch.inliers;
     inliers.clear();
     inliers.extend_from_slice(samples);
-    keep_where(inliers, |s| f64::from(s.code.abs_diff(median)) <= limit);
+    // The median lies within the codes' range: when the range is within the limit, no sample
+    // is far from the median and neither it nor the filter is needed (most windows of a smooth
+    // surface; the median and the filter were a third of the fit).
+    if f64::from(max.abs_diff(min)) > limit {
+        let median = median_code(samples, &mut scratch.values)?;
+        keep_where(inliers, |s| f64::from(s.code.abs_diff(median)) <= limit);
+    }
     for _ in 0..2 {
         let plane = fit_plane(inliers)?;
         let before = inliers.len();
@@ -94,6 +100,15 @@ fn keep_where(samples: &mut Vec<Sample>, keep: impl Fn(&Sample) -> bool) {
     samples.truncate(kept);
 }
 
+/// The smallest and largest code of the samples; `None` without samples.
+#[inline(always)]
+fn code_range(samples: &[Sample]) -> Option<(i32, i32)> {
+    let first = samples.first()?.code;
+    Some(samples.iter().fold((first, first), |(lo, hi), s| {
+        (lo.min(s.code), hi.max(s.code))
+    }))
+}
+
 /// Codes spanning fewer values than this are ranked by counting.
 const COUNTED_SPAN: usize = 64;
 
@@ -104,10 +119,7 @@ const COUNTED_SPAN: usize = 64;
 /// (a depth edge, an outlier) fall back to the selection, in `values`.
 #[inline(always)]
 fn median_code(samples: &[Sample], values: &mut Vec<i32>) -> Option<i32> {
-    let first = samples.first()?.code;
-    let (min, max) = samples.iter().fold((first, first), |(lo, hi), s| {
-        (lo.min(s.code), hi.max(s.code))
-    });
+    let (min, max) = code_range(samples)?;
     let middle = samples.len() / 2;
     if i64::from(max) - i64::from(min) < COUNTED_SPAN as i64 {
         let mut counts = [0u32; COUNTED_SPAN];
