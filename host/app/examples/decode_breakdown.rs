@@ -11,6 +11,12 @@
 //! REPEATS times and prints the best wall and the mean CPU seconds (all threads) of `decode`
 //! alone, frames already loaded (and, with `DECODE_OUT=DIR`, writes the decode there as the decode
 //! stage does).
+//!
+//! `decode_breakdown stage CAPTURE [REPEATS]`: the decode stage's work on a capture folder one
+//! step at a time, every projector in turn: loading its frames, decoding them (REPEATS times,
+//! with the decoder's own phases), writing the artefacts (into a temporary folder) and the
+//! comparison with the truth. Prints the wall and CPU seconds (all threads) of each step summed
+//! over the projectors, as JSON: where the stage's time goes.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -20,7 +26,7 @@ use anyhow::{Context, bail};
 use mlsss::capture::{Capture, truth};
 use mlsss::geometry::code_frames;
 use mlsss::geometry::gray_code::{
-    DecodeParams, PixelStatus, ProjectorDecode, TruthComparison, decode,
+    DecodeParams, DecodePhases, PixelStatus, ProjectorDecode, TruthComparison, decode, decode_timed,
 };
 use mlsss::imageio;
 use mlsss::pipeline::decode_stage::load_coords;
@@ -37,7 +43,14 @@ fn main() -> anyhow::Result<()> {
             let repeats: usize = args.get(4).map_or(Ok(5), |r| r.parse())?;
             time(Path::new(dir), (w.parse()?, h.parse()?), repeats)
         }
-        _ => bail!("usage: decode_breakdown missed CAPTURE | time DIR WxH [REPEATS]"),
+        (Some("stage"), Some(dir)) => {
+            let repeats: usize = args.get(3).map_or(Ok(1), |r| r.parse())?;
+            stage(Path::new(dir), repeats)
+        }
+        _ => bail!(
+            "usage: decode_breakdown missed CAPTURE | time DIR WxH [REPEATS] | stage CAPTURE \
+             [REPEATS]"
+        ),
     }
 }
 
@@ -158,6 +171,81 @@ fn time(dir: &Path, size: (u32, u32), repeats: usize) -> anyhow::Result<()> {
     println!(
         "{}",
         json!({"best_wall_s": best, "mean_cpu_s": cpu, "valid_pixels": valid})
+    );
+    Ok(())
+}
+
+/// Wall and CPU seconds of one step, summed over the calls of [`Step::run`].
+#[derive(Debug, Default)]
+struct Step {
+    wall_s: f64,
+    cpu_s: f64,
+}
+
+impl Step {
+    /// Runs `f`, adding its wall and CPU seconds.
+    fn run<T>(&mut self, f: impl FnOnce() -> T) -> T {
+        let (start, cpu) = (Instant::now(), cpu_seconds().unwrap_or(f64::NAN));
+        let out = f();
+        self.wall_s += start.elapsed().as_secs_f64();
+        self.cpu_s += cpu_seconds().unwrap_or(f64::NAN) - cpu;
+        out
+    }
+
+    fn json(&self, repeats: usize) -> serde_json::Value {
+        let n = repeats.max(1) as f64;
+        json!({"wall_s": self.wall_s / n, "cpu_s": self.cpu_s / n})
+    }
+}
+
+fn stage(dir: &Path, repeats: usize) -> anyhow::Result<()> {
+    let capture = Capture::open(dir)?;
+    let truth_dir = dir.join("truth");
+    let out = std::env::temp_dir().join(format!("decode-breakdown-{}", std::process::id()));
+    let booth = &capture.manifest.booth;
+    let (mut load, mut decoding, mut write, mut compare) = Default::default();
+    let mut phases = DecodePhases::default();
+    let repeats = repeats.max(1);
+    for (k, proj) in booth.projectors.iter().enumerate() {
+        let frames = Step::run(&mut load, || code_frames::from_capture(&capture, k))?;
+        let params = base_params()?.with_camera_noise(capture.manifest.frame_noise_of(k));
+        let mut decoded = None;
+        for _ in 0..repeats {
+            let (d, p) = Step::run(&mut decoding, || {
+                decode_timed(&frames, (proj.width, proj.height), &params)
+            })?;
+            phases.bits_s += p.bits_s;
+            phases.repair_s += p.repair_s;
+            phases.check_s += p.check_s;
+            decoded = Some(d);
+        }
+        let decoded = decoded.context("no decode")?;
+        drop(frames);
+        Step::run(&mut write, || {
+            mlsss::pipeline::decode_stage::write_decode(&out, k, &decoded)
+        })?;
+        Step::run(&mut compare, || -> anyhow::Result<()> {
+            let size = (decoded.width, decoded.height);
+            let lit = load_coords(&truth::projector_coords(&truth_dir, k), size)?;
+            std::hint::black_box(TruthComparison::new(&decoded, &lit));
+            Ok(())
+        })?;
+    }
+    std::fs::remove_dir_all(&out).ok();
+    let n = repeats as f64;
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&json!({
+            "load": load.json(1),
+            "decode": decoding.json(repeats),
+            "decode_phases_wall_s": {
+                "bits": phases.bits_s / n,
+                "repair": phases.repair_s / n,
+                "check": phases.check_s / n,
+            },
+            "write": write.json(1),
+            "truth": compare.json(1),
+        }))?
     );
     Ok(())
 }

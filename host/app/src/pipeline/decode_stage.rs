@@ -122,13 +122,16 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
         }
     };
     rayon::scope(|scope| -> Result<(), StageFailure> {
+        // The previous projector's frames, read into again (no fresh page-faulted buffers).
+        let mut spare = None;
         for (k, proj) in booth.projectors.iter().enumerate() {
-            let frames = code_frames::from_capture(capture, k).map_err(|source| {
-                StageFailure::new(DecodeStageError::Frames {
-                    projector: k,
-                    source,
-                })
-            })?;
+            let frames =
+                code_frames::from_capture_reusing(capture, k, spare.take()).map_err(|source| {
+                    StageFailure::new(DecodeStageError::Frames {
+                        projector: k,
+                        source,
+                    })
+                })?;
             let params = camera_noise_params(params, capture, k);
             let decoded = match decode(&frames, (proj.width, proj.height), &params) {
                 Ok(d) => d,
@@ -140,6 +143,7 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
                         truth: None,
                     };
                     keep(k, Ok((skipped, None)));
+                    spare = Some(frames);
                     continue;
                 }
                 Err(source) => {
@@ -149,10 +153,12 @@ fn run_decode(ctx: &StageContext, params: &DecodeParams) -> Result<DecodeReport,
                     }));
                 }
             };
-            drop(frames);
+            spare = Some(frames);
             let (dir, truth_dir, keep) = (&dir, &truth_dir, &keep);
             scope.spawn(move |_| keep(k, finish_projector(dir, k, &decoded, truth_dir.as_deref())));
         }
+        // Freed before the last projector's artefacts are written, as before the reuse.
+        drop(spare);
         Ok(())
     })?;
     let mut finished = finished

@@ -67,6 +67,17 @@ pub enum CodeFramesError {
 
 /// The Gray-code frames (plus white, and black when captured) of projector `k` of a capture.
 pub fn from_capture(capture: &Capture, k: usize) -> Result<GrayCodeFrames, CodeFramesError> {
+    from_capture_reusing(capture, k, None)
+}
+
+/// [`from_capture`], read into the buffers of `spare` (frames no longer needed, e.g. the previous
+/// projector's) where there are any. Why: each frame read into a fresh buffer came from the
+/// system as new zeroed pages, and their page faults were a visible share of the decode stage.
+pub fn from_capture_reusing(
+    capture: &Capture,
+    k: usize,
+    spare: Option<GrayCodeFrames>,
+) -> Result<GrayCodeFrames, CodeFramesError> {
     let booth = &capture.manifest.booth;
     if k >= booth.projectors.len() {
         return Err(CodeFramesError::NoSuchProjector {
@@ -98,9 +109,16 @@ pub fn from_capture(capture: &Capture, k: usize) -> Result<GrayCodeFrames, CodeF
             }
         }
     }
+    let mut buffers = spare.map(GrayCodeFrames::into_buffers).unwrap_or_default();
+    buffers.resize_with(wanted.len(), Vec::new);
     let mut frames: Vec<Vec<f32>> = wanted
         .par_iter()
-        .map(|&index| capture.read_frame_luminance(index))
+        .zip(buffers)
+        .map(|(&index, mut buffer)| {
+            capture
+                .read_frame_luminance_into(index, &mut buffer)
+                .map(|()| buffer)
+        })
         .collect::<Result<_, CaptureError>>()?;
     let white = frames.remove(0);
     let black = black.map(|_| frames.remove(0));

@@ -542,6 +542,20 @@ impl GrayCodeFrames {
         }
     }
 
+    /// Every frame's buffer (white, black, then the pairs), to be read into again.
+    pub fn into_buffers(self) -> Vec<Vec<f32>> {
+        let pairs = self
+            .x
+            .into_iter()
+            .chain(self.y)
+            .flat_map(|p| [p.pattern, p.inverse]);
+        self.white
+            .into_iter()
+            .chain(self.black)
+            .chain(pairs)
+            .collect()
+    }
+
     fn validate(&self, projector_size: (u32, u32)) -> Result<(), GrayCodeError> {
         let (w, h) = (self.width as usize, self.height as usize);
         let check = |name: String, f: &Vec<f32>| {

@@ -28,12 +28,48 @@ pub(super) fn robust_plane_at_centre(
     params: &DecodeParams,
     scratch: &mut FitScratch,
 ) -> Option<f64> {
-    let median = median_code(samples, &mut scratch.values)?;
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2, the one feature `robust_plane_avx2` is compiled for.
+        return unsafe { robust_plane_avx2(samples, params, scratch) };
+    }
+    robust_plane_portable(samples, params, scratch)
+}
+
+/// [`robust_plane_portable`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn robust_plane_avx2(
+    samples: &[Sample],
+    params: &DecodeParams,
+    scratch: &mut FitScratch,
+) -> Option<f64> {
+    robust_plane_portable(samples, params, scratch)
+}
+
+/// The body of [`robust_plane_at_centre`] (inlined, with the functions it calls, into each
+/// instruction-set variant).
+#[inline(always)]
+fn robust_plane_portable(
+    samples: &[Sample],
+    params: &DecodeParams,
+    scratch: &mut FitScratch,
+) -> Option<f64> {
+    let (min, max) = code_range(samples)?;
     let limit = jump_limit(params);
     let inliers = &mut scratch.inliers;
     inliers.clear();
     inliers.extend_from_slice(samples);
-    keep_where(inliers, |s| f64::from(s.code.abs_diff(median)) <= limit);
+    // The median lies within the codes' range: when the range is within the limit, no sample
+    // is far from the median and neither it nor the filter is needed (most windows of a smooth
+    // surface; the median and the filter were a third of the fit).
+    if f64::from(max.abs_diff(min)) > limit {
+        let median = median_code(samples, &mut scratch.values)?;
+        keep_where(inliers, |s| f64::from(s.code.abs_diff(median)) <= limit);
+    }
     for _ in 0..2 {
         let plane = fit_plane(inliers)?;
         let before = inliers.len();
@@ -53,6 +89,7 @@ pub(super) fn robust_plane_at_centre(
 /// `retain`, branch-free: every sample is copied down and the count advances only for those
 /// kept (in order). Why: whether a neighbour is an inlier is data-dependent, and `retain`'s
 /// mispredicted branches were a visible share of the fits.
+#[inline(always)]
 fn keep_where(samples: &mut Vec<Sample>, keep: impl Fn(&Sample) -> bool) {
     let mut kept = 0;
     for j in 0..samples.len() {
@@ -63,6 +100,15 @@ fn keep_where(samples: &mut Vec<Sample>, keep: impl Fn(&Sample) -> bool) {
     samples.truncate(kept);
 }
 
+/// The smallest and largest code of the samples; `None` without samples.
+#[inline(always)]
+fn code_range(samples: &[Sample]) -> Option<(i32, i32)> {
+    let first = samples.first()?.code;
+    Some(samples.iter().fold((first, first), |(lo, hi), s| {
+        (lo.min(s.code), hi.max(s.code))
+    }))
+}
+
 /// Codes spanning fewer values than this are ranked by counting.
 const COUNTED_SPAN: usize = 64;
 
@@ -71,11 +117,9 @@ const COUNTED_SPAN: usize = 64;
 /// and counting them into a small histogram and walking it to the middle rank is exact and took
 /// a fraction of the time of `select_nth_unstable` (a twelfth of the decode, perf); wider spans
 /// (a depth edge, an outlier) fall back to the selection, in `values`.
+#[inline(always)]
 fn median_code(samples: &[Sample], values: &mut Vec<i32>) -> Option<i32> {
-    let first = samples.first()?.code;
-    let (min, max) = samples.iter().fold((first, first), |(lo, hi), s| {
-        (lo.min(s.code), hi.max(s.code))
-    });
+    let (min, max) = code_range(samples)?;
     let middle = samples.len() / 2;
     if i64::from(max) - i64::from(min) < COUNTED_SPAN as i64 {
         let mut counts = [0u32; COUNTED_SPAN];
@@ -111,6 +155,7 @@ impl Plane {
 
 /// Least-squares plane through the samples; the mean when they are collinear. The sums are
 /// exact integers (i64), converted once.
+#[inline(always)]
 fn fit_plane(samples: &[Sample]) -> Option<Plane> {
     if samples.is_empty() {
         return None;
@@ -134,6 +179,7 @@ fn fit_plane(samples: &[Sample]) -> Option<Plane> {
 
 /// The least-squares plane of `count` samples from their sums `[x, y, v, xx, yy, xy, xv, yv]`;
 /// the mean when the samples are collinear.
+#[inline(always)]
 fn plane_from_sums(count: usize, [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8]) -> Plane {
     let n = count as f64;
     let m = [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]];
@@ -160,6 +206,7 @@ fn plane_from_sums(count: usize, [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8]
 
 /// The determinant of a 3 x 3 matrix (rows), by the cofactor formula of nalgebra's
 /// `Matrix3::determinant`, operation for operation (hence the same bits).
+#[inline(always)]
 fn determinant3(m: &[[f64; 3]; 3]) -> f64 {
     let minor_12_23 = m[1][1] * m[2][2] - m[2][1] * m[1][2];
     let minor_11_23 = m[1][0] * m[2][2] - m[2][0] * m[1][2];
@@ -176,6 +223,7 @@ fn determinant3(m: &[[f64; 3]; 3]) -> f64 {
 /// 3 x 3, so it returns nalgebra's bits (test). The index loops keep nalgebra's loop order
 /// readable beside its source.
 #[allow(clippy::needless_range_loop)]
+#[inline(always)]
 fn lu_solve3(mut m: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
     let mut swaps = [(0usize, 0usize); 3];
     let mut nswaps = 0;
