@@ -27,23 +27,6 @@ pub fn cpu_seconds() -> Option<f64> {
     parse_stat_cpu_ticks(&stat).map(|ticks| ticks as f64 / USER_HZ)
 }
 
-/// The kernel's id of the calling thread (from `/proc/thread-self`, which links to
-/// `<pid>/task/<tid>`); `None` where the platform does not expose it. With
-/// [`thread_cpu_seconds`] a thread's CPU time can be read from another thread.
-pub fn current_thread_id() -> Option<u32> {
-    let link = std::fs::read_link("/proc/thread-self").ok()?;
-    link.file_name()?.to_str()?.parse().ok()
-}
-
-/// CPU time (user + system) thread `tid` of this process has used, in seconds, from
-/// `/proc/self/task/<tid>/stat` (one clock tick, 10 ms); `None` when the thread has exited or
-/// the platform does not expose it. Why: stages running side by side share the process's
-/// clock, their threads' clocks tell them apart.
-pub fn thread_cpu_seconds(tid: u32) -> Option<f64> {
-    let stat = std::fs::read_to_string(format!("/proc/self/task/{tid}/stat")).ok()?;
-    parse_stat_cpu_ticks(&stat).map(|ticks| ticks as f64 / USER_HZ)
-}
-
 /// Clock ticks per second of `/proc/<pid>/stat` times (`USER_HZ`, 100 on every Linux ABI).
 const USER_HZ: f64 = 100.0;
 
@@ -187,45 +170,6 @@ mod tests {
             rise >= 0.9 * burnt - 0.02,
             "burnt {burnt} s, probe rose {rise} s"
         );
-    }
-
-    /// Another thread's clock, read while it runs, counts what it burnt (the scheduler's own
-    /// account) and not what the reading thread did.
-    #[test]
-    fn a_threads_clock_counts_that_thread_alone() {
-        if !cfg!(target_os = "linux") {
-            assert_eq!(current_thread_id(), None);
-            return;
-        }
-        let (tx, rx) = std::sync::mpsc::channel();
-        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
-        let burner = std::thread::spawn(move || {
-            let tid = current_thread_id();
-            let start = thread_cpu_nanos().expect("linux has schedstat");
-            let mut x = 0u64;
-            while thread_cpu_nanos().expect("linux has schedstat") - start < 300_000_000 {
-                for i in 0..1_000_000u64 {
-                    x = x.wrapping_mul(6364136223846793005).wrapping_add(i);
-                }
-                std::hint::black_box(x);
-            }
-            let burnt = thread_cpu_nanos().expect("linux has schedstat") as f64 * 1e-9;
-            tx.send((tid, burnt)).expect("the reader waits");
-            // Stays alive until its clock has been read.
-            done_rx.recv().ok();
-        });
-        let (tid, burnt) = rx.recv().unwrap();
-        let tid = tid.expect("linux has /proc/thread-self");
-        assert_ne!(Some(tid), current_thread_id());
-        let read = thread_cpu_seconds(tid).expect("the burner is alive");
-        done_tx.send(()).unwrap();
-        burner.join().unwrap();
-        // The probe counts in 10 ms ticks, sampled: two ticks and a tenth of slack.
-        assert!(
-            (read - burnt).abs() < 0.1 * burnt + 0.02,
-            "read {read} s, burnt {burnt} s"
-        );
-        assert_eq!(thread_cpu_seconds(u32::MAX), None);
     }
 
     #[test]

@@ -7,8 +7,7 @@
 //! and calibrated beside it), of which `simulate_scan`, `simulate_calibration` and `calibrate`
 //! are each step's own time (the last two overlap the first, so they do not add up to
 //! `simulate`); one per pipeline stage (the `fit` stage includes its own figures and check
-//! renders; the `separate` stage includes its head start, which runs beside `decode` and
-//! `geometry`, so the stages' walls add up to more than the processing took), `eval` (the held-out evaluation: reading frames, rendering, metrics) of which
+//! renders), `eval` (the held-out evaluation: reading frames, rendering, metrics) of which
 //! `render` is the rendering, `total` (wall clock of everything).
 //!
 //! `timing_cpu_s` (CPU seconds, user + system, all threads): `simulate` (the scan, the poses and

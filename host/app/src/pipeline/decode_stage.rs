@@ -34,7 +34,6 @@ pub const STAGE: Stage = Stage {
     inputs: &[],
     uses_calibration: false,
     run,
-    head_start: None,
 };
 
 /// Errors of the decode stage.

@@ -41,7 +41,6 @@ pub const STAGE: Stage = Stage {
     inputs: &["decode"],
     uses_calibration: true,
     run,
-    head_start: None,
 };
 
 /// Parameters of the geometry stage.

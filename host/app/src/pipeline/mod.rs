@@ -20,23 +20,9 @@
 //!   back from disk (e.g. the decoded slit frames, from `profiles` to `fit`). It is only taken
 //!   when it was made under the key the pipeline holds for that stage in this run, and whatever
 //!   is left is dropped when the run ends.
-//! - Head start: a stage may name the part of its work that reads only the capture, the
-//!   calibration and its parameters ([`Stage::head_start`]; e.g. `separate` reads and splits the
-//!   frames before it needs the geometry). When that stage is to run, the pipeline starts its
-//!   head start on a thread pool of its own beside the first stages of the run (the stages run
-//!   one after the other otherwise); the stage then takes the result
-//!   ([`StageContext::take_head_start`]). The stage's record is removed before its head start
-//!   begins, so whatever fails (the head start, or a stage beside it) the half-written folder
-//!   is never taken for a cached result; a failed head start is reported under its stage's name
-//!   when the run reaches that stage.
 //! - Report: one JSON object. Each stage returns a fragment (a JSON object) stored under its name
 //!   (e.g. `geometry.depth_rmse_mm`); run times go to `timing_s.<stage>` (wall) and
-//!   `timing_cpu_s.<stage>` (CPU, all threads), reused stages are listed in `cached`. With a
-//!   head start, stages overlap: the head start's wall and CPU seconds count in its stage's
-//!   `timing_s` and `timing_cpu_s` (its CPU read from its own threads' clocks), and the stages
-//!   that ran beside it count only their own CPU (the process's less the head start's threads'),
-//!   so the CPU seconds still add up to the run's; the wall seconds of overlapping stages add up
-//!   to more than the run took.
+//!   `timing_cpu_s.<stage>` (CPU, all threads), reused stages are listed in `cached`.
 //!
 //! # How to add a stage
 //! 1. Write the algorithm in its own library module (e.g. `mlsss_vision::photometry::nayar_separation`),
@@ -67,7 +53,6 @@ use std::any::Any;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::thread::{Scope, ScopedJoinHandle};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -76,8 +61,7 @@ use serde_json::Value;
 use mlsss_core::atomic_file::{FolderLock, LockError, write_bytes_atomically};
 use mlsss_core::calibration::{Calibration, CalibrationError};
 use mlsss_core::capture::{Capture, CaptureError, truth};
-use mlsss_core::resources::{current_thread_id, release_free_memory};
-use phase_clock::{CpuSource, ThreadList};
+use mlsss_core::resources::{cpu_seconds, release_free_memory};
 
 /// Every stage, in an order where inputs come first.
 pub const STAGES: &[Stage] = &[
@@ -288,16 +272,7 @@ pub struct Stage {
     /// Runs the stage: reads inputs, writes artefacts under `ctx.dir()`, returns its report
     /// fragment (a JSON object).
     pub run: fn(&StageContext) -> Result<Value, StageFailure>,
-    /// The part of the stage that reads no other stage's artefacts (only the capture, the
-    /// calibration and the parameters), which the pipeline may run beside the stages before it
-    /// (see the module documentation); `run` takes its result with
-    /// [`StageContext::take_head_start`] and must do the same work itself when there is none.
-    pub head_start: Option<HeadStart>,
 }
-
-/// A stage's head start ([`Stage::head_start`]): may write artefacts under `ctx.dir()`, returns
-/// what the stage's `run` takes up.
-pub type HeadStart = fn(&StageContext) -> Result<Box<dyn Any + Send>, StageFailure>;
 
 /// A stage's report as its JSON fragment (what [`Stage::run`] returns and the cache stores).
 pub fn fragment<R: Serialize>(report: &R) -> Result<Value, StageFailure> {
@@ -388,10 +363,6 @@ pub struct StageContext<'a> {
     key: &'a str,
     keys: &'a BTreeMap<&'static str, String>,
     handed_over: &'a HandedOver,
-    /// Whose CPU clock the stage's phases read (its head start runs on threads of its own).
-    cpu: CpuSource,
-    /// What this stage's head start returned, until the stage takes it.
-    head_start: Mutex<Option<Box<dyn Any + Send>>>,
 }
 
 /// In-memory results left by stages for later stages of the same run: stage name to (the
@@ -467,19 +438,6 @@ impl StageContext<'_> {
     pub fn take_handed_over<T: Any + Send>(&self, from: &str) -> Option<T> {
         self.handed_over.take(from, self.keys.get(from))
     }
-
-    /// Takes what this stage's head start returned in this run, if it ran and is a `T`; `None`
-    /// otherwise (the stage then does that work itself).
-    pub fn take_head_start<T: Any + Send>(&self) -> Option<T> {
-        let value = self.head_start.lock().ok()?.take()?;
-        value.downcast::<T>().ok().map(|b| *b)
-    }
-
-    /// The CPU clock for this stage's phase times (`PhaseClock::start_on`): the head start's
-    /// threads in a head start, else the process less any head start running beside.
-    pub fn cpu(&self) -> CpuSource {
-        self.cpu.clone()
-    }
 }
 
 /// The cache record written beside a stage's artefacts.
@@ -506,9 +464,6 @@ pub struct Pipeline {
     params: BTreeMap<String, Value>,
     /// Called before each stage with its name and whether it comes from the cache (progress).
     pub on_stage: Option<StageObserver>,
-    /// Runs a stage's head start beside the stages before it (true by default; false runs the
-    /// stages strictly one after the other, as a reference).
-    pub side_by_side: bool,
 }
 
 impl Pipeline {
@@ -551,7 +506,6 @@ impl Pipeline {
             capture_fingerprint,
             params: BTreeMap::new(),
             on_stage: None,
-            side_by_side: true,
         })
     }
 
@@ -572,56 +526,16 @@ impl Pipeline {
         // One run at a time per output folder: two runs with different settings would
         // interleave their artefacts under one stage record.
         let _lock = FolderLock::acquire(&self.out)?;
-        // A stage's key depends only on the settings and its inputs' keys: all known up front.
-        let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
-        for stage in &order {
-            keys.insert(stage.name, self.stage_key(stage, &keys));
-        }
-        let handed_over = HandedOver::default();
-        // The scope joins a head start still running when a stage before its own fails.
-        let report = std::thread::scope(|scope| {
-            let ahead = self.start_head_start(scope, &order, &keys, &handed_over)?;
-            self.run_stages(&order, &keys, &handed_over, ahead)
-        })?;
-        let path = self.out.join(REPORT_FILE);
-        write_json(&path, &serde_json::to_value(&report).unwrap_or(Value::Null))?;
-        Ok(report)
-    }
-
-    /// Runs (or takes from the cache) each stage of `order` in turn; the stage `ahead` started
-    /// for takes its head start's result.
-    fn run_stages(
-        &self,
-        order: &[&'static Stage],
-        keys: &BTreeMap<&'static str, String>,
-        handed_over: &HandedOver,
-        mut ahead: Option<RunningHeadStart<'_>>,
-    ) -> Result<PipelineReport, PipelineError> {
         let mut report = PipelineReport::default();
-        // While a head start's pool lives, the stages beside it read the process's clock less
-        // its threads'.
-        let beside = ahead.as_ref().map_or(CpuSource::Process, |a| {
-            CpuSource::ProcessLess(a.threads.clone())
-        });
-        let mut finished_pool = None;
-        for &stage in order {
-            let key = &keys[stage.name];
+        let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
+        let handed_over = HandedOver::default();
+        for stage in order {
+            let key = self.stage_key(stage, &keys);
             let dir = self.out.join(stage.name);
             let record_path = dir.join(STAGE_RECORD);
-            let head_start = match ahead.take_if(|a| a.stage == stage.name) {
-                Some(a) => {
-                    let (done, pool) = a.join();
-                    finished_pool = pool;
-                    Some(done)
-                }
-                None => None,
-            };
             // A cached record whose report no longer fits the stage's report struct is run again.
-            let cached = match head_start {
-                Some(_) => None,
-                None => read_record(&record_path)
-                    .filter(|r| r.key == *key && report.set(stage.name, r.report.clone()).is_ok()),
-            };
+            let cached = read_record(&record_path)
+                .filter(|r| r.key == key && report.set(stage.name, r.report.clone()).is_ok());
             if let Some(cb) = &self.on_stage {
                 cb(stage.name, cached.is_some());
             }
@@ -631,14 +545,7 @@ impl Pipeline {
                     r
                 }
                 None => {
-                    let run = StageRun {
-                        stage,
-                        key,
-                        keys,
-                        handed_over,
-                        cpu: beside.clone(),
-                    };
-                    let r = self.run_stage(&run, &dir, head_start)?;
+                    let r = self.run_stage(stage, &dir, key.clone(), &keys, &handed_over)?;
                     report.set(stage.name, r.report.clone()).map_err(|source| {
                         PipelineError::Report {
                             stage: stage.name,
@@ -652,82 +559,21 @@ impl Pipeline {
             if let Some(c) = record.cpu_seconds {
                 report.timing_cpu_s.insert(stage.name.into(), c);
             }
+            keys.insert(stage.name, key);
         }
-        // The head start's threads end only now: their time stays out of the later stages'.
-        drop(finished_pool);
+        let path = self.out.join(REPORT_FILE);
+        write_json(&path, &serde_json::to_value(&report).unwrap_or(Value::Null))?;
         Ok(report)
-    }
-
-    /// Starts the head start of the first stage of `order` that has one and is to run (its
-    /// record missing or stale), after removing its record; `None` when there is none, or when
-    /// the stage would fail before running (no calibration: the run reports it in order).
-    fn start_head_start<'scope, 'env>(
-        &'env self,
-        scope: &'scope Scope<'scope, 'env>,
-        order: &[&'static Stage],
-        keys: &'env BTreeMap<&'static str, String>,
-        handed_over: &'env HandedOver,
-    ) -> Result<Option<RunningHeadStart<'scope>>, PipelineError> {
-        let Some((stage, head_start)) = order.iter().skip(1).find_map(|s| {
-            let to_run = read_record(&self.out.join(s.name).join(STAGE_RECORD))
-                .is_none_or(|r| r.key != keys[s.name]);
-            let runnable = !s.uses_calibration || self.calibration.is_some();
-            s.head_start
-                .filter(|_| to_run && runnable && self.side_by_side)
-                .map(|h| (*s, h))
-        }) else {
-            return Ok(None);
-        };
-        let dir = self.out.join(stage.name);
-        create_dir(&dir)?;
-        // A half-written folder must not pass for a cached result, whatever fails.
-        let _ = std::fs::remove_file(dir.join(STAGE_RECORD));
-        let threads = ThreadList::default();
-        let listed = threads.clone();
-        // The fields the context needs (the progress callback is not shared across threads).
-        let (capture, calibration, out) = (&self.capture, self.calibration.as_ref(), &self.out);
-        let params = self.params.get(stage.name);
-        let handle = scope.spawn(move || {
-            let pool = head_start_pool(&listed);
-            let ctx = StageContext {
-                capture,
-                calibration,
-                out,
-                stage: stage.name,
-                params,
-                key: &keys[stage.name],
-                keys,
-                handed_over,
-                cpu: CpuSource::Threads(listed.clone()),
-                head_start: Mutex::new(None),
-            };
-            let start = Instant::now();
-            let cpu_start = ctx.cpu.seconds();
-            let value = match &pool {
-                Some(pool) => pool.install(|| head_start(&ctx)),
-                None => head_start(&ctx),
-            };
-            let done = HeadStartDone {
-                value,
-                seconds: start.elapsed().as_secs_f64(),
-                cpu_seconds: cpu_start.zip(ctx.cpu.seconds()).map(|(a, b)| b - a),
-            };
-            (done, pool)
-        });
-        Ok(Some(RunningHeadStart {
-            stage: stage.name,
-            threads,
-            handle,
-        }))
     }
 
     fn run_stage(
         &self,
-        run: &StageRun<'_>,
+        stage: &Stage,
         dir: &Path,
-        head_start: Option<HeadStartDone>,
+        key: String,
+        keys: &BTreeMap<&'static str, String>,
+        handed_over: &HandedOver,
     ) -> Result<StageRecord, PipelineError> {
-        let stage = run.stage;
         if stage.uses_calibration && self.calibration.is_none() {
             return Err(PipelineError::CalibrationRequired(stage.name));
         }
@@ -735,41 +581,26 @@ impl Pipeline {
         // A half-written record must not survive a failed run.
         let record_path = dir.join(STAGE_RECORD);
         let _ = std::fs::remove_file(&record_path);
-        let (ahead_s, ahead_cpu_s, ahead_value) = match head_start {
-            Some(done) => {
-                let value = done
-                    .value
-                    .map_err(|source| source.into_pipeline_error(stage.name))?;
-                (done.seconds, done.cpu_seconds, Some(value))
-            }
-            None => (0.0, Some(0.0), None),
-        };
         let ctx = StageContext {
             capture: &self.capture,
             calibration: self.calibration.as_ref(),
             out: &self.out,
             stage: stage.name,
             params: self.params.get(stage.name),
-            key: run.key,
-            keys: run.keys,
-            handed_over: run.handed_over,
-            cpu: run.cpu.clone(),
-            head_start: Mutex::new(ahead_value),
+            key: &key,
+            keys,
+            handed_over,
         };
         let start = Instant::now();
-        let cpu_start = ctx.cpu.seconds();
+        let cpu_start = cpu_seconds();
         let report = (stage.run)(&ctx).map_err(|source| source.into_pipeline_error(stage.name))?;
         // What the stage freed goes back to the system before the next stage allocates.
         release_free_memory();
-        let cpu_seconds = cpu_start
-            .zip(ctx.cpu.seconds())
-            .zip(ahead_cpu_s)
-            .map(|((a, b), ahead)| b - a + ahead);
         let record = StageRecord {
-            key: run.key.to_owned(),
+            key,
             report,
-            seconds: start.elapsed().as_secs_f64() + ahead_s,
-            cpu_seconds,
+            seconds: start.elapsed().as_secs_f64(),
+            cpu_seconds: cpu_start.zip(cpu_seconds()).map(|(a, b)| b - a),
         };
         write_json(
             &record_path,
@@ -797,60 +628,6 @@ impl Pipeline {
         }
         h.finalize().to_hex().to_string()
     }
-}
-
-/// What [`Pipeline::run_stage`] needs to know of the run besides the stage's folder.
-struct StageRun<'a> {
-    stage: &'static Stage,
-    key: &'a str,
-    keys: &'a BTreeMap<&'static str, String>,
-    handed_over: &'a HandedOver,
-    /// The clock the stage's CPU time is read from.
-    cpu: CpuSource,
-}
-
-/// A head start running beside the stages before its own.
-struct RunningHeadStart<'scope> {
-    stage: &'static str,
-    /// Its pool's threads (their clocks are its CPU time).
-    threads: ThreadList,
-    handle: ScopedJoinHandle<'scope, (HeadStartDone, Option<rayon::ThreadPool>)>,
-}
-
-impl RunningHeadStart<'_> {
-    /// Waits for the head start; returns its outcome and its pool, which the caller keeps
-    /// while it reads clocks (a pool dropped ends its threads, and their time then counts as
-    /// the process's).
-    fn join(self) -> (HeadStartDone, Option<rayon::ThreadPool>) {
-        self.handle.join().unwrap_or_else(|panic| {
-            // A panic in the head start is the stage's failure (the stage would have panicked).
-            std::panic::resume_unwind(panic)
-        })
-    }
-}
-
-/// A finished head start: its result, wall and CPU seconds.
-struct HeadStartDone {
-    value: Result<Box<dyn Any + Send>, StageFailure>,
-    seconds: f64,
-    cpu_seconds: Option<f64>,
-}
-
-/// A thread pool as large as rayon's global one, for a head start, whose threads list their
-/// kernel ids in `threads` as they start; `None` when it cannot be built (the head start then
-/// runs on the global pool, its CPU time mixed with the stages beside it).
-fn head_start_pool(threads: &ThreadList) -> Option<rayon::ThreadPool> {
-    let listed = threads.clone();
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(rayon::current_num_threads())
-        .thread_name(|i| format!("head-start-{i}"))
-        .start_handler(move |_| {
-            if let (Ok(mut list), Some(tid)) = (listed.lock(), current_thread_id()) {
-                list.push(tid);
-            }
-        })
-        .build()
-        .ok()
 }
 
 /// Refuses an output folder that is the capture or inside it.
@@ -1176,114 +953,6 @@ mod tests {
             err.to_string().contains("max_edge_mm"),
             "lists the known keys: {err}"
         );
-    }
-
-    /// Every file of `dir` but the stage records, name to bytes.
-    fn artefacts(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-        std::fs::read_dir(dir)
-            .unwrap()
-            .map(|e| e.unwrap().path())
-            .filter(|p| p.file_name().unwrap() != STAGE_RECORD)
-            .map(|p| {
-                let name = p.file_name().unwrap().to_string_lossy().into_owned();
-                (name, std::fs::read(&p).unwrap())
-            })
-            .collect()
-    }
-
-    /// The separation's report less its phase times.
-    fn untimed(report: &PipelineReport) -> separate_stage::SeparateReport {
-        let mut separate = report.separate.clone().unwrap();
-        separate.timing = Default::default();
-        separate
-    }
-
-    #[test]
-    fn the_separations_head_start_beside_decode_changes_no_artefact() {
-        let dir = tempfile::tempdir().unwrap();
-        let capture = plane_capture(dir.path(), 5.0, false);
-        let run = |side_by_side: bool, out: &str| {
-            let out = dir.path().join(out);
-            let mut pipeline = Pipeline::new(&capture, &out, &CalibrationSource::Truth).unwrap();
-            pipeline.side_by_side = side_by_side;
-            (pipeline.run_until("separate").unwrap(), out)
-        };
-        let (alone, out_alone) = run(false, "alone");
-        let (beside, out_beside) = run(true, "beside");
-        for stage in ["decode", "geometry", "separate"] {
-            let (a, b) = (
-                artefacts(&out_alone.join(stage)),
-                artefacts(&out_beside.join(stage)),
-            );
-            assert!(a.len() > 1, "{stage}: {:?}", a.keys());
-            assert_eq!(
-                a.keys().collect::<Vec<_>>(),
-                b.keys().collect::<Vec<_>>(),
-                "{stage}"
-            );
-            for (name, bytes) in &a {
-                assert!(bytes == &b[name], "{stage}/{name} differs");
-            }
-            assert!(beside.timing_s[stage] > 0.0 && beside.timing_cpu_s[stage] >= 0.0);
-        }
-        assert_eq!(untimed(&alone), untimed(&beside));
-        // The head start's phases are in the separation's report.
-        let phases = &beside.separate.as_ref().unwrap().timing.phase_s;
-        for phase in ["read", "split", "nayar", "write", "lobe"] {
-            assert!(phases.contains_key(phase), "{phases:?}");
-        }
-        // Up to date: nothing runs again, and no head start removes the record.
-        let pipeline = Pipeline::new(&capture, &out_beside, &CalibrationSource::Truth).unwrap();
-        let again = pipeline.run_until("separate").unwrap();
-        assert_eq!(again.cached, ["decode", "geometry", "separate"]);
-        assert!(out_beside.join("separate").join(STAGE_RECORD).is_file());
-    }
-
-    #[test]
-    fn a_failure_beside_a_head_start_names_its_stage_and_leaves_no_trusted_folder() {
-        let dir = tempfile::tempdir().unwrap();
-        let capture = plane_capture(dir.path(), 5.0, false);
-        let out = dir.path().join("out");
-        let mut pipeline = Pipeline::new(&capture, &out, &CalibrationSource::Truth).unwrap();
-        let first = pipeline.run_until("separate").unwrap();
-        let separate_dir = out.join("separate");
-        let written = artefacts(&separate_dir);
-
-        // Decode fails while the separation's head start (other parameters) writes its early
-        // artefacts: the error names decode, and the separation's folder keeps no record.
-        pipeline.set_params("decode", serde_json::json!({ "no_such_key": 1 }));
-        pipeline.set_params("separate", serde_json::json!({ "blur_correction": false }));
-        let err = pipeline.run_until("separate").unwrap_err();
-        assert!(
-            matches!(&err, PipelineError::Params(p) if p.stage == "decode"),
-            "{err:?}"
-        );
-        assert!(!separate_dir.join(STAGE_RECORD).exists());
-        assert_ne!(
-            artefacts(&separate_dir),
-            written,
-            "the head start wrote its artefacts"
-        );
-
-        // Back to the first settings: the separation runs again (its folder is not trusted)
-        // and writes what the first run wrote.
-        pipeline.set_params("decode", serde_json::json!({}));
-        pipeline.set_params("separate", serde_json::json!({}));
-        let third = pipeline.run_until("separate").unwrap();
-        assert!(!third.cached.contains(&"separate".to_owned()), "{third:?}");
-        assert_eq!(artefacts(&separate_dir), written);
-        assert_eq!(untimed(&third), untimed(&first));
-
-        // The head start itself fails: reported under the separation's name once decode and
-        // geometry, which ran beside it, are done.
-        pipeline.set_params("separate", serde_json::json!({ "blur_correction": "yes" }));
-        let err = pipeline.run_until("separate").unwrap_err();
-        assert!(
-            matches!(&err, PipelineError::Params(p) if p.stage == "separate" && p.key == "blur_correction"),
-            "{err:?}"
-        );
-        assert!(out.join("geometry").join(STAGE_RECORD).is_file());
-        assert!(!separate_dir.join(STAGE_RECORD).exists());
     }
 
     #[test]

@@ -50,7 +50,6 @@ pub const STAGE: Stage = Stage {
     inputs: &["separate", "geometry"],
     uses_calibration: true,
     run,
-    head_start: None,
 };
 
 /// Which images photometric stereo reads.

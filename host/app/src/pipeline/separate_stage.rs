@@ -29,7 +29,6 @@
 //! over the truth mask, all projectors and channels: sqrt(sum err^2 / sum truth^2)) and the same
 //! three for the Nayar baseline under `nayar_*` (with `method: nayar` they equal the first three).
 
-use std::any::Any;
 use std::path::{Path, PathBuf};
 
 use image::Rgb32FImage;
@@ -68,7 +67,6 @@ pub const STAGE: Stage = Stage {
     inputs: &["geometry"],
     uses_calibration: true,
     run,
-    head_start: Some(head_start),
 };
 
 /// Parameters of the separation stage.
@@ -285,37 +283,6 @@ fn run(ctx: &StageContext) -> Result<Value, StageFailure> {
     super::fragment(&run_separate(ctx, &params).map_err(StageFailure::new)?)
 }
 
-/// The stage's head start (`Stage::head_start`): everything before the lobe, which needs the
-/// geometry stage's points, with the early artefacts (the Nayar direct parts, the cleaned
-/// whites) written; the pipeline runs it beside decode and geometry.
-fn head_start(ctx: &StageContext) -> Result<Box<dyn Any + Send>, StageFailure> {
-    let params: SeparateParams = ctx.params()?;
-    let mut separated = separate_frames(ctx, &params).map_err(StageFailure::new)?;
-    let mut clock = PhaseClock::start_on(ctx.cpu());
-    write_all(&separated.early).map_err(StageFailure::new)?;
-    separated.early = Vec::new();
-    clock.lap("write");
-    separated.times.add(&clock.finish());
-    Ok(Box::new(separated))
-}
-
-/// What the separation computes from the capture and the calibration alone: every
-/// projector's split (its direct part still to be replaced by the lobe's) and counters, the
-/// Nayar baseline kept for the truth comparison, and the early artefacts.
-struct Separated {
-    /// The parameters it was made with.
-    params: SeparateParams,
-    per_projector: Vec<SeparateProjectorReport>,
-    outputs: Vec<Split>,
-    /// The Nayar splits, with ground truth only.
-    baseline: Vec<Split>,
-    stray_removed: bool,
-    /// The Nayar direct parts and the cleaned whites, to write (empty once written).
-    early: Vec<(PathBuf, Rgb32FImage)>,
-    /// Phases `read`, `split`, `nayar` (and `write` when the early artefacts were written).
-    times: PhaseTimes,
-}
-
 /// One projector's frames for the separation.
 struct ProjectorFrames {
     white: Rgb32FImage,
@@ -407,12 +374,10 @@ pub fn stripe_blur(ctx: &StageContext, k: usize) -> f32 {
     (spec.defocus_px.powi(2) + footprint.powi(2) / 12.0).sqrt() as f32
 }
 
-/// Reads every projector's frames, removes the stray light and splits them (the chosen
-/// method and the Nayar baseline): [`Separated`].
-fn separate_frames(
+fn run_separate(
     ctx: &StageContext,
     params: &SeparateParams,
-) -> Result<Separated, SeparateStageError> {
+) -> Result<SeparateReport, SeparateStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     let calib = ctx.calibration;
     if let Some(c) = calib
@@ -433,8 +398,10 @@ fn separate_frames(
         })
         .collect();
     let black: Vec<f64> = responses.iter().map(|b| b.unwrap_or(0.0)).collect();
-    let mut clock = PhaseClock::start_on(ctx.cpu());
-    let (lobe_runs, with_slits) = lobe_and_slits(ctx, params);
+    let mut clock = PhaseClock::start();
+    let kernel = params.method == SeparationMethod::Kernel;
+    let lobe_runs = kernel && params.direct_model == DirectModel::Lobe && calib.is_some();
+    let with_slits = kernel && (!lobe_runs || params.leak_with_lobe);
     let frames = (0..captured)
         .into_par_iter()
         .map(|k| projector_frames(ctx, k, with_slits))
@@ -445,11 +412,15 @@ fn separate_frames(
     } else {
         None
     };
-    let with_truth = true_separation_dir(ctx).is_some();
+    let truth_dir = ctx
+        .truth_dir()
+        .filter(|t| truth::direct(t, 0, &Pattern::White).is_file());
     let dir = ctx.dir();
     let mut per_projector = Vec::new();
     let mut outputs = Vec::new();
     let mut baseline = Vec::new();
+    // The Nayar direct parts and the cleaned whites, written beside the lobe (each file is
+    // encoded mostly on one thread, the lobe leaves cores idle).
     let mut early = Vec::new();
     for (k, frames) in frames.into_iter().enumerate() {
         let offset = stray.as_ref().map(|s| &s[k]);
@@ -472,7 +443,7 @@ fn separate_frames(
             SeparationMethod::Kernel => nayar_split(&setup, &cleaned)?,
         };
         clock.lap("nayar");
-        let nayar_direct = if with_truth {
+        let nayar_direct = if truth_dir.is_some() {
             let direct = nayar.direct.clone();
             baseline.push(nayar);
             direct
@@ -484,55 +455,6 @@ fn separate_frames(
         per_projector.push(entry);
         outputs.push(split);
     }
-    Ok(Separated {
-        params: params.clone(),
-        per_projector,
-        outputs,
-        baseline,
-        stray_removed: stray.is_some(),
-        early,
-        times: clock.finish(),
-    })
-}
-
-/// Whether the lobe replaces the direct parts, and whether the slit sweep is read.
-fn lobe_and_slits(ctx: &StageContext, params: &SeparateParams) -> (bool, bool) {
-    let kernel = params.method == SeparationMethod::Kernel;
-    let lobe_runs = kernel && params.direct_model == DirectModel::Lobe && ctx.calibration.is_some();
-    let with_slits = kernel && (!lobe_runs || params.leak_with_lobe);
-    (lobe_runs, with_slits)
-}
-
-/// The capture's truth folder when it holds the true separation.
-fn true_separation_dir(ctx: &StageContext) -> Option<PathBuf> {
-    ctx.truth_dir()
-        .filter(|t| truth::direct(t, 0, &Pattern::White).is_file())
-}
-
-fn run_separate(
-    ctx: &StageContext,
-    params: &SeparateParams,
-) -> Result<SeparateReport, SeparateStageError> {
-    let captured = ctx.capture.manifest.booth.projectors.len();
-    let calib = ctx.calibration;
-    let Separated {
-        per_projector,
-        mut outputs,
-        baseline,
-        stray_removed,
-        early,
-        times,
-        ..
-    } = match ctx.take_head_start::<Separated>() {
-        Some(ahead) if ahead.params == *params => ahead,
-        _ => separate_frames(ctx, params)?,
-    };
-    let mut clock = PhaseClock::start_on(ctx.cpu());
-    let (lobe_runs, with_slits) = lobe_and_slits(ctx, params);
-    let truth_dir = true_separation_dir(ctx);
-    let dir = ctx.dir();
-    // The early artefacts not written yet (no head start) are written beside the lobe (each
-    // file is encoded mostly on one thread, the lobe leaves cores idle).
     let (written, lobe) = rayon::join(
         || write_all(&early),
         || match calib.filter(|_| lobe_runs) {
@@ -558,8 +480,8 @@ fn run_separate(
             split.read_deferred_direct(params.direct_model, params.direct_smoothing_px);
         }
     }
-    // Phase `lobe` holds the early writes beside it (without a head start), `write` the truth
-    // comparison beside the writes.
+    // Phase `lobe` holds the early writes beside it, `write` the truth comparison beside the
+    // writes.
     clock.lap("lobe");
     let late: Vec<(PathBuf, &Rgb32FImage)> = outputs
         .iter()
@@ -592,7 +514,7 @@ fn run_separate(
     let mut report = SeparateReport {
         method: params.method,
         projectors: per_projector,
-        stray_removed,
+        stray_removed: stray.is_some(),
         lobe,
         truth: None,
         nayar_direct_rel_rmse: None,
@@ -617,7 +539,6 @@ fn run_separate(
     )?;
     clock.lap("truth");
     report.timing = clock.finish();
-    report.timing.add(&times);
     Ok(report)
 }
 

@@ -76,7 +76,6 @@ pub const STAGE: Stage = Stage {
     inputs: &["profiles"],
     uses_calibration: true,
     run,
-    head_start: None,
 };
 
 /// Name of the model file in the stage folder.

@@ -56,7 +56,6 @@ pub const STAGE: Stage = Stage {
     inputs: &["decode", "geometry", "separate", "normals"],
     uses_calibration: true,
     run,
-    head_start: None,
 };
 
 /// Name of the record file in the stage folder.
