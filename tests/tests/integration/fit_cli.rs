@@ -40,6 +40,17 @@ fn slit_global_matches_the_simulator_truth() {
         assert_eq!(p["projectors"][k]["slit_frames"], 20);
         assert!(p["projectors"][k]["pixels_with_profiles"].as_u64().unwrap() > 1000);
     }
+    // Where the stage's time went: every phase, within the stage's own wall clock.
+    let phases: Vec<f64> = ["load", "report", "truth", "write"]
+        .iter()
+        .map(|phase| number(p, &format!("phase_s.{phase}")))
+        .collect();
+    assert!(phases.iter().all(|s| *s >= 0.0), "{phases:?}");
+    let stage = number(report, "timing_s.profiles");
+    assert!(
+        phases.iter().sum::<f64>() <= stage,
+        "phases {phases:?} against the stage's {stage} s"
+    );
 }
 
 #[test]

@@ -23,7 +23,9 @@
 //! the extracted global part against the simulator's, over the subject, for every slit frame with
 //! truth) and, with [`ProfilesParams::compare_variants`], `slit_global_rel_rmse_hard_mask`
 //! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless,auto}` (each
-//! rule of [`DirectPart`]).
+//! rule of [`DirectPart`]); `phase_s`, `phase_cpu_s`: where the stage's time went (`load`: the
+//! inputs and every projector's slit global light, `report`: the per-projector figures, `truth`,
+//! `write`: the record and the scanline plot).
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -36,6 +38,7 @@ use serde_json::Value;
 use super::decode_stage::{DecodeStageError, coords_path, load_coords};
 use super::line_plot::{LinePlot, LinePlotError, Mark, Series};
 use super::normals_stage::photometric_normals_path;
+use super::phase_clock::{PhaseClock, PhaseTimes};
 use super::separate_stage::{direct_path, global_path, stripe_blur};
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::calibration::DeviceCalibration;
@@ -306,6 +309,9 @@ pub struct ProfilesReport {
     pub slit_global_rel_rmse_direct_colourless: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slit_global_rel_rmse_direct_auto: Option<f64>,
+    /// Where the stage's time went (see the module documentation).
+    #[serde(flatten, default)]
+    pub timing: PhaseTimes,
 }
 
 /// One projector's entry of [`ProfilesReport`].
@@ -926,9 +932,11 @@ fn run_profiles(
     ctx: &StageContext,
     params: &ProfilesParams,
 ) -> Result<ProfilesReport, ProfilesStageError> {
+    let mut clock = PhaseClock::start();
     let captured = ctx.capture.manifest.booth.projectors.len();
     let all: Vec<usize> = (0..captured).collect();
     let inputs = ProfileInputs::load(ctx, params, &all)?;
+    clock.lap("load");
     let cam = &ctx.capture.manifest.booth.camera;
     let size = (cam.width, cam.height);
     let (row, cols) = scanline(&inputs.surface);
@@ -959,7 +967,9 @@ fn run_profiles(
         slit_global_rel_rmse_direct_none: None,
         slit_global_rel_rmse_direct_colourless: None,
         slit_global_rel_rmse_direct_auto: None,
+        timing: PhaseTimes::default(),
     };
+    clock.lap("report");
     let truth_dir = ctx.truth_dir();
     if let Some(t) = &truth_dir {
         let errors = truth_check(ctx, &inputs, t, size, params.compare_variants)?;
@@ -971,6 +981,7 @@ fn run_profiles(
         report.slit_global_rel_rmse_direct_colourless = variant(3);
         report.slit_global_rel_rmse_direct_auto = variant(4);
     }
+    clock.lap("truth");
     let record = ProfilesRecord {
         params: params.clone(),
         scanline_row: row,
@@ -990,6 +1001,8 @@ fn run_profiles(
         }
     })?;
     write_scanline_plot(ctx, &inputs, &record, truth_dir.as_deref(), size)?;
+    clock.lap("write");
+    report.timing = clock.finish();
     // The fit stage of the same run starts from these instead of decoding the slit frames again.
     ctx.hand_over(inputs);
     Ok(report)
