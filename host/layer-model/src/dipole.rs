@@ -19,7 +19,7 @@ use std::f64::consts::PI;
 use super::boxed_gaussian::{BoxedGaussian, Edge, SHARED_EDGE, mass_between};
 #[cfg(test)]
 use super::em_free::{self, Component};
-use super::mixture::{NEGLIGIBLE_SIGMAS, image_reaches};
+use super::mixture::{NEGLIGIBLE_SIGMAS, by_position, image_reaches};
 use super::mixture::{Profile, relative_information};
 use super::render::SplatLayer;
 
@@ -475,8 +475,7 @@ impl<'a> PreparedProfile<'a> {
             .iter()
             .map(|s| trust * s.y.max(0.0) / total)
             .collect();
-        let mut order: Vec<usize> = (0..weights.len()).filter(|&j| weights[j] > 0.0).collect();
-        order.sort_by(|&a, &b| profile.samples[a].s.total_cmp(&profile.samples[b].s));
+        let order = by_position(profile, &weights);
         let images = Self::offsets(profile)
             .into_iter()
             .filter(|o| o.is_finite())

@@ -374,7 +374,7 @@ impl<'a> Data<'a> {
 
 /// The samples of `prof` with positive weight in `weights`, in order of position (none when
 /// `weights` is empty: a profile without signal).
-fn by_position(prof: &Profile, weights: &[f64]) -> Vec<usize> {
+pub(crate) fn by_position(prof: &Profile, weights: &[f64]) -> Vec<usize> {
     let mut order: Vec<usize> = (0..weights.len()).filter(|&j| weights[j] > 0.0).collect();
     order.sort_by(|&a, &b| prof.samples[a].s.total_cmp(&prof.samples[b].s));
     order
