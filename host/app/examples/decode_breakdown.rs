@@ -30,6 +30,7 @@ use mlsss::geometry::gray_code::{
 };
 use mlsss::imageio;
 use mlsss::pipeline::decode_stage::load_coords;
+use mlsss::pipeline::phase_clock::{PhaseClock, PhaseTimes};
 use mlsss::resources::cpu_seconds;
 use serde_json::json;
 
@@ -175,27 +176,11 @@ fn time(dir: &Path, size: (u32, u32), repeats: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Wall and CPU seconds of one step, summed over the calls of [`Step::run`].
-#[derive(Debug, Default)]
-struct Step {
-    wall_s: f64,
-    cpu_s: f64,
-}
-
-impl Step {
-    /// Runs `f`, adding its wall and CPU seconds.
-    fn run<T>(&mut self, f: impl FnOnce() -> T) -> T {
-        let (start, cpu) = (Instant::now(), cpu_seconds().unwrap_or(f64::NAN));
-        let out = f();
-        self.wall_s += start.elapsed().as_secs_f64();
-        self.cpu_s += cpu_seconds().unwrap_or(f64::NAN) - cpu;
-        out
-    }
-
-    fn json(&self, repeats: usize) -> serde_json::Value {
-        let n = repeats.max(1) as f64;
-        json!({"wall_s": self.wall_s / n, "cpu_s": self.cpu_s / n})
-    }
+/// Wall and CPU seconds of `phase` in `times`, per repeat.
+fn phase_json(times: &PhaseTimes, phase: &str, repeats: usize) -> serde_json::Value {
+    let n = repeats.max(1) as f64;
+    let per_repeat = |map: &BTreeMap<String, f64>| map.get(phase).map_or(f64::NAN, |s| s / n);
+    json!({"wall_s": per_repeat(&times.phase_s), "cpu_s": per_repeat(&times.phase_cpu_s)})
 }
 
 fn stage(dir: &Path, repeats: usize) -> anyhow::Result<()> {
@@ -203,48 +188,48 @@ fn stage(dir: &Path, repeats: usize) -> anyhow::Result<()> {
     let truth_dir = dir.join("truth");
     let out = std::env::temp_dir().join(format!("decode-breakdown-{}", std::process::id()));
     let booth = &capture.manifest.booth;
-    let (mut load, mut decoding, mut write, mut compare) = Default::default();
     let mut phases = DecodePhases::default();
     let repeats = repeats.max(1);
+    // As the stage does: each projector's frames are read into the previous one's buffers.
+    let mut spare = None;
+    let mut clock = PhaseClock::start();
     for (k, proj) in booth.projectors.iter().enumerate() {
-        let frames = Step::run(&mut load, || code_frames::from_capture(&capture, k))?;
+        let frames = code_frames::from_capture_reusing(&capture, k, spare.take())?;
+        clock.lap("load");
         let params = base_params()?.with_camera_noise(capture.manifest.frame_noise_of(k));
         let mut decoded = None;
         for _ in 0..repeats {
-            let (d, p) = Step::run(&mut decoding, || {
-                decode_timed(&frames, (proj.width, proj.height), &params)
-            })?;
+            let (d, p) = decode_timed(&frames, (proj.width, proj.height), &params)?;
             phases.bits_s += p.bits_s;
             phases.repair_s += p.repair_s;
             phases.check_s += p.check_s;
             decoded = Some(d);
         }
+        clock.lap("decode");
         let decoded = decoded.context("no decode")?;
-        drop(frames);
-        Step::run(&mut write, || {
-            mlsss::pipeline::decode_stage::write_decode(&out, k, &decoded)
-        })?;
-        Step::run(&mut compare, || -> anyhow::Result<()> {
-            let size = (decoded.width, decoded.height);
-            let lit = load_coords(&truth::projector_coords(&truth_dir, k), size)?;
-            std::hint::black_box(TruthComparison::new(&decoded, &lit));
-            Ok(())
-        })?;
+        spare = Some(frames);
+        mlsss::pipeline::decode_stage::write_decode(&out, k, &decoded)?;
+        clock.lap("write");
+        let size = (decoded.width, decoded.height);
+        let lit = load_coords(&truth::projector_coords(&truth_dir, k), size)?;
+        std::hint::black_box(TruthComparison::new(&decoded, &lit));
+        clock.lap("truth");
     }
     std::fs::remove_dir_all(&out).ok();
+    let times = clock.finish();
     let n = repeats as f64;
     println!(
         "{}",
         serde_json::to_string_pretty(&json!({
-            "load": load.json(1),
-            "decode": decoding.json(repeats),
+            "load": phase_json(&times, "load", 1),
+            "decode": phase_json(&times, "decode", repeats),
             "decode_phases_wall_s": {
                 "bits": phases.bits_s / n,
                 "repair": phases.repair_s / n,
                 "check": phases.check_s / n,
             },
-            "write": write.json(1),
-            "truth": compare.json(1),
+            "write": phase_json(&times, "write", 1),
+            "truth": phase_json(&times, "truth", 1),
         }))?
     );
     Ok(())
