@@ -58,8 +58,25 @@ pub(crate) const COS_POLY: [f32; 3] = [
 pub(crate) const TWO_POW_M31: f32 = 1.0 / 2_147_483_648.0;
 pub(crate) const TWO_POW_M32: f32 = 1.0 / 4_294_967_296.0;
 
+/// Visits the uniforms the lanes draw, which lie in [2^-32, 1]: every f32 in [1/2, 1] (2^23 of
+/// them, the steps below 0.7 optical depths), then `steps + 1` points of a geometric sweep from 1
+/// down to 2^-32. For the accuracy tests of what is computed from a uniform (`ln`, the normal
+/// deviates' radius).
+#[cfg(test)]
+pub(crate) fn for_each_drawn_uniform(steps: u32, mut visit: impl FnMut(f32)) {
+    let mut x = 0.5f32;
+    while x <= 1.0 {
+        visit(x);
+        x = f32::from_bits(x.to_bits() + 1);
+    }
+    for i in 0..=steps {
+        visit(2f32.powf(-32.0 * i as f32 / steps as f32));
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    use super::for_each_drawn_uniform;
     use crate::photon_lanes::portable::{ln, sin_cos_quarter};
     use crate::simd::{F32s, LANES};
 
@@ -91,15 +108,9 @@ mod tests {
             worst_abs = worst_abs.max(a);
             worst_rel = worst_rel.max(r);
         };
-        // Every uniform the lanes draw lies in [2^-32, 1]: every f32 in [1/2, 1] (2^23 of them,
-        // the steps below 0.7 optical depths), then a dense geometric sweep down to 2^-32.
-        let mut x = 0.5f32;
-        while x <= 1.0 {
-            check(x);
-            x = f32::from_bits(x.to_bits() + 1);
-        }
+        for_each_drawn_uniform(400_000, &mut check);
+        // And a linear sweep of [1/2, 2], the interval of the stated bounds.
         for i in 0..=400_000u32 {
-            check(2f32.powf(-32.0 * i as f32 / 400_000.0));
             check(0.5 + 1.5 * i as f32 / 400_000.0);
         }
         for e in -125..127 {

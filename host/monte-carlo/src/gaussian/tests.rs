@@ -2,6 +2,7 @@
 //! the exact normal distribution (`libm::erfc`) for the statistics of millions of draws.
 
 use super::*;
+use crate::fast_math::for_each_drawn_uniform;
 use crate::lane_rng::LaneRng;
 use crate::photon_lanes::portable::{ln, next_bits, units_open};
 use crate::simd::{F32s, U32s};
@@ -76,14 +77,7 @@ fn the_radius_is_accurate_and_never_negative_for_every_uniform() {
             worst = worst.max((f64::from(got) - want).abs() / want);
         }
     };
-    let mut u = 0.5f32;
-    while u <= 1.0 {
-        check(u);
-        u = f32::from_bits(u.to_bits() + 1);
-    }
-    for i in 0..=1_000_000u32 {
-        check(2f32.powf(-32.0 * i as f32 / 1_000_000.0));
-    }
+    for_each_drawn_uniform(1_000_000, &mut check);
     eprintln!("worst relative error of the radius {worst:e}");
     assert!(worst < 1e-7, "worst relative error of the radius {worst:e}");
     assert_eq!(radius(1.0), 0.0);
