@@ -388,31 +388,82 @@ impl SlitStack {
                 });
             }
         }
-        let mut rows = vec![Self::NO_ROW; pixels];
-        let mut kept = 0u32;
-        for (i, row) in rows.iter_mut().enumerate() {
-            if keep(i) && kept < Self::NO_ROW {
-                *row = kept;
-                kept += 1;
+        let kept_pixels: Vec<usize> = (0..pixels).filter(|&i| keep(i)).collect();
+        let patterns = frames.iter().map(|f| f.pattern).collect();
+        Ok(Self::gathered(patterns, pixels, kept_pixels, |j, _, i| {
+            frames[j].global[i]
+        }))
+    }
+
+    /// The stack of frames given at its pixels alone: `frames[j][n]` is frame `j` at camera
+    /// pixel `kept_pixels[n]` (ascending, below `pixels`). What [`SlitStack::new`] makes of
+    /// camera-sized frames kept at those pixels, without the camera-sized frames.
+    pub fn from_kept(
+        patterns: Vec<Pattern>,
+        pixels: usize,
+        kept_pixels: Vec<usize>,
+        frames: &[Vec<[f32; 3]>],
+    ) -> Result<Self, ProfileError> {
+        if frames.len() != patterns.len() {
+            return Err(ProfileError::SizeMismatch {
+                what: "slit frames for the patterns",
+                got: frames.len(),
+                want: patterns.len(),
+            });
+        }
+        for f in frames {
+            if f.len() != kept_pixels.len() {
+                return Err(ProfileError::SizeMismatch {
+                    what: "slit frame at the kept pixels",
+                    got: f.len(),
+                    want: kept_pixels.len(),
+                });
             }
         }
-        let n = frames.len();
-        let mut values = vec![0.0f32; kept as usize * n * 3];
+        let ascending_inside = kept_pixels.windows(2).all(|w| w[0] < w[1])
+            && kept_pixels.last().is_none_or(|&i| i < pixels);
+        if !ascending_inside {
+            return Err(ProfileError::SizeMismatch {
+                what: "kept pixels (ascending, inside the frame)",
+                got: kept_pixels.last().map_or(0, |&i| i + 1),
+                want: pixels,
+            });
+        }
+        Ok(Self::gathered(patterns, pixels, kept_pixels, |j, n, _| {
+            frames[j][n]
+        }))
+    }
+
+    /// The stack of `patterns.len()` frames over `pixels` camera pixels holding `kept_pixels`
+    /// (ascending, at most [`SlitStack::NO_ROW`] of them are numbered), whose values `value(j, n,
+    /// i)` gives for frame `j` at the `n`-th kept pixel, camera pixel `i`.
+    fn gathered(
+        patterns: Vec<Pattern>,
+        pixels: usize,
+        mut kept_pixels: Vec<usize>,
+        value: impl Fn(usize, usize, usize) -> [f32; 3] + Sync,
+    ) -> Self {
+        kept_pixels.truncate(Self::NO_ROW as usize);
+        let mut rows = vec![Self::NO_ROW; pixels];
+        for (row, &i) in kept_pixels.iter().enumerate() {
+            rows[i] = row as u32;
+        }
+        let n = patterns.len();
+        let mut values = vec![0.0f32; kept_pixels.len() * n * 3];
         // Row by row (in parallel): each row gathers its pixel from every frame.
-        let kept_pixels: Vec<usize> = (0..pixels).filter(|&i| rows[i] != Self::NO_ROW).collect();
         values
             .par_chunks_mut((n * 3).max(1))
-            .zip(kept_pixels.par_iter())
-            .for_each(|(row, &i)| {
-                for (j, f) in frames.iter().enumerate() {
-                    row[j * 3..j * 3 + 3].copy_from_slice(&f.global[i]);
+            .zip(kept_pixels.par_iter().enumerate())
+            .for_each(|(row, (r, &i))| {
+                for j in 0..n {
+                    row[j * 3..j * 3 + 3].copy_from_slice(&value(j, r, i));
                 }
             });
-        Ok(Self {
-            patterns: frames.iter().map(|f| f.pattern).collect(),
+        Self {
+            patterns,
             rows,
             values,
-        })
+        }
     }
 
     /// Keeps only the pixels it holds that `keep` accepts too (the same values), in place: each
@@ -821,6 +872,28 @@ mod tests {
         all.retain_pixels(|_| true);
         assert_eq!(all.rows, stack.rows);
         assert_eq!(bits(&all.values), bits(&stack.values));
+        // Stacked from the frames at the kept pixels alone: the same stack.
+        let kept: Vec<usize> = (0..n).filter(|&i| keep(i)).collect();
+        let at_kept: Vec<Vec<[f32; 3]>> = images
+            .iter()
+            .map(|image| kept.iter().map(|&i| image[i]).collect())
+            .collect();
+        let patterns: Vec<Pattern> = frames.iter().map(|f| f.pattern).collect();
+        let from_kept = SlitStack::from_kept(patterns.clone(), n, kept.clone(), &at_kept).unwrap();
+        assert_eq!(from_kept.patterns, stack.patterns);
+        assert_eq!(from_kept.rows, stack.rows);
+        assert_eq!(bits(&from_kept.values), bits(&stack.values));
+        // Refused: a frame missing, a frame of the wrong length, pixels out of order or outside.
+        assert!(SlitStack::from_kept(patterns.clone(), n, kept.clone(), &at_kept[1..]).is_err());
+        let mut short = at_kept.clone();
+        short[2].pop();
+        assert!(SlitStack::from_kept(patterns.clone(), n, kept.clone(), &short).is_err());
+        let mut swapped = kept.clone();
+        swapped.swap(0, 1);
+        assert!(SlitStack::from_kept(patterns.clone(), n, swapped, &at_kept).is_err());
+        let mut outside = kept.clone();
+        *outside.last_mut().unwrap() = n;
+        assert!(SlitStack::from_kept(patterns, n, outside, &at_kept).is_err());
     }
 
     #[test]

@@ -116,53 +116,129 @@ pub fn slit_global(
     coords: &[Option<(f32, f32)>],
     white: &WhiteSeparation,
 ) -> Result<Vec<[f32; 3]>, SlitGlobalError> {
-    let Pattern::Slit {
-        axis,
-        width,
-        period,
-        offset,
-    } = *pattern
-    else {
-        return Err(SlitGlobalError::NotASlit(pattern.label()));
-    };
-    let n = frame.len();
-    for (what, got) in [
-        ("coordinate map", coords.len()),
-        ("direct image", white.direct.len()),
-        ("global image", white.global.len()),
-        ("stray image", white.stray.len()),
-    ] {
-        if got != n {
-            return Err(SlitGlobalError::SizeMismatch { what, got, want: n });
-        }
-    }
-    let b = white.black_level;
-    if !(0.0..1.0).contains(&b) {
-        return Err(SlitGlobalError::BadBlackLevel(b));
-    }
-    let blur = f64::from(white.blur_px.max(0.0));
+    let extraction = Extraction::new(frame.len(), pattern, coords, white)?;
     // Pixels are independent: split them across threads (same values as in sequence).
     Ok(frame
         .par_iter()
         .enumerate()
-        .map(|(i, f)| {
-            let lit = coords[i].map_or(0.0, |(u, v)| {
-                let coord = match axis {
-                    Axis::X => u,
-                    Axis::Y => v,
-                };
-                lit_fraction(f64::from(coord), width, period, offset, blur) as f32
-            });
-            let level = b + (1.0 - b) * lit;
-            let mut out = [0.0f32; 3];
-            for (c, o) in out.iter_mut().enumerate() {
-                let rest =
-                    f[c] - white.direct[i][c] * level - b * white.global[i][c] - white.stray[i][c];
-                *o = rest / (1.0 - b);
-            }
-            out
-        })
+        .map(|(i, &f)| extraction.at(i, f))
         .collect())
+}
+
+/// [`slit_global`] at the camera pixels `pixels` alone (row-major indices of a frame of
+/// `coords.len()` pixels): `frame[n]` is pixel `pixels[n]`'s value, and so is the result's.
+/// The same values as the whole frame's at those pixels.
+pub fn slit_global_at(
+    frame: &[[f32; 3]],
+    pixels: &[usize],
+    pattern: &Pattern,
+    coords: &[Option<(f32, f32)>],
+    white: &WhiteSeparation,
+) -> Result<Vec<[f32; 3]>, SlitGlobalError> {
+    if frame.len() != pixels.len() {
+        return Err(SlitGlobalError::SizeMismatch {
+            what: "frame at the pixels",
+            got: frame.len(),
+            want: pixels.len(),
+        });
+    }
+    let n = coords.len();
+    if let Some(&outside) = pixels.iter().find(|&&i| i >= n) {
+        return Err(SlitGlobalError::SizeMismatch {
+            what: "pixel index",
+            got: outside,
+            want: n,
+        });
+    }
+    let extraction = Extraction::new(n, pattern, coords, white)?;
+    Ok(frame
+        .par_iter()
+        .zip(pixels)
+        .map(|(&f, &i)| extraction.at(i, f))
+        .collect())
+}
+
+/// One slit frame's extraction, checked and ready to apply pixel by pixel.
+struct Extraction<'a> {
+    axis: Axis,
+    width: u32,
+    period: u32,
+    offset: u32,
+    coords: &'a [Option<(f32, f32)>],
+    white: &'a WhiteSeparation<'a>,
+    blur: f64,
+}
+
+impl<'a> Extraction<'a> {
+    /// Checks the pattern, the sizes of the per-pixel inputs against a frame of `n` pixels, and
+    /// the black level.
+    fn new(
+        n: usize,
+        pattern: &Pattern,
+        coords: &'a [Option<(f32, f32)>],
+        white: &'a WhiteSeparation<'a>,
+    ) -> Result<Self, SlitGlobalError> {
+        let Pattern::Slit {
+            axis,
+            width,
+            period,
+            offset,
+        } = *pattern
+        else {
+            return Err(SlitGlobalError::NotASlit(pattern.label()));
+        };
+        for (what, got) in [
+            ("coordinate map", coords.len()),
+            ("direct image", white.direct.len()),
+            ("global image", white.global.len()),
+            ("stray image", white.stray.len()),
+        ] {
+            if got != n {
+                return Err(SlitGlobalError::SizeMismatch { what, got, want: n });
+            }
+        }
+        let b = white.black_level;
+        if !(0.0..1.0).contains(&b) {
+            return Err(SlitGlobalError::BadBlackLevel(b));
+        }
+        Ok(Self {
+            axis,
+            width,
+            period,
+            offset,
+            coords,
+            white,
+            blur: f64::from(white.blur_px.max(0.0)),
+        })
+    }
+
+    /// The global light of pixel `i`, whose frame value is `f` (`i` within the checked size).
+    #[inline]
+    fn at(&self, i: usize, f: [f32; 3]) -> [f32; 3] {
+        let white = self.white;
+        let b = white.black_level;
+        let lit = self.coords[i].map_or(0.0, |(u, v)| {
+            let coord = match self.axis {
+                Axis::X => u,
+                Axis::Y => v,
+            };
+            lit_fraction(
+                f64::from(coord),
+                self.width,
+                self.period,
+                self.offset,
+                self.blur,
+            ) as f32
+        });
+        let level = b + (1.0 - b) * lit;
+        let mut out = [0.0f32; 3];
+        for (c, o) in out.iter_mut().enumerate() {
+            let rest =
+                f[c] - white.direct[i][c] * level - b * white.global[i][c] - white.stray[i][c];
+            *o = rest / (1.0 - b);
+        }
+        out
+    }
 }
 
 #[cfg(test)]
@@ -255,6 +331,48 @@ mod tests {
                 assert_eq!(fast.to_bits(), full.to_bits(), "{coord} {width} {period}");
             }
         }
+    }
+
+    /// At chosen pixels the extraction gives the whole frame's values there, bit for bit, and
+    /// refuses a frame or pixel list that does not match.
+    #[test]
+    fn at_chosen_pixels_equals_the_whole_frame_there() {
+        let n = 500;
+        let coords: Vec<Option<(f32, f32)>> = (0..n)
+            .map(|i| (i % 7 != 0).then_some((0.37 * i as f32, 0.11 * i as f32)))
+            .collect();
+        let value = |i: usize, k: u32| {
+            (((i as u32).wrapping_mul(2_654_435_761) ^ k) % 1000) as f32 / 1000.0
+        };
+        let rgb = |k: u32| -> Vec<[f32; 3]> {
+            (0..n)
+                .map(|i| [value(i, k), value(i, k + 1), value(i, k + 2)])
+                .collect()
+        };
+        let (frame, direct, global, stray) = (rgb(0), rgb(3), rgb(6), rgb(9));
+        let white = WhiteSeparation {
+            direct: &direct,
+            global: &global,
+            stray: &stray,
+            black_level: 0.03,
+            blur_px: 0.7,
+        };
+        let pattern = Pattern::Slit {
+            axis: Axis::X,
+            width: 3,
+            period: 30,
+            offset: 4,
+        };
+        let whole = slit_global(&frame, &pattern, &coords, &white).unwrap();
+        let pixels: Vec<usize> = (0..n).filter(|i| i % 3 != 1).collect();
+        let picked: Vec<[f32; 3]> = pixels.iter().map(|&i| frame[i]).collect();
+        let at = slit_global_at(&picked, &pixels, &pattern, &coords, &white).unwrap();
+        assert_eq!(at.len(), pixels.len());
+        for (g, &i) in at.iter().zip(&pixels) {
+            assert_eq!(g.map(f32::to_bits), whole[i].map(f32::to_bits), "pixel {i}");
+        }
+        assert!(slit_global_at(&picked[1..], &pixels, &pattern, &coords, &white).is_err());
+        assert!(slit_global_at(&picked[..1], &[n], &pattern, &coords, &white).is_err());
     }
 
     #[test]

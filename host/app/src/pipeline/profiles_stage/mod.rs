@@ -48,7 +48,9 @@ use mlsss_layer_model::profiles::{
     Falloff, GeometryMap, ProfileError, ProjectorIllumination, SlitFrame, SlitStack, SlitSweep,
     pixel_geometry,
 };
-use mlsss_layer_model::slit_global::{SlitGlobalError, WhiteSeparation, slit_global};
+use mlsss_layer_model::slit_global::{
+    SlitGlobalError, WhiteSeparation, slit_global, slit_global_at,
+};
 use mlsss_layer_model::surface::{Surface, ViewRay};
 use mlsss_vision::photometry::response::stray_light;
 
@@ -672,6 +674,7 @@ impl ProfileInputs {
         let stray = stray_for_all(ctx, &black)?;
         let sep = ctx.stage_dir("separate");
         let decode = ctx.stage_dir("decode");
+        let subject: Vec<usize> = (0..surface.len()).filter(|&i| surface.mask[i]).collect();
         let mut projectors = Vec::with_capacity(captured);
         for (k, stray) in stray.into_iter().enumerate() {
             let device = &calib.projectors[k].device;
@@ -725,10 +728,8 @@ impl ProfileInputs {
                 geometry: GeometryMap::default(),
             };
             if with_slits.contains(&k) {
-                inputs.slits = slit_globals(ctx, &inputs, inputs.blur_px)?;
-                // Stacked at once, so only one projector's slits are ever held as images; at
-                // every subject pixel, which is all the truth check and the plot read.
-                inputs.stack_slits(|i| surface.mask[i])?;
+                // At every subject pixel, which is all the truth check and the plot read.
+                inputs.stack = stacked_slit_globals(ctx, &inputs, subject.clone())?;
             }
             // After the slits (which do not read it): the last projector's slit images and its
             // geometry (125 MB at full size) were held together at the stage's peak, the run's.
@@ -770,34 +771,43 @@ fn stray_for_all(
     })
 }
 
-/// The global parts of projector `p`'s slit frames, in capture order (frames decoded and
-/// extracted in parallel).
-fn slit_globals(
+/// The global parts of projector `p`'s slit frames (capture order) at the camera pixels
+/// `kept` (ascending), stacked. Each frame is read and extracted at those pixels alone (frames
+/// in parallel). Why not whole frames, stacked after: at full size the subject is two fifths of
+/// the frame, and a projector's 20 camera-sized global images (340 MB) were fresh memory the
+/// kernel faulted in and the stack copied out of.
+fn stacked_slit_globals(
     ctx: &StageContext,
     p: &ProjectorInputs,
-    blur_px: f32,
-) -> Result<Vec<SlitGlobal>, ProfilesStageError> {
+    kept: Vec<usize>,
+) -> Result<SlitStack, ProfilesStageError> {
     let white = WhiteSeparation {
         direct: &p.direct_white,
         global: &p.global_white,
         stray: &p.stray,
         black_level: p.black_level,
-        blur_px,
+        blur_px: p.blur_px,
     };
     let frames: Vec<(u32, Pattern)> = slit_frames(ctx, p.k);
-    frames
+    let globals = frames
         .par_iter()
         .map(|&(index, pattern)| {
-            let frame = ctx.capture.read_frame_pixels(index)?;
-            let global = slit_global(&frame, &pattern, &p.coords, &white).map_err(|source| {
+            let frame = ctx.capture.read_frame_pixels_at(index, &kept)?;
+            slit_global_at(&frame, &kept, &pattern, &p.coords, &white).map_err(|source| {
                 ProfilesStageError::SlitGlobal {
                     projector: p.k,
                     source,
                 }
-            })?;
-            Ok((pattern, global))
+            })
         })
-        .collect()
+        .collect::<Result<Vec<_>, _>>()?;
+    let patterns = frames.into_iter().map(|(_, pattern)| pattern).collect();
+    Ok(SlitStack::from_kept(
+        patterns,
+        p.coords.len(),
+        kept,
+        &globals,
+    )?)
 }
 
 /// Frame index and pattern of projector `k`'s slit frames, in capture order.
