@@ -96,7 +96,7 @@ pub(super) fn fig10_measured(
     let slit = fig10_slit(&ctx.capture.manifest.booth.patterns);
     Ok(Fig10Measured {
         projector,
-        slit: measured_slit_global(ctx, inputs, projector, &slit)?,
+        slit: measured_global(ctx, inputs, projector, &slit)?,
     })
 }
 
@@ -207,26 +207,6 @@ fn fig10_plot(
         y_label: "radiance (camera units)".into(),
         series,
     })
-}
-
-/// Measured global light of projector `k`'s `slit`: the extracted global part when the
-/// projector's slits are loaded as images, else extracted again from the frame the same way
-/// (the held-out projector, and the training ones once their slits are stacked for the fit).
-fn measured_slit_global(
-    ctx: &StageContext,
-    inputs: &ProfileInputs,
-    k: usize,
-    slit: &Pattern,
-) -> Result<Option<Vec<[f32; 3]>>, FitStageError> {
-    match inputs.projectors.get(k).and_then(|p| {
-        p.slits
-            .iter()
-            .find(|(pat, _)| pat == slit)
-            .map(|(_, g)| g.clone())
-    }) {
-        Some(g) => Ok(Some(g)),
-        None => measured_global(ctx, inputs, k, slit),
-    }
 }
 
 /// The model's and the homogeneous model's global light of projector `k`'s `slit` along the
@@ -342,9 +322,10 @@ fn series_json(plot: &LinePlot) -> Value {
     })
 }
 
-/// Measured global light of a slit frame whose sweep was not loaded (the held-out projector):
-/// extracted as the profiles stage does (`subsurface::slit_global`), from the separation of that
-/// projector's own white frame (separation ran on every projector).
+/// Measured global light of projector `k`'s `slit`, extracted from its frame as the profiles
+/// stage does (`subsurface::slit_global`), from the separation of that projector's own white
+/// frame (separation ran on every projector): the whole frame, where the fit holds the slits
+/// at the pixels with profiles only (or, held out, not at all).
 fn measured_global(
     ctx: &StageContext,
     inputs: &ProfileInputs,

@@ -708,7 +708,6 @@ fn save_and_draw(
 /// and [`prepare_figures`] has taken what they need.
 fn release_slits(inputs: &mut ProfileInputs) {
     for p in &mut inputs.projectors {
-        p.slits = Vec::new();
         p.stack = SlitStack::default();
     }
 }

@@ -27,7 +27,6 @@
 //! inputs and every projector's slit global light, `report`: the per-projector figures, `truth`,
 //! `write`: the record and the scanline plot).
 
-use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Point3, Vector3};
@@ -45,8 +44,7 @@ use mlsss_core::calibration::DeviceCalibration;
 use mlsss_core::capture::{Axis, CaptureError, FrameNoise, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
 use mlsss_layer_model::profiles::{
-    Falloff, GeometryMap, ProfileError, ProjectorIllumination, SlitFrame, SlitStack, SlitSweep,
-    pixel_geometry,
+    Falloff, GeometryMap, ProfileError, ProjectorIllumination, SlitStack, SlitSweep, pixel_geometry,
 };
 use mlsss_layer_model::slit_global::{
     SlitGlobalError, WhiteSeparation, slit_global, slit_global_at,
@@ -388,9 +386,6 @@ impl ProfilesRecord {
     }
 }
 
-/// A slit pattern and the global part of its frame (RGB per camera pixel).
-pub type SlitGlobal = (Pattern, Vec<[f32; 3]>);
-
 /// A white frame split into direct and global parts, and the slit-edge blur to use with it.
 type WhiteSplit = (Vec<[f32; 3]>, Vec<[f32; 3]>, f32);
 
@@ -417,11 +412,8 @@ pub struct ProjectorInputs {
     /// Camera noise of this projector's frames when the fits weigh profiles by it
     /// ([`ProfileWeights::Information`]).
     pub noise: Option<FrameNoise>,
-    /// Global part of each slit frame, in capture order; empty when the slits were not asked
-    /// for, or once moved into `stack`.
-    pub slits: Vec<SlitGlobal>,
-    /// The same slit light at the pixels with projector coordinates only, for the fit
-    /// ([`ProjectorInputs::stack_slits`]; empty until then).
+    /// Global part of each slit frame (capture order) at the subject's pixels, or after
+    /// [`ProjectorInputs::stack_slits`] fewer; empty when the slits were not asked for.
     pub stack: SlitStack,
     /// Per-pixel profile geometry (`None`: off the subject, undecoded, facing away).
     pub geometry: GeometryMap,
@@ -437,13 +429,12 @@ impl ProjectorInputs {
         }
     }
 
-    /// The slit sweep over this projector's global slit frames (from `stack` once the slits
-    /// are stacked).
+    /// The slit sweep over this projector's global slit frames (empty without slits).
     pub fn sweep(&self) -> Result<SlitSweep<'_>, ProfileError> {
-        let sweep = if self.slits.is_empty() && !self.stack.patterns().is_empty() {
-            SlitSweep::from_stack(&self.stack, self.coords.len())?
+        let sweep = if self.stack.patterns().is_empty() {
+            SlitSweep::new(&[], self.coords.len())?
         } else {
-            SlitSweep::new(&self.slit_frames(), self.coords.len())?
+            SlitSweep::from_stack(&self.stack, self.coords.len())?
         };
         Ok(match self.noise {
             Some(noise) => sweep.with_noise(noise),
@@ -451,59 +442,27 @@ impl ProjectorInputs {
         })
     }
 
-    fn slit_frames(&self) -> Vec<SlitFrame<'_>> {
-        self.slits
-            .iter()
-            .map(|(pattern, global)| SlitFrame {
-                pattern: *pattern,
-                global,
-            })
-            .collect()
+    /// Keeps the slits' global light at the pixels `keep` accepts only (the fit's: those with
+    /// projector coordinates).
+    pub fn stack_slits(&mut self, keep: impl Fn(usize) -> bool) {
+        self.stack.retain_pixels(keep);
     }
 
-    /// Moves the slits' global light into `stack` at the pixels `keep` accepts (or, already
-    /// stacked, keeps only those): held as camera-sized images the slits were 1.4 GB of the
-    /// profiles stage's peak at full size (every projector's) and 1 GB of the fit's (the
-    /// training ones, held through the EM, the spatial prior and the dipole baseline).
-    pub fn stack_slits(&mut self, keep: impl Fn(usize) -> bool) -> Result<(), ProfileError> {
-        if self.slits.is_empty() {
-            self.stack.retain_pixels(keep);
-        } else {
-            self.stack = SlitStack::new(&self.slit_frames(), self.coords.len(), keep)?;
-        }
-        self.slits = Vec::new();
-        Ok(())
-    }
-
-    /// Slit frames loaded (as images or stacked).
+    /// Slit frames loaded.
     pub fn slit_count(&self) -> usize {
-        if self.slits.is_empty() {
-            self.stack.patterns().len()
-        } else {
-            self.slits.len()
-        }
+        self.stack.patterns().len()
     }
 
     /// Slit frame `j` (capture order) as a camera-sized image: zero at the pixels the stack does
-    /// not hold once stacked.
-    pub fn slit_image(&self, j: usize) -> Option<(Pattern, Cow<'_, [[f32; 3]]>)> {
-        if let Some((pattern, global)) = self.slits.get(j) {
-            return Some((*pattern, Cow::Borrowed(global.as_slice())));
-        }
-        if !self.slits.is_empty() {
-            return None;
-        }
+    /// not hold.
+    pub fn slit_image(&self, j: usize) -> Option<(Pattern, Vec<[f32; 3]>)> {
         let pattern = *self.stack.patterns().get(j)?;
-        Some((pattern, Cow::Owned(self.stack.frame(j)?)))
+        Some((pattern, self.stack.frame(j)?))
     }
 
     /// The patterns of the loaded slit frames, in capture order.
     pub fn slit_patterns(&self) -> Vec<Pattern> {
-        if self.slits.is_empty() {
-            self.stack.patterns().to_vec()
-        } else {
-            self.slits.iter().map(|(p, _)| *p).collect()
-        }
+        self.stack.patterns().to_vec()
     }
 }
 
@@ -631,7 +590,6 @@ impl ProfileInputs {
         // the held-out projector's still held that copy was the run's peak at full size).
         for p in &mut inputs.projectors {
             if !with_slits.contains(&p.k) {
-                p.slits = Vec::new();
                 p.stack = SlitStack::default();
             }
         }
@@ -639,7 +597,7 @@ impl ProfileInputs {
             if with_slits.contains(&p.k) {
                 // Down to the pixels with projector coordinates: a profile geometry needs them.
                 let coords = std::mem::take(&mut p.coords);
-                p.stack_slits(|i| coords[i].is_some())?;
+                p.stack_slits(|i| coords[i].is_some());
                 p.coords = coords;
             }
         }
@@ -722,7 +680,6 @@ impl ProfileInputs {
                     ProfileWeights::Information => Some(ctx.capture.manifest.frame_noise_of(k)),
                     ProfileWeights::Equal => None,
                 },
-                slits: Vec::new(),
                 stack: SlitStack::default(),
                 coords,
                 geometry: GeometryMap::default(),
