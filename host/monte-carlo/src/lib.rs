@@ -45,7 +45,7 @@ use std::path::PathBuf;
 pub use fresnel::{fresnel_reflectance, refracted_cos};
 pub use gaussian::NormalStream;
 pub use layers_file::LayersFile;
-pub use medium::{Layer, Medium};
+pub use medium::{Layer, MAX_COEFFICIENT_PER_MM, Medium};
 pub use tally::{ExitResponse2D, GridSpec, RadialProfile, RadialSpec};
 
 /// Names the random streams and the order in which photons draw from them (`LANES` photons in
