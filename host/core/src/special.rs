@@ -219,7 +219,7 @@ const ANORM_Q: [f64; 5] = [
 ];
 
 /// `Q(y) exp(y^2 / 2)`, the standard normal upper tail `Q` without its Gaussian factor, for
-/// `y >= 0.67448975` (Cody's `ANORM` rationals, see [`ANORM_C`]): no exponential inside.
+/// `y >= 0.67448975` (Cody's `ANORM` rationals, see `ANORM_C`): no exponential inside.
 ///
 /// Why: a slit box edge needs both the tail `Q(z)` and the density `phi(z)` at the same `z`,
 /// and [`erfc`]'s tail branch computes its own `exp(-z^2/2)`; with this the caller computes the

@@ -163,7 +163,7 @@ pub struct Edge {
 
 impl Edge {
     /// Tail and density at `z`.
-    /// One exponential for both beyond [`SCALED_TAIL_FROM`] (where most edges of a profile
+    /// One exponential for both beyond `SCALED_TAIL_FROM` (where most edges of a profile
     /// fall): the tail is the density's Gaussian times Cody's rational.
     #[inline(always)]
     pub fn new(z: f64) -> Self {

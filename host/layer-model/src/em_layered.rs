@@ -112,7 +112,7 @@ fn spacing_normal_equations(
     (num, den)
 }
 
-/// [`spacing_normal_equations`] of `profiles` at `params` (one E-step): `(num, den)`, with
+/// `spacing_normal_equations` of `profiles` at `params` (one E-step): `(num, den)`, with
 /// `num / den` the spacing that `params`' weights and sigmas prefer for this pixel alone
 /// (unclamped: negative when its profiles lean toward the light).
 pub fn spacing_moments(

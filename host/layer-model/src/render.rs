@@ -552,7 +552,7 @@ pub fn render_global(
 /// most of a render is spent finding, per source and layer, where and into which sigma bins it
 /// splats (footprint, shift, bin position); that depends on the geometry and the model only, so
 /// it is found once per source for all the frames. Frames are splatted in batches of at most
-/// [`SPLAT_BATCH_BYTES`] of bin images.
+/// `SPLAT_BATCH_BYTES` of bin images.
 pub fn render_global_many(
     surface: &Surface,
     irradiances: &[&[f32]],

@@ -24,7 +24,7 @@
 //!   variation `t2`. A pixel seen by `n` projectors keeps the fraction `n / (n + kappa)` of its
 //!   deviation from `m` (the posterior mean under a Gaussian prior, in relative units). `kappa`
 //!   is chosen by leave-one-projector-out prediction of each projector's estimate from the
-//!   pixel's others ([`loo_kappa`]); the moment estimate `kappa = s2 / t2` (reported as well)
+//!   pixel's others (`amplitude::loo_kappa`); the moment estimate `kappa = s2 / t2` (reported as well)
 //!   assumes the projectors' errors independent, and on the quick head with the estimated
 //!   calibration they are not: it kept 80-95 % of the deviations where prediction says ~50 %.
 //!

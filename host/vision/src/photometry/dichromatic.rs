@@ -23,7 +23,7 @@ use super::kernel_leak::{LeakFlag, LeakSeparation};
 const DARK_SHARE: f64 = 0.3;
 
 /// The body colour (chromaticity, sums to 1) of a split: per channel the median of
-/// `g / sum(g)` over the separated pixels brighter than the darkest [`DARK_SHARE`], with `g` the
+/// `g / sum(g)` over the separated pixels brighter than the darkest `DARK_SHARE`, with `g` the
 /// pixel's total less its colourless direct part (the mean of the channels' direct parts, at most
 /// each channel's total). `None` without such pixels.
 pub fn body_colour(sep: &LeakSeparation) -> Option<[f32; 3]> {

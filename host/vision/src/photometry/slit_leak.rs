@@ -63,7 +63,7 @@ pub enum LeakReading {
     /// narrow kernel low by the pixel's offset from that slit and a wide one low by its wrapped
     /// tail, which on dark skin happens to offset the direct reflection the profile holds.
     Cosine,
-    /// The sweep's harmonics around the stripe frequency ([`HarmonicPlan`]): the profile's
+    /// The sweep's harmonics around the stripe frequency (`HarmonicPlan`): the profile's
     /// transfer read exactly, direct reflection included (see the module documentation), so the
     /// split keeps almost no direct light; the separate stage's default since its version 5,
     /// which reads the direct part by colour instead (`super::dichromatic`).

@@ -85,7 +85,7 @@ pub struct ProfilesParams {
     pub direct_fraction_range: (f32, f32),
     /// Which projector coordinates place the slits on the surface (see [`SlitCoordinates`]).
     pub coordinates: SlitCoordinates,
-    /// With ground truth, also extract every slit frame by the other rules ([`VARIANTS`]) and
+    /// With ground truth, also extract every slit frame by the other rules (`VARIANTS`) and
     /// compare them with the truth. A design check, off by default: it decodes every slit frame
     /// again and extracts it four more times (about 4 s of the full-size booth's processing).
     pub compare_variants: bool,
@@ -298,7 +298,7 @@ pub struct ProfilesReport {
     /// With ground truth: relative RMS error of the extracted slit light, as configured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slit_global_rel_rmse: Option<f64>,
-    /// With [`ProfilesParams::compare_variants`]: the same error of each of [`VARIANTS`].
+    /// With [`ProfilesParams::compare_variants`]: the same error of each of `VARIANTS`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slit_global_rel_rmse_hard_mask: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]

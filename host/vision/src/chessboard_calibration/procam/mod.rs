@@ -119,7 +119,7 @@ pub struct ProcamOptions {
     /// Distortion coefficients `[k1, k2, p1, p2, k3]` that may be estimated (others stay 0).
     pub distortion: [bool; 5],
     /// Choose, per device, the fewest of the allowed terms the corners support (see
-    /// [`select_distortion`]) instead of estimating all of them.
+    /// `select_distortion`) instead of estimating all of them.
     pub select_distortion: bool,
     /// A pose (or one projector's view of it) is dropped when its RMS exceeds both this many
     /// pixels and `outlier_factor` times the median of the poses.
