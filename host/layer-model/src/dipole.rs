@@ -223,16 +223,16 @@ const NEAR_STEP: f64 = 0.2;
 
 /// Maximum `(f(x), x)` of `f` over `[range.0, range.1]` in log `x`, starting from `hint` (e.g. a
 /// neighbour's optimum): walks uphill in steps of [`NEAR_STEP`] until the maximum is bracketed,
-/// then takes the vertex of the parabola through the bracket's three points (Brent's method
-/// when the bracket meets a range end). About 3 evaluations when the hint is close, against ~12
-/// for the global [`maximise_in_log`]; finds the maximum of the hint's basin only. The value
-/// returned is the best evaluated one (the vertex itself is not evaluated).
+/// then [`refined_vertex`] of the bracket's three points (Brent's method when the bracket meets
+/// a range end). About 4 evaluations when the hint is close, against ~12 for the global
+/// [`maximise_in_log`]; finds the maximum of the hint's basin only.
 ///
-/// Why the vertex and not Brent's method down to `resolution`: Brent's ~4 more evaluations per
-/// pixel-channel (7.2 in all on the full-size head) were half of the dipole baseline's CPU
-/// time, and the held-out error cannot see the difference: on the full-size head (projector 3
-/// held out) the dipole's global relative error moved from 0.097048 to 0.097119 (+0.07 %), its
-/// PSNR by -0.006 dB, and the scores per fit went from 7.2 to 3.35 (dipole CPU -1.7 s).
+/// Why not Brent's method down to `resolution`: its ~3 more evaluations per pixel-channel (7.2
+/// in all on the full-size head, 4.34 now) were 40 % of the dipole baseline's CPU time, and the
+/// held-out error can hardly see the difference: on the full-size head (projector 3 held out)
+/// the dipole's global relative error moved from 0.097048 to 0.097057 (+0.01 %). The vertex of
+/// the walked bracket alone (3.35 evaluations) moved it by +0.07 % there, but by +0.44 % (and
+/// its back-scatter errors by +0.6 %) on a quick head (skin III, seed 4817).
 fn maximise_in_log_near(
     mut f: impl FnMut(f64) -> f64,
     hint: f64,
@@ -262,14 +262,35 @@ fn maximise_in_log_near(
     // are a step apart: the log-likelihood is close to a parabola over a bracket this narrow.
     let finite = fm.is_finite() && fl.is_finite() && fr.is_finite();
     if l > lo && r < hi && finite && fm >= fl && fm >= fr {
-        return (
-            fm,
-            parabola_vertex((l, fl), (m, fm), (r, fr)).clamp(l, r).exp(),
-        );
+        return refined_vertex(f, [(l, fl), (m, fm), (r, fr)]);
     }
     let mut points = [(fm, m), (fl, l), (fr, r)];
     points.sort_by(|a, b| b.0.total_cmp(&a.0));
     brent(f, (l, r), points, resolution)
+}
+
+/// The maximum `(value, exp x)` of `f(exp x)` near a bracket `[(l, f(l)), (m, f(m)), (r, f(r))]`
+/// (by position, the middle one the best): `f` scored once at the vertex of the parabola
+/// through the three, then the vertex of the parabola through the best of the four points and
+/// its neighbours on either side (not scored). The value is the best scored one.
+fn refined_vertex(mut f: impl FnMut(f64) -> f64, bracket: [(f64, f64); 3]) -> (f64, f64) {
+    let [(l, fl), (m, fm), (r, fr)] = bracket;
+    let u = parabola_vertex((l, fl), (m, fm), (r, fr)).clamp(l, r);
+    let fu = f(u.exp());
+    if !fu.is_finite() {
+        return (fm, m.exp());
+    }
+    let mut points = [(l, fl), (m, fm), (r, fr), (u, fu)];
+    points.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // The best inner point (an end point is never better than the middle of the bracket).
+    let best = (0..4)
+        .max_by(|&a, &b| points[a].1.total_cmp(&points[b].1))
+        .unwrap_or(1)
+        .clamp(1, 2);
+    let (a, b, c) = (points[best - 1], points[best], points[best + 1]);
+    let v = parabola_vertex(a, b, c).clamp(a.0, c.0);
+    let v = if v.is_finite() { v } else { b.0 };
+    (b.1.max(fm), v.exp())
 }
 
 /// The `x` of the vertex of the parabola through three points `(x, f)` (`b.0` when they are on
