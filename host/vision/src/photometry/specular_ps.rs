@@ -24,9 +24,9 @@ use nalgebra::{Matrix2, Vector2, Vector3};
 
 use super::photometric_stereo::{
     LightModel, LightSample, NormalMap, PhotometricStereoError, PixelSolution, PixelStatus,
-    PsParams, indices,
+    PsParams, indices, solve_each_pixel,
 };
-use super::transmission_ps::{TransmissionParams, fresnel_transmittance, solve_transmitted};
+use super::transmission_ps::{TransmissionParams, fresnel_transmittance, solve_transmitted_pixel};
 
 /// Parameters of the specular-aware solve.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -368,7 +368,7 @@ fn refine(
     Some((n, fit))
 }
 
-/// Refines one solved pixel; `None` keeps the start.
+/// Refines one solved pixel: the solution and its specular weight `k_s`; `None` keeps the start.
 fn refine_pixel(
     start: &PixelSolution,
     readings: &[[f32; 3]],
@@ -449,59 +449,26 @@ pub fn solve_specular(
     ps: &PsParams,
     params: &SpecularParams,
 ) -> Result<NormalMap, PhotometricStereoError> {
-    let mut map = solve_transmitted(images, lights, mask, ps, &params.transmission)?;
-    refine_map(&mut map, images, lights, ps, params);
-    Ok(map)
-}
-
-/// Refines every solved pixel of `map` in place; returns each pixel's specular weight (0 where
-/// the start was kept).
-fn refine_map(
-    map: &mut NormalMap,
-    images: &[&image::Rgb32FImage],
-    lights: &dyn LightModel,
-    ps: &PsParams,
-    params: &SpecularParams,
-) -> Vec<f32> {
-    use rayon::prelude::*;
     let normal_incidence = fresnel_transmittance(1.0, params.transmission.eta).max(f64::EPSILON);
-    let width = map.width as usize;
-    let count = images.len().min(16);
-    let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
-    map.pixels
-        .par_iter_mut()
-        .enumerate()
-        .map_init(
-            || {
-                let placeholder = LightSample {
-                    direction: Vector3::z(),
-                    irradiance: [0.0; 3],
-                };
-                (vec![placeholder; lights.count()], vec![[0f32; 3]; count])
-            },
-            |(samples, readings), (p, pixel)| {
-                if pixel.status != PixelStatus::Ok {
-                    return 0.0;
-                }
-                let (x, y) = ((p % width) as u32, (p / width) as u32);
-                let Some(view) = lights.at(x, y, samples) else {
-                    return 0.0;
-                };
-                for (reading, raw) in readings.iter_mut().zip(&raws) {
-                    if let Some(rgb) = raw.get(p * 3..p * 3 + 3) {
-                        reading.copy_from_slice(rgb);
-                    }
-                }
-                match refine_pixel(pixel, readings, samples, view, ps, params, normal_incidence) {
-                    Some((better, weight)) => {
-                        *pixel = better;
-                        weight as f32
-                    }
-                    None => 0.0,
-                }
-            },
+    solve_each_pixel(images, lights, mask, |pixel, solver| {
+        let start = solve_transmitted_pixel(pixel, solver, ps, &params.transmission);
+        if start.status != PixelStatus::Ok {
+            return start;
+        }
+        // The lobe's model holds up to 16 lights.
+        let count = pixel.readings.len().min(16);
+        let readings = &pixel.readings[..count];
+        refine_pixel(
+            &start,
+            readings,
+            pixel.lights,
+            pixel.view,
+            ps,
+            params,
+            normal_incidence,
         )
-        .collect()
+        .map_or(start, |(better, _specular_weight)| better)
+    })
 }
 
 #[cfg(test)]
@@ -509,6 +476,7 @@ mod tests {
     use super::*;
     use crate::photometry::photometric_stereo::{DirectionalLights, angular_errors};
     use crate::photometry::test_scenes::{ring_of_four_lights, sphere_cap_normals};
+    use crate::photometry::transmission_ps::solve_transmitted;
 
     /// Walter et al. 2007's rough dielectric (GGX, separable Smith, Fresnel) times `cos_l`,
     /// written out here independently of the solver's code.
