@@ -45,54 +45,12 @@ impl Default for TransmissionParams {
 /// Unpolarised Fresnel transmittance `1 - F` from air into a medium of index `eta` at incidence
 /// cosine `cos_i` (clamped to [0, 1]).
 pub fn fresnel_transmittance(cos_i: f64, eta: f64) -> f64 {
-    transmittance_of(&FresnelAmplitudes::new(cos_i, eta))
-}
-
-/// [`fresnel_transmittance`] and its derivative in `cos_i` (0 where the cosine is clamped).
-/// With `cos_t` the refracted cosine, `T = 1 - (rs^2 + rp^2) / 2`, and the slopes of `rs` and
-/// `rp` share their numerator, `2 eta (cos_t - cos_i dcos_t)`, `dcos_t = cos_i / (eta^2 cos_t)`.
-pub(crate) fn fresnel_transmittance_with_slope(cos_i: f64, eta: f64) -> (f64, f64) {
-    let f = FresnelAmplitudes::new(cos_i, eta);
-    let transmittance = transmittance_of(&f);
-    if !(cos_i > 0.0 && cos_i <= 1.0 && f.cos_t > 0.0) {
-        return (transmittance, 0.0);
-    }
-    let numerator = 2.0 * eta * (f.cos_t - f.cos_i * f.cos_i / (eta * eta * f.cos_t));
-    let slope = -(f.rs * numerator / (f.s_den * f.s_den) + f.rp * numerator / (f.p_den * f.p_den));
-    (transmittance, if slope.is_finite() { slope } else { 0.0 })
-}
-
-/// The Fresnel amplitude coefficients at one incidence cosine (clamped to [0, 1]).
-struct FresnelAmplitudes {
-    cos_i: f64,
-    /// Cosine of the refracted ray.
-    cos_t: f64,
-    rs: f64,
-    rp: f64,
-    /// Denominators of `rs` and `rp`.
-    s_den: f64,
-    p_den: f64,
-}
-
-impl FresnelAmplitudes {
-    fn new(cos_i: f64, eta: f64) -> Self {
-        let cos_i = cos_i.clamp(0.0, 1.0);
-        let sin_t2 = (1.0 - cos_i * cos_i) / (eta * eta);
-        let cos_t = (1.0 - sin_t2).max(0.0).sqrt();
-        let (s_den, p_den) = (cos_i + eta * cos_t, eta * cos_i + cos_t);
-        Self {
-            cos_i,
-            cos_t,
-            rs: (cos_i - eta * cos_t) / s_den,
-            rp: (eta * cos_i - cos_t) / p_den,
-            s_den,
-            p_den,
-        }
-    }
-}
-
-fn transmittance_of(f: &FresnelAmplitudes) -> f64 {
-    let reflectance = 0.5 * (f.rs * f.rs + f.rp * f.rp);
+    let cos_i = cos_i.clamp(0.0, 1.0);
+    let sin_t2 = (1.0 - cos_i * cos_i) / (eta * eta);
+    let cos_t = (1.0 - sin_t2).max(0.0).sqrt();
+    let rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+    let rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+    let reflectance = 0.5 * (rs * rs + rp * rp);
     if reflectance.is_finite() {
         1.0 - reflectance
     } else {
