@@ -243,7 +243,7 @@ fn residuals(
     n: &Vector3<f64>,
     params: &SpecularParams,
     normal_incidence: f64,
-    out: &mut Vec<f64>,
+    out: &mut Values,
 ) -> Option<LinearFit> {
     // Normal equations of the 12 x 4 system; the albedo block is a multiple of the identity.
     let (mut aa, mut ab, mut bb) = (0.0, 0.0, 0.0);
@@ -288,7 +288,7 @@ fn residuals(
         for (c, rho) in albedo.iter().enumerate() {
             let residual =
                 root_weights[c] * (f64::from(data.readings[k][c]) - rho * a - specular * b);
-            out.push(residual);
+            out.push(residual)?;
             cost += residual * residual;
         }
     }
@@ -297,6 +297,37 @@ fn residuals(
         specular,
         cost,
     })
+}
+
+/// Up to 48 values (16 lights x 3 channels) on the stack: the refinement fills 5 such buffers
+/// per pixel, and as vectors they were allocated, and regrown as they filled, for every pixel.
+struct Values {
+    len: usize,
+    data: [f64; 48],
+}
+
+impl Values {
+    fn new() -> Self {
+        Self {
+            len: 0,
+            data: [0.0; 48],
+        }
+    }
+
+    fn clear(&mut self) {
+        self.len = 0;
+    }
+
+    /// Appends `value`; `None` when full.
+    fn push(&mut self, value: f64) -> Option<()> {
+        *self.data.get_mut(self.len)? = value;
+        self.len += 1;
+        Some(())
+    }
+
+    fn as_slice(&self) -> &[f64] {
+        &self.data[..self.len]
+    }
 }
 
 /// Two unit vectors spanning the plane orthogonal to `n`.
@@ -318,8 +349,8 @@ fn refine(
     normal_incidence: f64,
 ) -> Option<(Vector3<f64>, LinearFit)> {
     const STEP: f64 = 1e-4;
-    let (mut r0, mut rp, mut rc) = (Vec::new(), Vec::new(), Vec::new());
-    let mut jacobian: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    let (mut r0, mut rp, mut rc) = (Values::new(), Values::new(), Values::new());
+    let mut jacobian = [Values::new(), Values::new()];
     let mut n = start;
     let mut fit = residuals(data, &n, params, normal_incidence, &mut r0)?;
     let mut lambda = 1e-3;
@@ -329,9 +360,14 @@ fn refine(
             let moved = (n + t * STEP).normalize();
             residuals(data, &moved, params, normal_incidence, &mut rp)?;
             column.clear();
-            column.extend(rp.iter().zip(&r0).map(|(p, q)| (p - q) / STEP));
+            for (p, q) in rp.as_slice().iter().zip(r0.as_slice()) {
+                column.push((p - q) / STEP)?;
+            }
         }
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        let dot = |a: &Values, b: &Values| {
+            let (a, b) = (a.as_slice(), b.as_slice());
+            a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>()
+        };
         let jtj = Matrix2::new(
             dot(&jacobian[0], &jacobian[0]),
             dot(&jacobian[0], &jacobian[1]),
