@@ -330,22 +330,30 @@ pub fn solve_pixel(
         lights,
         view,
         params,
-        &mut Vec::new(),
+        &mut PixelBuffers::default(),
         &NormalFactors::new(false),
     )
 }
 
-/// [`solve_pixel`] with a reusable buffer for the grey readings and the normal-matrix factors.
+/// The buffers of one pixel's solve, reused from pixel to pixel.
+#[derive(Default)]
+struct PixelBuffers {
+    grey: Vec<Option<GreyReading>>,
+    chroma: ChromaBuffers,
+}
+
+/// [`solve_pixel`] with reusable buffers and the normal-matrix factors.
 fn solve_pixel_with(
     readings: &[[f32; 3]],
     lights: &[LightSample],
     view: &Vector3<f64>,
     params: &PsParams,
-    grey: &mut Vec<Option<GreyReading>>,
+    buffers: &mut PixelBuffers,
     factors: &NormalFactors,
 ) -> PixelSolution {
     let n = readings.len().min(lights.len()).min(MAX_LIGHTS);
     factors.begin_pixel();
+    let PixelBuffers { grey, chroma } = buffers;
     grey_readings_into(&readings[..n], &lights[..n], grey);
     let grey = grey.as_slice();
     let robust = params.method == Method::Robust;
@@ -365,7 +373,7 @@ fn solve_pixel_with(
     }
     if robust {
         set = drop_shadows(grey, set, params);
-        set = drop_chroma_highlights(grey, set, params);
+        set = drop_chroma_highlights(grey, set, params, chroma);
     }
     if set.count_ones() < 3 {
         return PixelSolution::flagged(PixelStatus::TooFewLights, set);
@@ -466,19 +474,38 @@ fn drop_shadows(grey: &[Option<GreyReading>], set: u128, params: &PsParams) -> u
         .fold(0, |acc, i| acc | (1 << i))
 }
 
+/// The buffers of [`drop_chroma_highlights`], kept from pixel to pixel (allocating them for
+/// every solve was a visible share of a full-size capture's 3 solves per pixel).
+#[derive(Default)]
+struct ChromaBuffers {
+    chromas: Vec<(usize, Vector3<f64>)>,
+    channel: Vec<f64>,
+    suspects: Vec<(f64, usize)>,
+}
+
 /// Drops readings whose chromaticity moved towards white (a specular reflection of a white-ish
 /// light on a coloured surface). Keeps at least 3 readings; does nothing on grey surfaces.
-fn drop_chroma_highlights(grey: &[Option<GreyReading>], set: u128, params: &PsParams) -> u128 {
-    let chromas: Vec<(usize, Vector3<f64>)> = indices(set)
-        .filter_map(|i| grey[i].map(|r| (i, r.chroma)))
-        .collect();
+fn drop_chroma_highlights(
+    grey: &[Option<GreyReading>],
+    set: u128,
+    params: &PsParams,
+    buffers: &mut ChromaBuffers,
+) -> u128 {
+    let ChromaBuffers {
+        chromas,
+        channel,
+        suspects,
+    } = buffers;
+    chromas.clear();
+    chromas.extend(indices(set).filter_map(|i| grey[i].map(|r| (i, r.chroma))));
     if chromas.len() < 4 {
         return set;
     }
-    let median = |c: usize| {
-        let mut v: Vec<f64> = chromas.iter().map(|(_, x)| x[c]).collect();
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
+    let mut median = |c: usize| {
+        channel.clear();
+        channel.extend(chromas.iter().map(|(_, x)| x[c]));
+        channel.sort_by(f64::total_cmp);
+        channel[channel.len() / 2]
     };
     let reference = Vector3::new(median(0), median(1), median(2));
     let Some(reference) = reference.try_normalize(1e-12) else {
@@ -493,15 +520,17 @@ fn drop_chroma_highlights(grey: &[Option<GreyReading>], set: u128, params: &PsPa
     }
     let mut out = set;
     // Most suspicious first, so at least 3 readings always remain.
-    let mut suspects: Vec<(f64, usize)> = chromas
-        .iter()
-        .filter(|(_, ch)| {
-            angle(ch, &reference) > tol && angle(ch, &white) < reference_to_white - 0.5 * tol
-        })
-        .map(|(i, ch)| (angle(ch, &reference), *i))
-        .collect();
+    suspects.clear();
+    suspects.extend(
+        chromas
+            .iter()
+            .filter(|(_, ch)| {
+                angle(ch, &reference) > tol && angle(ch, &white) < reference_to_white - 0.5 * tol
+            })
+            .map(|(i, ch)| (angle(ch, &reference), *i)),
+    );
     suspects.sort_by(|a, b| b.0.total_cmp(&a.0));
-    for (_, i) in suspects {
+    for &(_, i) in suspects.iter() {
         if out.count_ones() > 3 {
             out &= !(1 << i);
         }
@@ -874,7 +903,7 @@ pub(crate) struct PixelInput<'a> {
 
 /// One thread's buffers for [`solve_pixel_with`], reused from pixel to pixel.
 pub(crate) struct PixelSolver {
-    grey: Vec<Option<GreyReading>>,
+    buffers: PixelBuffers,
     /// Factors of the light model's own lights (shared by every pixel when they are uniform).
     model_factors: NormalFactors,
     /// Factors of lights a pixel's solve changed itself (never shared between pixels).
@@ -886,7 +915,10 @@ pub(crate) struct PixelSolver {
 impl PixelSolver {
     fn new(uniform: bool, count: usize) -> Self {
         Self {
-            grey: Vec::with_capacity(count),
+            buffers: PixelBuffers {
+                grey: Vec::with_capacity(count),
+                chroma: ChromaBuffers::default(),
+            },
             model_factors: NormalFactors::new(uniform),
             own_factors: NormalFactors::new(false),
             scaled: Vec::with_capacity(count),
@@ -900,7 +932,7 @@ impl PixelSolver {
             pixel.lights,
             &pixel.view,
             params,
-            &mut self.grey,
+            &mut self.buffers,
             &self.model_factors,
         )
     }
@@ -925,7 +957,7 @@ impl PixelSolver {
             &self.scaled,
             &pixel.view,
             params,
-            &mut self.grey,
+            &mut self.buffers,
             &self.own_factors,
         )
     }
