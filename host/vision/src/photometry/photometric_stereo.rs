@@ -223,8 +223,9 @@ type NormalFactor = Option<(Cholesky<f64, U3>, f64)>;
 
 /// Normal-matrix factors per light set. With distant lights (the same light vectors at every
 /// pixel) a set's factor is the same for every pixel: it is computed once per thread and set and
-/// reused (the per-pixel eigenvalues and Cholesky were most of the least-squares time). The
-/// arithmetic is the same as per pixel, so the results are bit-identical.
+/// reused (the per-pixel eigenvalues and Cholesky were most of the least-squares time). Otherwise
+/// the cache holds one pixel's sets ([`NormalFactors::begin_pixel`] empties it). The arithmetic
+/// is the same as without the cache, so the results are bit-identical.
 struct NormalFactors {
     uniform: bool,
     cache: RefCell<Vec<(u128, NormalFactor)>>,
@@ -241,10 +242,17 @@ impl NormalFactors {
         }
     }
 
-    fn get(&self, readings: &[Option<GreyReading>], set: u128) -> NormalFactor {
+    /// Forgets the factors of the previous pixel's lights unless every pixel sees the same ones.
+    fn begin_pixel(&self) {
         if !self.uniform {
-            return normal_factor(readings, set);
+            self.cache.borrow_mut().clear();
         }
+    }
+
+    /// The factor of `set`'s light vectors in `readings`: cached, as one pixel's solve asks for
+    /// the same set more than once (the robust fit's set again for its condition number), and
+    /// with distant lights every pixel does.
+    fn get(&self, readings: &[Option<GreyReading>], set: u128) -> NormalFactor {
         if let Some((_, found)) = self.cache.borrow().iter().find(|(s, _)| *s == set) {
             return *found;
         }
@@ -322,21 +330,30 @@ pub fn solve_pixel(
         lights,
         view,
         params,
-        &mut Vec::new(),
+        &mut PixelBuffers::default(),
         &NormalFactors::new(false),
     )
 }
 
-/// [`solve_pixel`] with a reusable buffer for the grey readings and the normal-matrix factors.
+/// The buffers of one pixel's solve, reused from pixel to pixel.
+#[derive(Default)]
+struct PixelBuffers {
+    grey: Vec<Option<GreyReading>>,
+    chroma: ChromaBuffers,
+}
+
+/// [`solve_pixel`] with reusable buffers and the normal-matrix factors.
 fn solve_pixel_with(
     readings: &[[f32; 3]],
     lights: &[LightSample],
     view: &Vector3<f64>,
     params: &PsParams,
-    grey: &mut Vec<Option<GreyReading>>,
+    buffers: &mut PixelBuffers,
     factors: &NormalFactors,
 ) -> PixelSolution {
     let n = readings.len().min(lights.len()).min(MAX_LIGHTS);
+    factors.begin_pixel();
+    let PixelBuffers { grey, chroma } = buffers;
     grey_readings_into(&readings[..n], &lights[..n], grey);
     let grey = grey.as_slice();
     let robust = params.method == Method::Robust;
@@ -356,7 +373,7 @@ fn solve_pixel_with(
     }
     if robust {
         set = drop_shadows(grey, set, params);
-        set = drop_chroma_highlights(grey, set, params);
+        set = drop_chroma_highlights(grey, set, params, chroma);
     }
     if set.count_ones() < 3 {
         return PixelSolution::flagged(PixelStatus::TooFewLights, set);
@@ -457,19 +474,38 @@ fn drop_shadows(grey: &[Option<GreyReading>], set: u128, params: &PsParams) -> u
         .fold(0, |acc, i| acc | (1 << i))
 }
 
+/// The buffers of [`drop_chroma_highlights`], kept from pixel to pixel (allocating them for
+/// every solve was a visible share of a full-size capture's 3 solves per pixel).
+#[derive(Default)]
+struct ChromaBuffers {
+    chromas: Vec<(usize, Vector3<f64>)>,
+    channel: Vec<f64>,
+    suspects: Vec<(f64, usize)>,
+}
+
 /// Drops readings whose chromaticity moved towards white (a specular reflection of a white-ish
 /// light on a coloured surface). Keeps at least 3 readings; does nothing on grey surfaces.
-fn drop_chroma_highlights(grey: &[Option<GreyReading>], set: u128, params: &PsParams) -> u128 {
-    let chromas: Vec<(usize, Vector3<f64>)> = indices(set)
-        .filter_map(|i| grey[i].map(|r| (i, r.chroma)))
-        .collect();
+fn drop_chroma_highlights(
+    grey: &[Option<GreyReading>],
+    set: u128,
+    params: &PsParams,
+    buffers: &mut ChromaBuffers,
+) -> u128 {
+    let ChromaBuffers {
+        chromas,
+        channel,
+        suspects,
+    } = buffers;
+    chromas.clear();
+    chromas.extend(indices(set).filter_map(|i| grey[i].map(|r| (i, r.chroma))));
     if chromas.len() < 4 {
         return set;
     }
-    let median = |c: usize| {
-        let mut v: Vec<f64> = chromas.iter().map(|(_, x)| x[c]).collect();
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
+    let mut median = |c: usize| {
+        channel.clear();
+        channel.extend(chromas.iter().map(|(_, x)| x[c]));
+        channel.sort_by(f64::total_cmp);
+        channel[channel.len() / 2]
     };
     let reference = Vector3::new(median(0), median(1), median(2));
     let Some(reference) = reference.try_normalize(1e-12) else {
@@ -484,15 +520,17 @@ fn drop_chroma_highlights(grey: &[Option<GreyReading>], set: u128, params: &PsPa
     }
     let mut out = set;
     // Most suspicious first, so at least 3 readings always remain.
-    let mut suspects: Vec<(f64, usize)> = chromas
-        .iter()
-        .filter(|(_, ch)| {
-            angle(ch, &reference) > tol && angle(ch, &white) < reference_to_white - 0.5 * tol
-        })
-        .map(|(i, ch)| (angle(ch, &reference), *i))
-        .collect();
+    suspects.clear();
+    suspects.extend(
+        chromas
+            .iter()
+            .filter(|(_, ch)| {
+                angle(ch, &reference) > tol && angle(ch, &white) < reference_to_white - 0.5 * tol
+            })
+            .map(|(i, ch)| (angle(ch, &reference), *i)),
+    );
     suspects.sort_by(|a, b| b.0.total_cmp(&a.0));
-    for (_, i) in suspects {
+    for &(_, i) in suspects.iter() {
         if out.count_ones() > 3 {
             out &= !(1 << i);
         }
@@ -765,37 +803,9 @@ pub fn solve_images(
     params: &PsParams,
 ) -> Result<NormalMap, PhotometricStereoError> {
     use rayon::prelude::*;
+    let (width, height) = check_inputs(images, lights, mask)?;
     let count = images.len();
-    if count > MAX_LIGHTS {
-        return Err(PhotometricStereoError::TooManyLights(count));
-    }
-    if count < 3 {
-        return Err(PhotometricStereoError::TooFewLights(count));
-    }
-    if lights.count() != count {
-        return Err(PhotometricStereoError::Mismatch(format!(
-            "{count} images but {} lights",
-            lights.count()
-        )));
-    }
-    let (width, height) = images[0].dimensions();
-    if let Some(i) = images
-        .iter()
-        .position(|im| im.dimensions() != (width, height))
-    {
-        return Err(PhotometricStereoError::Mismatch(format!(
-            "image {i} is {:?}, image 0 is {:?}",
-            images[i].dimensions(),
-            (width, height)
-        )));
-    }
     let n = width as usize * height as usize;
-    if mask.is_some_and(|m| m.len() != n) {
-        return Err(PhotometricStereoError::Mismatch(format!(
-            "mask has {} pixels, images have {n}",
-            mask.map_or(0, |m| m.len())
-        )));
-    }
     let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
     if params.method == Method::LeastSquares && lights.uniform() {
         let mut samples = vec![
@@ -838,7 +848,136 @@ pub fn solve_images(
             });
         }
     }
-    let pixels: Vec<PixelSolution> = (0..n)
+    solve_each_pixel(images, lights, mask, |pixel, solver| {
+        solver.solve(pixel, params)
+    })
+}
+
+/// The sizes of `images` (all alike), checked against the lights and the mask.
+fn check_inputs(
+    images: &[&image::Rgb32FImage],
+    lights: &dyn LightModel,
+    mask: Option<&[bool]>,
+) -> Result<(u32, u32), PhotometricStereoError> {
+    let count = images.len();
+    if count > MAX_LIGHTS {
+        return Err(PhotometricStereoError::TooManyLights(count));
+    }
+    if count < 3 {
+        return Err(PhotometricStereoError::TooFewLights(count));
+    }
+    if lights.count() != count {
+        return Err(PhotometricStereoError::Mismatch(format!(
+            "{count} images but {} lights",
+            lights.count()
+        )));
+    }
+    let (width, height) = images[0].dimensions();
+    if let Some(i) = images
+        .iter()
+        .position(|im| im.dimensions() != (width, height))
+    {
+        return Err(PhotometricStereoError::Mismatch(format!(
+            "image {i} is {:?}, image 0 is {:?}",
+            images[i].dimensions(),
+            (width, height)
+        )));
+    }
+    let n = width as usize * height as usize;
+    if mask.is_some_and(|m| m.len() != n) {
+        return Err(PhotometricStereoError::Mismatch(format!(
+            "mask has {} pixels, images have {n}",
+            mask.map_or(0, |m| m.len())
+        )));
+    }
+    Ok((width, height))
+}
+
+/// What a pixel's solve reads: one RGB reading per light, the lights as the light model gives
+/// them at the pixel, and the unit direction to the camera.
+pub(crate) struct PixelInput<'a> {
+    pub readings: &'a [[f32; 3]],
+    pub lights: &'a [LightSample],
+    pub view: Vector3<f64>,
+}
+
+/// One thread's buffers for [`solve_pixel_with`], reused from pixel to pixel.
+pub(crate) struct PixelSolver {
+    buffers: PixelBuffers,
+    /// Factors of the light model's own lights (shared by every pixel when they are uniform).
+    model_factors: NormalFactors,
+    /// Factors of lights a pixel's solve changed itself (never shared between pixels).
+    own_factors: NormalFactors,
+    /// The lights of [`PixelSolver::solve_scaled`].
+    scaled: Vec<LightSample>,
+}
+
+impl PixelSolver {
+    fn new(uniform: bool, count: usize) -> Self {
+        Self {
+            buffers: PixelBuffers {
+                grey: Vec::with_capacity(count),
+                chroma: ChromaBuffers::default(),
+            },
+            model_factors: NormalFactors::new(uniform),
+            own_factors: NormalFactors::new(false),
+            scaled: Vec::with_capacity(count),
+        }
+    }
+
+    /// [`solve_pixel`] of the light model's own lights at the pixel.
+    pub(crate) fn solve(&mut self, pixel: &PixelInput, params: &PsParams) -> PixelSolution {
+        solve_pixel_with(
+            pixel.readings,
+            pixel.lights,
+            &pixel.view,
+            params,
+            &mut self.buffers,
+            &self.model_factors,
+        )
+    }
+
+    /// [`solve_pixel`] of the pixel's lights with each irradiance scaled by `factor(light)`.
+    pub(crate) fn solve_scaled(
+        &mut self,
+        pixel: &PixelInput,
+        params: &PsParams,
+        factor: impl Fn(&LightSample) -> f64,
+    ) -> PixelSolution {
+        self.scaled.clear();
+        self.scaled.extend(pixel.lights.iter().map(|light| {
+            let factor = factor(light);
+            LightSample {
+                direction: light.direction,
+                irradiance: light.irradiance.map(|e| e * factor),
+            }
+        }));
+        solve_pixel_with(
+            pixel.readings,
+            &self.scaled,
+            &pixel.view,
+            params,
+            &mut self.buffers,
+            &self.own_factors,
+        )
+    }
+}
+
+/// Runs `solve` on every masked pixel of `images` that the light model sees (the others are
+/// [`PixelStatus::Masked`]), in parallel; the inputs are checked as [`solve_images`] checks them.
+/// A solver that needs several passes over a pixel makes them all here, while the pixel's
+/// readings and lights are at hand (one pass over the images instead of one per iteration).
+pub(crate) fn solve_each_pixel(
+    images: &[&image::Rgb32FImage],
+    lights: &dyn LightModel,
+    mask: Option<&[bool]>,
+    solve: impl Fn(&PixelInput, &mut PixelSolver) -> PixelSolution + Sync + Send,
+) -> Result<NormalMap, PhotometricStereoError> {
+    use rayon::prelude::*;
+    let (width, height) = check_inputs(images, lights, mask)?;
+    let count = images.len();
+    let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
+    let pixels: Vec<PixelSolution> = (0..width as usize * height as usize)
         .into_par_iter()
         .map_init(
             || {
@@ -849,11 +988,10 @@ pub fn solve_images(
                 (
                     vec![placeholder; count],
                     vec![[0f32; 3]; count],
-                    Vec::with_capacity(count),
-                    NormalFactors::new(lights.uniform()),
+                    PixelSolver::new(lights.uniform(), count),
                 )
             },
-            |(samples, readings, grey, factors), p| {
+            |(samples, readings, solver), p| {
                 if mask.is_some_and(|m| !m[p]) {
                     return PixelSolution::flagged(PixelStatus::Masked, 0);
                 }
@@ -864,7 +1002,12 @@ pub fn solve_images(
                 for (reading, raw) in readings.iter_mut().zip(&raws) {
                     reading.copy_from_slice(&raw[p * 3..p * 3 + 3]);
                 }
-                solve_pixel_with(readings, samples, &view, params, grey, factors)
+                let pixel = PixelInput {
+                    readings,
+                    lights: samples,
+                    view,
+                };
+                solve(&pixel, solver)
             },
         )
         .collect();

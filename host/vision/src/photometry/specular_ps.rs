@@ -24,9 +24,9 @@ use nalgebra::{Matrix2, Vector2, Vector3};
 
 use super::photometric_stereo::{
     LightModel, LightSample, NormalMap, PhotometricStereoError, PixelSolution, PixelStatus,
-    PsParams, indices,
+    PsParams, indices, solve_each_pixel,
 };
-use super::transmission_ps::{TransmissionParams, fresnel_transmittance, solve_transmitted};
+use super::transmission_ps::{TransmissionParams, fresnel_transmittance, solve_transmitted_pixel};
 
 /// Parameters of the specular-aware solve.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -243,7 +243,7 @@ fn residuals(
     n: &Vector3<f64>,
     params: &SpecularParams,
     normal_incidence: f64,
-    out: &mut Vec<f64>,
+    out: &mut Values,
 ) -> Option<LinearFit> {
     // Normal equations of the 12 x 4 system; the albedo block is a multiple of the identity.
     let (mut aa, mut ab, mut bb) = (0.0, 0.0, 0.0);
@@ -288,7 +288,7 @@ fn residuals(
         for (c, rho) in albedo.iter().enumerate() {
             let residual =
                 root_weights[c] * (f64::from(data.readings[k][c]) - rho * a - specular * b);
-            out.push(residual);
+            out.push(residual)?;
             cost += residual * residual;
         }
     }
@@ -297,6 +297,37 @@ fn residuals(
         specular,
         cost,
     })
+}
+
+/// Up to 48 values (16 lights x 3 channels) on the stack: the refinement fills 5 such buffers
+/// per pixel, and as vectors they were allocated, and regrown as they filled, for every pixel.
+struct Values {
+    len: usize,
+    data: [f64; 48],
+}
+
+impl Values {
+    fn new() -> Self {
+        Self {
+            len: 0,
+            data: [0.0; 48],
+        }
+    }
+
+    fn clear(&mut self) {
+        self.len = 0;
+    }
+
+    /// Appends `value`; `None` when full.
+    fn push(&mut self, value: f64) -> Option<()> {
+        *self.data.get_mut(self.len)? = value;
+        self.len += 1;
+        Some(())
+    }
+
+    fn as_slice(&self) -> &[f64] {
+        &self.data[..self.len]
+    }
 }
 
 /// Two unit vectors spanning the plane orthogonal to `n`.
@@ -318,8 +349,8 @@ fn refine(
     normal_incidence: f64,
 ) -> Option<(Vector3<f64>, LinearFit)> {
     const STEP: f64 = 1e-4;
-    let (mut r0, mut rp, mut rc) = (Vec::new(), Vec::new(), Vec::new());
-    let mut jacobian: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
+    let (mut r0, mut rp, mut rc) = (Values::new(), Values::new(), Values::new());
+    let mut jacobian = [Values::new(), Values::new()];
     let mut n = start;
     let mut fit = residuals(data, &n, params, normal_incidence, &mut r0)?;
     let mut lambda = 1e-3;
@@ -329,9 +360,14 @@ fn refine(
             let moved = (n + t * STEP).normalize();
             residuals(data, &moved, params, normal_incidence, &mut rp)?;
             column.clear();
-            column.extend(rp.iter().zip(&r0).map(|(p, q)| (p - q) / STEP));
+            for (p, q) in rp.as_slice().iter().zip(r0.as_slice()) {
+                column.push((p - q) / STEP)?;
+            }
         }
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        let dot = |a: &Values, b: &Values| {
+            let (a, b) = (a.as_slice(), b.as_slice());
+            a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>()
+        };
         let jtj = Matrix2::new(
             dot(&jacobian[0], &jacobian[0]),
             dot(&jacobian[0], &jacobian[1]),
@@ -368,7 +404,7 @@ fn refine(
     Some((n, fit))
 }
 
-/// Refines one solved pixel; `None` keeps the start.
+/// Refines one solved pixel: the solution and its specular weight `k_s`; `None` keeps the start.
 fn refine_pixel(
     start: &PixelSolution,
     readings: &[[f32; 3]],
@@ -449,59 +485,26 @@ pub fn solve_specular(
     ps: &PsParams,
     params: &SpecularParams,
 ) -> Result<NormalMap, PhotometricStereoError> {
-    let mut map = solve_transmitted(images, lights, mask, ps, &params.transmission)?;
-    refine_map(&mut map, images, lights, ps, params);
-    Ok(map)
-}
-
-/// Refines every solved pixel of `map` in place; returns each pixel's specular weight (0 where
-/// the start was kept).
-fn refine_map(
-    map: &mut NormalMap,
-    images: &[&image::Rgb32FImage],
-    lights: &dyn LightModel,
-    ps: &PsParams,
-    params: &SpecularParams,
-) -> Vec<f32> {
-    use rayon::prelude::*;
     let normal_incidence = fresnel_transmittance(1.0, params.transmission.eta).max(f64::EPSILON);
-    let width = map.width as usize;
-    let count = images.len().min(16);
-    let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
-    map.pixels
-        .par_iter_mut()
-        .enumerate()
-        .map_init(
-            || {
-                let placeholder = LightSample {
-                    direction: Vector3::z(),
-                    irradiance: [0.0; 3],
-                };
-                (vec![placeholder; lights.count()], vec![[0f32; 3]; count])
-            },
-            |(samples, readings), (p, pixel)| {
-                if pixel.status != PixelStatus::Ok {
-                    return 0.0;
-                }
-                let (x, y) = ((p % width) as u32, (p / width) as u32);
-                let Some(view) = lights.at(x, y, samples) else {
-                    return 0.0;
-                };
-                for (reading, raw) in readings.iter_mut().zip(&raws) {
-                    if let Some(rgb) = raw.get(p * 3..p * 3 + 3) {
-                        reading.copy_from_slice(rgb);
-                    }
-                }
-                match refine_pixel(pixel, readings, samples, view, ps, params, normal_incidence) {
-                    Some((better, weight)) => {
-                        *pixel = better;
-                        weight as f32
-                    }
-                    None => 0.0,
-                }
-            },
+    solve_each_pixel(images, lights, mask, |pixel, solver| {
+        let start = solve_transmitted_pixel(pixel, solver, ps, &params.transmission);
+        if start.status != PixelStatus::Ok {
+            return start;
+        }
+        // The lobe's model holds up to 16 lights.
+        let count = pixel.readings.len().min(16);
+        let readings = &pixel.readings[..count];
+        refine_pixel(
+            &start,
+            readings,
+            pixel.lights,
+            pixel.view,
+            ps,
+            params,
+            normal_incidence,
         )
-        .collect()
+        .map_or(start, |(better, _specular_weight)| better)
+    })
 }
 
 #[cfg(test)]
@@ -509,6 +512,7 @@ mod tests {
     use super::*;
     use crate::photometry::photometric_stereo::{DirectionalLights, angular_errors};
     use crate::photometry::test_scenes::{ring_of_four_lights, sphere_cap_normals};
+    use crate::photometry::transmission_ps::solve_transmitted;
 
     /// Walter et al. 2007's rough dielectric (GGX, separable Smith, Fresnel) times `cos_l`,
     /// written out here independently of the solver's code.

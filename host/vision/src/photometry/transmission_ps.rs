@@ -14,7 +14,8 @@
 use nalgebra::Vector3;
 
 use super::photometric_stereo::{
-    LightModel, LightSample, NormalMap, PhotometricStereoError, PsParams, solve_images,
+    LightModel, NormalMap, PhotometricStereoError, PixelInput, PixelSolution, PixelSolver,
+    PsParams, solve_each_pixel,
 };
 
 /// Parameters of the transmission-aware solve.
@@ -57,41 +58,6 @@ pub fn fresnel_transmittance(cos_i: f64, eta: f64) -> f64 {
     }
 }
 
-/// A light model whose irradiances carry the transmittance at the cosine of given normals.
-struct TransmittedLights<'a> {
-    inner: &'a dyn LightModel,
-    normals: &'a NormalMap,
-    params: TransmissionParams,
-    /// `T(1)`: the factor is relative to normal incidence, so the albedo keeps its meaning.
-    normal_incidence: f64,
-}
-
-impl LightModel for TransmittedLights<'_> {
-    fn count(&self) -> usize {
-        self.inner.count()
-    }
-
-    fn at(&self, x: u32, y: u32, out: &mut [LightSample]) -> Option<Vector3<f64>> {
-        let view = self.inner.at(x, y, out)?;
-        let index = (y as usize) * (self.normals.width as usize) + x as usize;
-        let normal = self.normals.pixels.get(index).map(|p| p.normal)?;
-        if normal == [0.0; 3] {
-            return Some(view);
-        }
-        let n = Vector3::new(
-            f64::from(normal[0]),
-            f64::from(normal[1]),
-            f64::from(normal[2]),
-        );
-        for sample in out.iter_mut() {
-            let cos = sample.direction.dot(&n).clamp(self.params.min_cos, 1.0);
-            let factor = fresnel_transmittance(cos, self.params.eta) / self.normal_incidence;
-            sample.irradiance = sample.irradiance.map(|e| e * factor);
-        }
-        Some(view)
-    }
-}
-
 /// Solves every masked pixel of `images` (`images[i]` lit by light `i`) with the
 /// transmission-aware model (see the module documentation).
 pub fn solve_transmitted(
@@ -101,25 +67,47 @@ pub fn solve_transmitted(
     ps: &PsParams,
     params: &TransmissionParams,
 ) -> Result<NormalMap, PhotometricStereoError> {
-    let mut map = solve_images(images, lights, mask, ps)?;
+    solve_each_pixel(images, lights, mask, |pixel, solver| {
+        solve_transmitted_pixel(pixel, solver, ps, params)
+    })
+}
+
+/// The transmission-aware solution of one pixel: the Lambertian one, then `params.iterations`
+/// solves with each light's irradiance scaled by `T(c) / T(1)` at the cosine `c` of the
+/// previous solution's normal (as stored: `f32`). The iterations only read the pixel's own
+/// previous normal, so they run while its readings and lights are at hand.
+pub(crate) fn solve_transmitted_pixel(
+    pixel: &PixelInput,
+    solver: &mut PixelSolver,
+    ps: &PsParams,
+    params: &TransmissionParams,
+) -> PixelSolution {
+    // `T(1)`: the factor is relative to normal incidence, so the albedo keeps its meaning.
     let normal_incidence = fresnel_transmittance(1.0, params.eta).max(f64::EPSILON);
+    let mut solution = solver.solve(pixel, ps);
     for _ in 0..params.iterations {
-        let corrected = TransmittedLights {
-            inner: lights,
-            normals: &map,
-            params: *params,
-            normal_incidence,
-        };
-        let next = solve_images(images, &corrected, mask, ps)?;
-        map = next;
+        let normal = solution.normal;
+        if normal == [0.0; 3] {
+            // A flagged pixel's lights are not scaled: every further solve is this one.
+            break;
+        }
+        let n = Vector3::new(
+            f64::from(normal[0]),
+            f64::from(normal[1]),
+            f64::from(normal[2]),
+        );
+        solution = solver.solve_scaled(pixel, ps, |light| {
+            let cos = light.direction.dot(&n).clamp(params.min_cos, 1.0);
+            fresnel_transmittance(cos, params.eta) / normal_incidence
+        });
     }
-    Ok(map)
+    solution
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::photometry::photometric_stereo::{DirectionalLights, angular_errors};
+    use crate::photometry::photometric_stereo::{DirectionalLights, angular_errors, solve_images};
     use crate::photometry::test_scenes::{ring_of_four_lights, sphere_cap_normals};
 
     /// Images of `normals` under `lights` with shading `shade(cos)` and albedo (0.6, 0.4, 0.3).
