@@ -444,25 +444,34 @@ impl FrameCodes<'_> {
     }
 
     /// The linear RGB of the pixels `pixels` (row-major indices), as [`FrameCodes::map_pixels`]
-    /// makes them; `None` if one lies outside the frame.
+    /// makes them; `None` if one lies outside the frame (checked once, before any is read).
     fn pixels_at(&self, pixels: &[usize]) -> Option<Vec<[f32; 3]>> {
-        let rgb = |i: usize| -> Option<[f32; 3]> {
-            Some(match self.codes {
-                Codes::BigEndian(bytes) => {
-                    let p = bytes.get(i.checked_mul(6)?..)?.first_chunk::<6>()?;
-                    [
-                        self.linear(u16::from_be_bytes([p[0], p[1]])),
-                        self.linear(u16::from_be_bytes([p[2], p[3]])),
-                        self.linear(u16::from_be_bytes([p[4], p[5]])),
-                    ]
-                }
-                Codes::Native(codes) => {
-                    let p = codes.get(i.checked_mul(3)?..)?.first_chunk::<3>()?;
-                    [self.linear(p[0]), self.linear(p[1]), self.linear(p[2])]
-                }
-            })
-        };
-        pixels.iter().map(|&i| rgb(i)).collect()
+        let rgb = |[r, g, b]: [u16; 3]| [self.linear(r), self.linear(g), self.linear(b)];
+        match self.codes {
+            Codes::BigEndian(bytes) => {
+                let (all, _) = bytes.as_chunks::<6>();
+                pixels.iter().all(|&i| i < all.len()).then(|| {
+                    pixels
+                        .iter()
+                        .map(|&i| {
+                            let p = all[i];
+                            rgb([
+                                u16::from_be_bytes([p[0], p[1]]),
+                                u16::from_be_bytes([p[2], p[3]]),
+                                u16::from_be_bytes([p[4], p[5]]),
+                            ])
+                        })
+                        .collect()
+                })
+            }
+            Codes::Native(codes) => {
+                let (all, _) = codes.as_chunks::<3>();
+                pixels
+                    .iter()
+                    .all(|&i| i < all.len())
+                    .then(|| pixels.iter().map(|&i| rgb(all[i])).collect())
+            }
+        }
     }
 
     /// `map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0)`, the same operations in the same order per
