@@ -361,10 +361,13 @@ fn the_tile_gather_finds_the_pairs_of_a_plain_search() {
         let lit: Vec<bool> = (0..cells.width * cells.height)
             .map(|i| cells.cells[i].is_some() && flux[i] > 0.0)
             .collect();
+        let padded_lit = padded(lit.iter().copied());
         let zeros = vec![0.0; flux.len()];
+        let on_skin = padded(cells.cells.iter().map(Option::is_some));
         let rows = RowInputs {
             grid: cells,
-            lit: &lit,
+            lit: &padded_lit,
+            on_skin: &on_skin,
             flux: &flux,
             moments: gradient.then_some((&zeros[..], &zeros[..])),
             frames,
