@@ -287,7 +287,7 @@ fn a_lit_line_gives_the_brute_force_profile() {
 
 /// Every instruction set this CPU runs gives the baseline's exitance bit for bit, at the pixel
 /// level and the aggregated ones (with their moment corrections), over frame counts that fill a
-/// frame block, leave a tail, and both.
+/// frame block, a wide one, leave tails of every length, and both.
 #[test]
 fn every_instruction_set_gives_the_baseline_bit_for_bit() {
     let (w, h, pixel_mm) = (80, 60, 0.25);
@@ -300,7 +300,13 @@ fn every_instruction_set_gives_the_baseline_bit_for_bit() {
     );
     let entries = plane_entries(w, h, pixel_mm, light);
     let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
-    for frames in [1, FRAME_BLOCK, FRAME_BLOCK + 3] {
+    for frames in [
+        1,
+        FRAME_BLOCK,
+        FRAME_BLOCK + 3,
+        WIDE_FRAME_BLOCK + FRAME_BLOCK + 7,
+        2 * WIDE_FRAME_BLOCK + FRAME_BLOCK,
+    ] {
         // Stripes of different periods per frame, some frames dark in places.
         let flux: Vec<f32> = (0..w * h * frames)
             .map(|i| {
@@ -361,10 +367,13 @@ fn the_tile_gather_finds_the_pairs_of_a_plain_search() {
         let lit: Vec<bool> = (0..cells.width * cells.height)
             .map(|i| cells.cells[i].is_some() && flux[i] > 0.0)
             .collect();
+        let padded_lit = padded(lit.iter().copied());
         let zeros = vec![0.0; flux.len()];
+        let on_skin = padded(cells.cells.iter().map(Option::is_some));
         let rows = RowInputs {
             grid: cells,
-            lit: &lit,
+            lit: &padded_lit,
+            on_skin: &on_skin,
             flux: &flux,
             moments: gradient.then_some((&zeros[..], &zeros[..])),
             frames,
