@@ -49,6 +49,9 @@ cargo fmt --all -- --check
 step "cargo clippy (host workspace)"
 cargo clippy --workspace --all-targets -- -D warnings
 
+step "cargo doc (host workspace, warnings are errors: broken or private intra-doc links)"
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --quiet
+
 step "shared crate builds for the microcontroller"
 cargo build -p mlsss-shared --target thumbv7em-none-eabihf --no-default-features
 

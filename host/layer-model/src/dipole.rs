@@ -137,7 +137,7 @@ fn least_squares(a: &[Vec<f64>], b: &[f64], idx: &[usize]) -> Vec<f64> {
         .unwrap_or_else(|| vec![0.0; m])
 }
 
-/// Weights of the Gaussians (2-D, unit mass each, widths [`WIDTHS`]) summing to the unit-scale
+/// Weights of the Gaussians (2-D, unit mass each, widths `WIDTHS`) summing to the unit-scale
 /// dipole profile, fitted on log-spaced radii with relative weighting (tails matter for skin).
 pub fn gaussian_representation(albedo: f64, eta: f64) -> Vec<f64> {
     // Radii out to where the profile has fallen to `PROFILE_FLOOR` of its value at the first:

@@ -134,7 +134,7 @@ pub struct EmConfig {
     pub bic_iterations: usize,
     /// Number of slit images on each side of a component (0 = ignore the comb).
     pub wrap_images: usize,
-    /// Accelerate the EM by squared extrapolation (SQUAREM, see [`converge_squarem`]): fewer
+    /// Accelerate the EM by squared extrapolation (SQUAREM, see `converge_squarem`): fewer
     /// E-steps to the same tolerance where the plain EM crawls. Off by default, so the free fit
     /// (the paper's) and everything built on the default stay the plain EM.
     pub squarem: bool,
@@ -190,7 +190,7 @@ pub enum StepKind {
     /// An EM step that lowered the log-likelihood beyond rounding (value recorded) and was undone.
     /// Exact EM never does this; the tests assert it never happens.
     Rejected,
-    /// A SQUAREM extrapolation ([`converge_squarem`]): recorded only when it did not lower the
+    /// A SQUAREM extrapolation (`converge_squarem`): recorded only when it did not lower the
     /// log-likelihood (a worse one is dropped, not recorded).
     Accelerated,
 }
