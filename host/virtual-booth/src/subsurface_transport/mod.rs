@@ -85,12 +85,9 @@ pub struct EntrySample {
     pub materials: [f32; 4],
 }
 
-/// A cell of one level: aggregated entry geometry.
+/// A cell of one level: its aggregated response (its geometry is in [`CellAxes`]).
 #[derive(Debug, Clone, Copy)]
 struct Cell {
-    point: [f32; 3],
-    forward: [f32; 3],
-    side: [f32; 3],
     /// The (material, angle) tables this cell's response mixes: its material weights times the
     /// interpolation weights of the two tabulated angles around its incidence angle.
     taps: [Tap; MAX_TAPS],
@@ -101,6 +98,15 @@ impl Cell {
     fn taps(&self) -> &[Tap] {
         &self.taps[..self.tap_count as usize]
     }
+}
+
+/// A cell's aggregated geometry: its point and tangent frame (forward, away from the light, and
+/// side), world mm.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct CellFrame {
+    point: [f32; 3],
+    forward: [f32; 3],
+    side: [f32; 3],
 }
 
 /// One level of the kernel: the band it covers and its filtered tables.
@@ -181,15 +187,22 @@ struct LevelCells {
     width: usize,
     height: usize,
     cells: Vec<Option<Cell>>,
-    /// The cells' geometry by coordinate, apart from the rest of the cell: the search around an
-    /// output cell reads every candidate's point and axes, the whole cell (~100 bytes) of the
-    /// few within reach only.
+    /// The cells' geometry by coordinate, apart from their responses: the search around an
+    /// output cell reads every candidate's point and axes, the response (~70 bytes) of the few
+    /// within reach only. Held here alone (the cells held a copy, 36 bytes a cell, until the
+    /// full-size scan's peak rose 0.1-0.3 GB with it).
     axes: CellAxes,
 }
 
 impl LevelCells {
-    fn new(cells: Vec<Option<Cell>>, width: usize, height: usize) -> Self {
-        let axes = CellAxes::new(&cells);
+    fn new(aggregated: Vec<Option<(CellFrame, Cell)>>, width: usize, height: usize) -> Self {
+        let axes = CellAxes::new(&aggregated);
+        let mut cells: Vec<Option<Cell>> = aggregated
+            .into_iter()
+            .map(|c| c.map(|(_, cell)| cell))
+            .collect();
+        // The collect may reuse the aggregate's larger allocation: give the rest back.
+        cells.shrink_to_fit();
         Self {
             width,
             height,
@@ -211,19 +224,30 @@ struct CellAxes {
 }
 
 impl CellAxes {
-    fn new(cells: &[Option<Cell>]) -> Self {
-        let coordinate = |of: fn(&Cell) -> [f32; 3], axis: usize| -> Vec<f32> {
+    fn new(cells: &[Option<(CellFrame, Cell)>]) -> Self {
+        let coordinate = |of: fn(&CellFrame) -> [f32; 3], axis: usize| -> Vec<f32> {
             padded(
                 cells
                     .iter()
-                    .map(|c| c.as_ref().map_or(0.0, |c| of(c)[axis])),
+                    .map(|c| c.as_ref().map_or(0.0, |(frame, _)| of(frame)[axis])),
             )
         };
-        let vector = |of: fn(&Cell) -> [f32; 3]| std::array::from_fn(|axis| coordinate(of, axis));
+        let vector =
+            |of: fn(&CellFrame) -> [f32; 3]| std::array::from_fn(|axis| coordinate(of, axis));
         Self {
-            point: vector(|c| c.point),
-            forward: vector(|c| c.forward),
-            side: vector(|c| c.side),
+            point: vector(|f| f.point),
+            forward: vector(|f| f.forward),
+            side: vector(|f| f.side),
+        }
+    }
+
+    /// Cell `ci`'s frame (zeros where there is no cell).
+    fn frame(&self, ci: usize) -> CellFrame {
+        let at = |v: &[Vec<f32>; 3]| [v[0][ci], v[1][ci], v[2][ci]];
+        CellFrame {
+            point: at(&self.point),
+            forward: at(&self.forward),
+            side: at(&self.side),
         }
     }
 }
@@ -337,7 +361,10 @@ impl<'k> SubsurfaceOperator<'k> {
             .zip(ms.par_chunks_mut(frames))
             .enumerate()
             .for_each(|(ci, ((s, a), b))| {
-                let Some(cell) = &grid.cells[ci] else { return };
+                if grid.cells[ci].is_none() {
+                    return;
+                }
+                let cell = grid.axes.frame(ci);
                 let (cx, cy) = (ci % grid.width, ci / grid.width);
                 for y in cy * scale..((cy + 1) * scale).min(self.height) {
                     for x in cx * scale..((cx + 1) * scale).min(self.width) {
@@ -474,7 +501,7 @@ fn aggregate(
     w: usize,
     h: usize,
     angles: &[f64],
-) -> Vec<Option<Cell>> {
+) -> Vec<Option<(CellFrame, Cell)>> {
     (0..w * h)
         .into_par_iter()
         .map(|ci| {
@@ -513,13 +540,12 @@ fn aggregate(
                 angles.len(),
             );
             let f32v = |v: Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
-            Some(Cell {
+            let frame = CellFrame {
                 point: f32v(p / area),
                 forward: f32v(forward),
                 side: f32v(side),
-                taps,
-                tap_count,
-            })
+            };
+            Some((frame, Cell { taps, tap_count }))
         })
         .collect()
 }
@@ -610,7 +636,7 @@ struct Candidate {
 /// its band tables are looked up: the reference of [`KernelLevel::tile_candidates`], which
 /// computes it for a tile's pairs side by side.
 #[cfg(test)]
-fn tangent_offset(s: &Cell, d: [f32; 3], r: f32) -> (f32, f32) {
+fn tangent_offset(s: &CellFrame, d: [f32; 3], r: f32) -> (f32, f32) {
     let dot = |a: [f32; 3]| a[0] * d[0] + a[1] * d[1] + a[2] * d[2];
     let (mut x, mut y) = (dot(s.forward), dot(s.side));
     // Keep the 3-D distance: project the offset onto the tangent plane, then rescale.

@@ -389,19 +389,22 @@ fn the_tile_gather_finds_the_pairs_of_a_plain_search() {
                 level.gather_tile(&rows, oy, tile.clone(), &mut tile_pairs);
                 for (ox, got) in tile.zip(&tile_pairs.0) {
                     let mut expected = Vec::new();
-                    if let Some(o) = &cells.cells[oy * cells.width + ox] {
+                    let oi = oy * cells.width + ox;
+                    if cells.cells[oi].is_some() {
+                        let o = cells.axes.frame(oi);
                         for (si, s) in cells.cells.iter().enumerate() {
                             let Some(s) = s else { continue };
                             if !lit[si] {
                                 continue;
                             }
-                            let p = s.point;
+                            let frame = cells.axes.frame(si);
+                            let p = frame.point;
                             let d = [o.point[0] - p[0], o.point[1] - p[1], o.point[2] - p[2]];
                             let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                             if r >= r_max || r < r_min {
                                 continue;
                             }
-                            let (x, y) = tangent_offset(s, d, r);
+                            let (x, y) = tangent_offset(&frame, d, r);
                             let response = if gradient {
                                 level.tables.lookup::<true>(x, y, s.taps())
                             } else {
