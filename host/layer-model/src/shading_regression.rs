@@ -439,6 +439,93 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
+    /// The 5x5 normal equations of a pixel (three log amplitudes, the normal correction) built
+    /// and solved whole, as `solve_pixel` did before it eliminated the amplitudes: the reference
+    /// its Schur complement is checked against.
+    fn solve_pixel_whole(
+        obs: &[Observation],
+        skip: Option<usize>,
+        mu: &[f64; 3],
+        lambda: f64,
+        kappa: f64,
+    ) -> Option<PixelShading> {
+        use nalgebra::{Matrix5, Vector5};
+        let (mut a, mut b) = (Matrix5::<f64>::zeros(), Vector5::<f64>::zeros());
+        let mut any = false;
+        for (_, o) in obs.iter().enumerate().filter(|(j, _)| Some(*j) != skip) {
+            for (c, y) in o.y.iter().enumerate() {
+                let Some(y) = *y else { continue };
+                any = true;
+                let mut row = Vector5::new(0.0, 0.0, 0.0, o.u.x, o.u.y);
+                row[c] = 1.0;
+                a += row * row.transpose();
+                b += row * y;
+            }
+        }
+        if !any {
+            return None;
+        }
+        let k = kappa.max(1e-9);
+        for c in 0..3 {
+            a[(c, c)] += k;
+            b[c] += k * mu[c];
+        }
+        a[(3, 3)] += lambda;
+        a[(4, 4)] += lambda;
+        let x = a.cholesky()?.solve(&b);
+        let delta = Vector2::new(x[3], x[4]);
+        let norm = delta.norm();
+        let delta = if norm > MAX_DELTA {
+            delta * (MAX_DELTA / norm)
+        } else {
+            delta
+        };
+        Some(PixelShading {
+            alpha: [x[0], x[1], x[2]],
+            delta,
+        })
+    }
+
+    /// Eliminating the amplitudes gives the whole system's solution (to rounding) on random
+    /// pixels: channels missing from some observations or from all, an observation left out,
+    /// strengths from nearly none to strong, corrections past the clamp.
+    #[test]
+    fn schur_complement_solve_equals_the_whole_normal_equations() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
+        let mut compared = 0;
+        for _ in 0..2000 {
+            let count = rng.gen_range(1..7);
+            let obs: Vec<Observation> = (0..count)
+                .map(|_| Observation {
+                    u: Vector2::new(rng.gen_range(-1.5..1.5), rng.gen_range(-1.5..1.5)),
+                    y: std::array::from_fn(|_| rng.gen_bool(0.8).then(|| rng.gen_range(-3.0..1.0))),
+                })
+                .collect();
+            let skip = rng.gen_bool(0.5).then(|| rng.gen_range(0..count));
+            let mu = [-1.0, -1.3, -1.8];
+            let lambda = 10f64.powf(rng.gen_range(-3.0..2.0));
+            let kappa = 10f64.powf(rng.gen_range(-4.0..2.0));
+            let fast = solve_pixel(&obs, skip, &mu, lambda, kappa);
+            let whole = solve_pixel_whole(&obs, skip, &mu, lambda, kappa);
+            match (fast, whole) {
+                (Some(f), Some(w)) => {
+                    compared += 1;
+                    let scale = 1.0 + w.alpha.iter().map(|a| a.abs()).fold(0.0, f64::max);
+                    for c in 0..3 {
+                        assert!(
+                            (f.alpha[c] - w.alpha[c]).abs() < 1e-9 * scale,
+                            "{f:?} {w:?}"
+                        );
+                    }
+                    assert!((f.delta - w.delta).norm() < 1e-9, "{f:?} {w:?}");
+                }
+                (None, None) => {}
+                (f, w) => panic!("one solved, the other did not: {f:?} {w:?}"),
+            }
+        }
+        assert!(compared > 1500, "{compared}");
+    }
+
     /// Four lights at the corners of the booth, as seen from a surface point at the origin with
     /// normal `n`.
     fn lights() -> Vec<Vector3<f64>> {
