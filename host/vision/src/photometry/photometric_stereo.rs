@@ -803,11 +803,11 @@ pub fn solve_images(
     params: &PsParams,
 ) -> Result<NormalMap, PhotometricStereoError> {
     use rayon::prelude::*;
-    let (width, height) = check_inputs(images, lights, mask)?;
-    let count = images.len();
-    let n = width as usize * height as usize;
-    let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
     if params.method == Method::LeastSquares && lights.uniform() {
+        let (width, height) = check_inputs(images, lights, mask)?;
+        let count = images.len();
+        let n = width as usize * height as usize;
+        let raws: Vec<&[f32]> = images.iter().map(|im| im.as_raw().as_slice()).collect();
         let mut samples = vec![
             LightSample {
                 direction: Vector3::z(),
@@ -848,6 +848,7 @@ pub fn solve_images(
             });
         }
     }
+    // Checks the inputs as the distant least squares above does.
     solve_each_pixel(images, lights, mask, |pixel, solver| {
         solver.solve(pixel, params)
     })

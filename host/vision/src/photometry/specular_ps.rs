@@ -205,11 +205,11 @@ impl<'a> PixelData<'a> {
     }
 }
 
-/// Linear part of the model at one normal: albedo, specular weight and the squared residual.
+/// Linear part of the model at one normal: the albedo and the squared residual (the specular
+/// weight, solved with the albedo, is only a means to them: nothing downstream reads it).
 #[derive(Debug, Clone, Copy)]
 struct LinearFit {
     albedo: [f64; 3],
-    specular: f64,
     cost: f64,
 }
 
@@ -292,11 +292,7 @@ fn residuals(
             cost += residual * residual;
         }
     }
-    cost.is_finite().then_some(LinearFit {
-        albedo,
-        specular,
-        cost,
-    })
+    cost.is_finite().then_some(LinearFit { albedo, cost })
 }
 
 /// Up to 48 values (16 lights x 3 channels) on the stack: the refinement fills 5 such buffers
@@ -404,7 +400,7 @@ fn refine(
     Some((n, fit))
 }
 
-/// Refines one solved pixel: the solution and its specular weight `k_s`; `None` keeps the start.
+/// Refines one solved pixel; `None` keeps the start.
 fn refine_pixel(
     start: &PixelSolution,
     readings: &[[f32; 3]],
@@ -413,7 +409,7 @@ fn refine_pixel(
     ps: &PsParams,
     params: &SpecularParams,
     normal_incidence: f64,
-) -> Option<(PixelSolution, f64)> {
+) -> Option<PixelSolution> {
     let set = usable_readings(readings, lights, ps);
     if set.count_ones() < 3 {
         return None;
@@ -448,17 +444,13 @@ fn refine_pixel(
     if moved > params.max_step_deg || n.dot(&view) <= 0.0 || n.iter().any(|v| !v.is_finite()) {
         return None;
     }
-    Some((
-        PixelSolution {
-            normal: [n.x as f32, n.y as f32, n.z as f32],
-            albedo: fit.albedo.map(|v| v.max(0.0) as f32),
-            residual: ((fit.cost / (3 * set.count_ones()) as f64).sqrt() / brightest.max(1e-12))
-                as f32,
-            used: set,
-            status: PixelStatus::Ok,
-        },
-        fit.specular,
-    ))
+    Some(PixelSolution {
+        normal: [n.x as f32, n.y as f32, n.z as f32],
+        albedo: fit.albedo.map(|v| v.max(0.0) as f32),
+        residual: relative_residual(&fit) as f32,
+        used: set,
+        status: PixelStatus::Ok,
+    })
 }
 
 /// Readings that are finite, below saturation and above the noise floor.
@@ -503,7 +495,7 @@ pub fn solve_specular(
             params,
             normal_incidence,
         )
-        .map_or(start, |(better, _specular_weight)| better)
+        .unwrap_or(start)
     })
 }
 
