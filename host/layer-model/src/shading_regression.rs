@@ -191,13 +191,20 @@ fn solve_pixel(
     let delta = m.cholesky()?.solve(&r);
     let alpha: [f64; 3] =
         std::array::from_fn(|c| (s[c] + k * mu[c] - u_sum[c].dot(&delta)) / (n[c] + k));
+    Some(PixelShading {
+        alpha,
+        delta: clamped_correction(delta),
+    })
+}
+
+/// `delta` shortened to [`MAX_DELTA`] when it is longer.
+fn clamped_correction(delta: Vector2<f64>) -> Vector2<f64> {
     let norm = delta.norm();
-    let delta = if norm > MAX_DELTA {
+    if norm > MAX_DELTA {
         delta * (MAX_DELTA / norm)
     } else {
         delta
-    };
-    Some(PixelShading { alpha, delta })
+    }
 }
 
 /// Squared prediction errors and count of the observation `left` from the others.
@@ -452,7 +459,8 @@ mod tests {
         use nalgebra::{Matrix5, Vector5};
         let (mut a, mut b) = (Matrix5::<f64>::zeros(), Vector5::<f64>::zeros());
         let mut any = false;
-        for (_, o) in obs.iter().enumerate().filter(|(j, _)| Some(*j) != skip) {
+        let kept = obs.iter().enumerate().filter(|(j, _)| Some(*j) != skip);
+        for (_, o) in kept {
             for (c, y) in o.y.iter().enumerate() {
                 let Some(y) = *y else { continue };
                 any = true;
@@ -474,15 +482,9 @@ mod tests {
         a[(4, 4)] += lambda;
         let x = a.cholesky()?.solve(&b);
         let delta = Vector2::new(x[3], x[4]);
-        let norm = delta.norm();
-        let delta = if norm > MAX_DELTA {
-            delta * (MAX_DELTA / norm)
-        } else {
-            delta
-        };
         Some(PixelShading {
             alpha: [x[0], x[1], x[2]],
-            delta,
+            delta: clamped_correction(delta),
         })
     }
 
