@@ -8,6 +8,7 @@ use rayon::prelude::*;
 use super::bits::PixelBits;
 use super::lit_test::Lighting;
 use super::plane::{FitScratch, Sample, jump_limit, robust_plane_at_centre};
+use super::window_fit::WindowSums;
 use super::{AxisDecode, DecodeParams, DecodePhases, PixelStatus};
 use mlsss_core::capture::patterns::gray_decode;
 
@@ -352,7 +353,9 @@ fn fold_window(
 }
 
 /// Pass 3 for one pixel: flag codes that disagree with the neighbours, fit the sub-pixel value.
-/// `smooth_sum` is the pixel's [`smooth_window_sums`] value.
+/// `smooth_sum` is the pixel's [`smooth_window_sums`] value. Other windows are gathered once;
+/// their statistics and, where the robust fits end at their first plane, the fits' values come
+/// from [`WindowSums`].
 fn check_and_refine(
     grid: Grid,
     i: usize,
@@ -366,30 +369,11 @@ fn check_and_refine(
         return (-1, f32::NAN, status);
     }
     let radius = params.window_radius as usize;
-    let stats = if smooth_sum >= 0 {
+    if smooth_sum >= 0 {
         // The full window's statistics without reading it: every neighbour valid, the range
-        // within the smooth limit (only the count and the sum are used below).
+        // within the smooth limit.
         let full = (2 * radius + 1).pow(2) - 1;
-        WindowStats {
-            count: full,
-            sum: f64::from(smooth_sum - code),
-            min: code,
-            max: code,
-            size: full,
-        }
-    } else {
-        WindowStats::new(grid, i, radius, codes)
-    };
-    if stats.is_full_and_smooth(radius) {
-        // Fast path: over a complete symmetric window the least-squares plane's value at the
-        // centre is the mean, so no fit is needed.
-        let predicted = stats.sum / stats.count as f64;
-        if (code as f64 - predicted).abs() > params.outlier_px as f64 {
-            return (-1, f32::NAN, PixelStatus::Inconsistent);
-        }
-        let refined = ((stats.sum + code as f64) / (stats.count + 1) as f64)
-            .clamp(code as f64 - 0.5, code as f64 + 0.5);
-        return (code, refined as f32, status);
+        return check_against_mean(code, status, f64::from(smooth_sum - code), full, params);
     }
     let Scratch {
         samples,
@@ -397,33 +381,66 @@ fn check_and_refine(
         fit,
     } = scratch;
     grid.gather_valid(i, radius, codes, samples);
-    if samples.len() < params.min_neighbours as usize {
+    let sums = WindowSums::of_samples(grid, i, radius, samples);
+    let stats = WindowStats::of_sums(&sums);
+    if stats.is_full_and_smooth(radius) {
+        return check_against_mean(code, status, stats.sum, stats.count, params);
+    }
+    if stats.count < params.min_neighbours as usize {
         return (-1, f32::NAN, PixelStatus::Inconsistent);
     }
-    let Some(predicted) = robust_plane_at_centre(samples, params, fit) else {
+    let predicted = sums
+        .first_fit_if_final(samples, params, None)
+        .or_else(|| robust_plane_at_centre(samples, params, fit));
+    let Some(predicted) = predicted else {
         return (-1, f32::NAN, PixelStatus::Inconsistent);
     };
     if (code as f64 - predicted).abs() > params.outlier_px as f64 {
         return (-1, f32::NAN, PixelStatus::Inconsistent);
     }
     // The fit with the pixel itself, restricted to the same inliers, gives the sub-pixel value.
-    with_self.clear();
-    with_self.extend(
-        samples
-            .iter()
-            .copied()
-            .filter(|s| f64::from(s.code.abs_diff(code)) <= jump_limit(params)),
-    );
-    with_self.push(Sample { dx: 0, dy: 0, code });
+    let with_self_fit = sums
+        .first_fit_if_final(samples, params, Some(code))
+        .or_else(|| {
+            with_self.clear();
+            with_self.extend(
+                samples
+                    .iter()
+                    .copied()
+                    .filter(|s| f64::from(s.code.abs_diff(code)) <= jump_limit(params)),
+            );
+            with_self.push(Sample { dx: 0, dy: 0, code });
+            robust_plane_at_centre(with_self, params, fit)
+        });
     // The code says which projector pixel is seen: keep the refined value inside it.
-    let refined = robust_plane_at_centre(with_self, params, fit)
+    let refined = with_self_fit
         .map(|p| p.clamp(code as f64 - 0.5, code as f64 + 0.5))
         .unwrap_or(code as f64);
     (code, refined as f32, status)
 }
 
+/// The check of a pixel whose window is complete and smooth: over a complete symmetric window
+/// the least-squares plane's value at the centre is the mean, so no fit is needed.
+/// `neighbour_sum` is the sum of the `count` neighbours' codes.
+fn check_against_mean(
+    code: i32,
+    status: PixelStatus,
+    neighbour_sum: f64,
+    count: usize,
+    params: &DecodeParams,
+) -> (i32, f32, PixelStatus) {
+    let predicted = neighbour_sum / count as f64;
+    if (code as f64 - predicted).abs() > params.outlier_px as f64 {
+        return (-1, f32::NAN, PixelStatus::Inconsistent);
+    }
+    let refined = ((neighbour_sum + code as f64) / (count + 1) as f64)
+        .clamp(code as f64 - 0.5, code as f64 + 0.5);
+    (code, refined as f32, status)
+}
+
 /// The neighbours' plane value at pixel `i` (valid neighbours within `radius`), if there are
-/// enough of them.
+/// enough of them. The statistics and, where the robust fit ends at its first plane, its value
+/// come from one pass over the gathered samples ([`WindowSums`]).
 fn neighbour_prediction(
     grid: Grid,
     i: usize,
@@ -432,12 +449,10 @@ fn neighbour_prediction(
     params: &DecodeParams,
     scratch: &mut Scratch,
 ) -> Option<f64> {
-    // The samples first and the window's statistics from them (the same values in the same
-    // order as `WindowStats::new`, hence the same sums): most repair windows need the samples
-    // anyway, and reading the window twice was a tenth of the decode.
     let samples = &mut scratch.samples;
     grid.gather_valid(i, radius, codes, samples);
-    let stats = WindowStats::of_samples(grid, i, radius, samples);
+    let sums = WindowSums::of_samples(grid, i, radius, samples);
+    let stats = WindowStats::of_sums(&sums);
     if stats.is_full_and_smooth(radius) {
         return Some(stats.sum / stats.count as f64);
     }
@@ -446,13 +461,11 @@ fn neighbour_prediction(
     }
     // Interpolate, never extrapolate: a plane through integer codes on one side only (image
     // border, shadow edge) is biased by the staircase of the codes.
-    let has = |side: fn(i32, i32) -> bool| samples.iter().any(|s| side(s.dx, s.dy));
-    let surrounded =
-        has(|dx, _| dx < 0) && has(|dx, _| dx > 0) && has(|_, dy| dy < 0) && has(|_, dy| dy > 0);
-    if !surrounded {
+    if !sums.surrounded() {
         return None;
     }
-    robust_plane_at_centre(samples, params, &mut scratch.fit)
+    sums.first_fit_if_final(samples, params, None)
+        .or_else(|| robust_plane_at_centre(samples, params, &mut scratch.fit))
 }
 
 /// Count, sum and range of the valid codes around a pixel (itself excluded), without allocating.
@@ -467,10 +480,20 @@ struct WindowStats {
 }
 
 impl WindowStats {
-    /// Branch-free (a valid neighbour adds its code, an invalid one nothing) and summed in
-    /// integers: the sums of integer codes are exact either way (far below 2^53), so the f64
-    /// sum is the one a running f64 sum gives, and the mispredicted branches and the chain of
-    /// f64 additions made this scan, run for every decoded pixel, a sixth of the decode (perf).
+    /// The statistics of a window's sums ([`WindowSums::of_samples`]).
+    fn of_sums(sums: &WindowSums) -> Self {
+        Self {
+            count: sums.count,
+            sum: sums.code_sum(),
+            min: sums.min,
+            max: sums.max,
+            size: sums.size,
+        }
+    }
+
+    /// The statistics read straight from the window: the reference of [`WindowStats::of_sums`]
+    /// (tests).
+    #[cfg(test)]
     fn new(grid: Grid, i: usize, radius: usize, codes: &[(i32, PixelStatus)]) -> Self {
         let (x, y) = (i % grid.width, i / grid.width);
         let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
@@ -497,6 +520,7 @@ impl WindowStats {
 
     /// [`WindowStats::new`] from the window's valid samples ([`Grid::gather_valid`] of the same
     /// window).
+    #[cfg(test)]
     fn of_samples(grid: Grid, i: usize, radius: usize, samples: &[Sample]) -> Self {
         let (x, y) = (i % grid.width, i / grid.width);
         let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
@@ -576,6 +600,83 @@ mod tests {
         (code, refined as f32, status)
     }
 
+    /// The prediction as it was: every window's samples gathered, then the full robust fit.
+    fn neighbour_prediction_reference(
+        grid: Grid,
+        i: usize,
+        radius: usize,
+        codes: &[(i32, PixelStatus)],
+        params: &DecodeParams,
+    ) -> Option<f64> {
+        let mut samples = Vec::new();
+        grid.gather_valid(i, radius, codes, &mut samples);
+        let stats = WindowStats::of_samples(grid, i, radius, &samples);
+        if stats.is_full_and_smooth(radius) {
+            return Some(stats.sum / stats.count as f64);
+        }
+        if stats.count < params.min_neighbours as usize {
+            return None;
+        }
+        let has = |side: fn(i32, i32) -> bool| samples.iter().any(|s| side(s.dx, s.dy));
+        let surrounded = has(|dx, _| dx < 0)
+            && has(|dx, _| dx > 0)
+            && has(|_, dy| dy < 0)
+            && has(|_, dy| dy > 0);
+        if !surrounded {
+            return None;
+        }
+        robust_plane_at_centre(&samples, params, &mut FitScratch::default())
+    }
+
+    /// Codes of a tilted plane (gentle to steeper than the jump limit) from `seed`, with
+    /// adversarial neighbours for the window fits: holes of every invalid status, codes off by
+    /// one to three (around the 1.5 inlier bound), wild outliers, a second surface past a
+    /// depth edge, and codes near the top of the 16-bit range.
+    fn adversarial_codes(seed: u64, grid: Grid) -> Vec<(i32, PixelStatus)> {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+        let base = if rng.gen_bool(0.2) {
+            65_000.0
+        } else {
+            rng.gen_range(10.0..3000.0)
+        };
+        let (gx, gy) = (rng.gen_range(-3.5..3.5), rng.gen_range(-3.5..3.5));
+        let edge = rng.gen_range(0.0..grid.width as f64 * 1.5);
+        let (holes, off, wild) = (
+            rng.gen_range(0.0..0.6),
+            rng.gen_range(0.0..0.3),
+            rng.gen_range(0.0..0.05),
+        );
+        (0..grid.len())
+            .map(|i| {
+                let (x, y) = ((i % grid.width) as f64, (i / grid.width) as f64);
+                let mut code = (base + gx * x + gy * y).round() as i32;
+                if x > edge {
+                    code += 40;
+                }
+                if rng.gen_bool(off) {
+                    code += rng.gen_range(-3..=3);
+                }
+                if rng.gen_bool(wild) {
+                    code += rng.gen_range(-5000..5000);
+                }
+                let code = code.clamp(0, 65_535);
+                if rng.gen_bool(holes) {
+                    let status = [
+                        PixelStatus::Unlit,
+                        PixelStatus::RepairFailed,
+                        PixelStatus::Inconsistent,
+                        PixelStatus::Dim,
+                    ][rng.gen_range(0..4)];
+                    (-1, status)
+                } else if rng.gen_bool(0.1) {
+                    (code, PixelStatus::Repaired)
+                } else {
+                    (code, PixelStatus::Decoded)
+                }
+            })
+            .collect()
+    }
+
     /// The straightforward pass 2: every round tries every pixel still waiting for repair.
     fn repair_rounds_every_pixel(
         grid: Grid,
@@ -633,6 +734,38 @@ mod tests {
                 b
             })
             .collect()
+    }
+
+    /// The adversarial codes send windows down both ways of the fast fit: ended at the first
+    /// plane, and handed to the general fit (outliers, edges, steep windows), with and without
+    /// the centre; so the comparison with the gathered fits covers both.
+    #[test]
+    fn adversarial_windows_take_both_paths_of_the_first_plane_fit() {
+        let grid = Grid {
+            width: 40,
+            height: 30,
+        };
+        let params = DecodeParams::default();
+        let radius = params.window_radius as usize;
+        let mut taken = [[0usize; 2]; 2];
+        let mut samples = Vec::new();
+        for seed in 0..20 {
+            let codes = adversarial_codes(seed, grid);
+            for (i, &(code, status)) in codes.iter().enumerate() {
+                grid.gather_valid(i, radius, &codes, &mut samples);
+                let sums = WindowSums::of_samples(grid, i, radius, &samples);
+                if sums.count == 0 || !status.is_valid() {
+                    continue;
+                }
+                for (k, centre) in [None, Some(code)].into_iter().enumerate() {
+                    let fast = sums.first_fit_if_final(&samples, &params, centre);
+                    taken[k][usize::from(fast.is_some())] += 1;
+                }
+            }
+        }
+        for counts in taken {
+            assert!(counts.iter().all(|&c| c > 100), "{taken:?}");
+        }
     }
 
     proptest! {
@@ -731,6 +864,43 @@ mod tests {
                 }
                 grid.gather_valid(i, radius, &codes, &mut samples);
                 prop_assert_eq!(&samples, &plain);
+            }
+        }
+
+        /// The one-read window sums and the first-plane fast path give exactly the gathered
+        /// samples' statistics, prediction and check (bit for bit), on adversarial codes
+        /// (holes, off-by-few codes, outliers, depth edges, steep slopes), at the borders.
+        #[test]
+        fn window_sums_fast_path_equals_the_gathered_fits(
+            seed in 0u64..1_000_000,
+            width in 1usize..26,
+            height in 1usize..22,
+            window_radius in 1u32..5,
+            min_neighbours in 0u32..9,
+        ) {
+            let grid = Grid { width, height };
+            let params = DecodeParams { window_radius, min_neighbours, ..DecodeParams::default() };
+            let codes = adversarial_codes(seed, grid);
+            let mut scratch = Scratch::default();
+            let mut samples = Vec::new();
+            for radius in [window_radius as usize, repair_radius(&params)] {
+                for i in 0..grid.len() {
+                    grid.gather_valid(i, radius, &codes, &mut samples);
+                    let sums = WindowSums::of_samples(grid, i, radius, &samples);
+                    let (a, b) = (WindowStats::of_sums(&sums), WindowStats::new(grid, i, radius, &codes));
+                    prop_assert_eq!((a.count, a.sum.to_bits(), a.min, a.max, a.size), (b.count, b.sum.to_bits(), b.min, b.max, b.size));
+                    let has = |side: fn(i32, i32) -> bool| samples.iter().any(|s| side(s.dx, s.dy));
+                    prop_assert_eq!(sums.surrounded(), has(|dx, _| dx < 0) && has(|dx, _| dx > 0) && has(|_, dy| dy < 0) && has(|_, dy| dy > 0));
+                    let fast = neighbour_prediction(grid, i, radius, &codes, &params, &mut scratch);
+                    let plain = neighbour_prediction_reference(grid, i, radius, &codes, &params);
+                    prop_assert_eq!(fast.map(f64::to_bits), plain.map(f64::to_bits));
+                }
+            }
+            let smooth = smooth_window_sums(grid, &codes, window_radius as usize);
+            for (i, &smooth_sum) in smooth.iter().enumerate() {
+                let (c, f, st) = check_and_refine(grid, i, &codes, smooth_sum, &params, &mut scratch);
+                let (rc, rf, rst) = check_and_refine_reference(grid, i, &codes, &params);
+                prop_assert_eq!((c, f.to_bits(), st), (rc, rf.to_bits(), rst));
             }
         }
 

@@ -13,6 +13,9 @@ pub(super) struct Sample {
     pub(super) code: i32,
 }
 
+/// Largest distance of an inlier from the fitted plane, projector pixels.
+pub(super) const INLIER_PX: f64 = 1.5;
+
 /// Reusable buffers of [`robust_plane_at_centre`], so that a pixel's fit allocates nothing.
 #[derive(Debug, Default)]
 pub(super) struct FitScratch {
@@ -74,7 +77,7 @@ fn robust_plane_portable(
         let plane = fit_plane(inliers)?;
         let before = inliers.len();
         keep_where(inliers, |s| {
-            (plane.eval(s.dx, s.dy) - f64::from(s.code)).abs() <= 1.5
+            (plane.eval(s.dx, s.dy) - f64::from(s.code)).abs() <= INLIER_PX
         });
         if inliers.len() == before {
             return Some(plane.a);
@@ -140,15 +143,16 @@ fn median_code(samples: &[Sample], values: &mut Vec<i32>) -> Option<i32> {
     Some(*values.select_nth_unstable(middle).1)
 }
 
+/// `c = a + b dx + e dy`: `a` is the value at the pixel, `b` and `c` the slopes.
 #[derive(Debug, Clone, Copy)]
-struct Plane {
-    a: f64,
+pub(super) struct Plane {
+    pub(super) a: f64,
     b: f64,
     c: f64,
 }
 
 impl Plane {
-    fn eval(&self, dx: i32, dy: i32) -> f64 {
+    pub(super) fn eval(&self, dx: i32, dy: i32) -> f64 {
         self.a + self.b * f64::from(dx) + self.c * f64::from(dy)
     }
 }
@@ -180,7 +184,10 @@ fn fit_plane(samples: &[Sample]) -> Option<Plane> {
 /// The least-squares plane of `count` samples from their sums `[x, y, v, xx, yy, xy, xv, yv]`;
 /// the mean when the samples are collinear.
 #[inline(always)]
-fn plane_from_sums(count: usize, [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8]) -> Plane {
+pub(super) fn plane_from_sums(
+    count: usize,
+    [sx, sy, sv, sxx, syy, sxy, sxv, syv]: [f64; 8],
+) -> Plane {
     let n = count as f64;
     let m = [[n, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]];
     let mean = Plane {
