@@ -134,6 +134,108 @@ fn a_band_of_rows_renders_its_scanline_as_the_whole_model_does() {
     assert!(gap(&short) > 1e-3, "{}", gap(&short));
 }
 
+/// The sections of format 2 as the module doc spells them, written one after the other with a
+/// linear palette search: the reference the parallel, per-part save must decompress to.
+fn reference_sections(model: &SubsurfaceModel) -> Vec<u8> {
+    let mut buf = Vec::new();
+    let f32s = |buf: &mut Vec<u8>, vs: &[f32]| {
+        vs.iter()
+            .for_each(|v| buf.extend_from_slice(&v.to_le_bytes()))
+    };
+    let header = serde_json::to_vec(&model.header).unwrap();
+    buf.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    buf.extend_from_slice(&header);
+    for vs in [&model.surface.points, &model.surface.normals] {
+        for v in vs {
+            f32s(&mut buf, &[v.x as f32, v.y as f32, v.z as f32]);
+        }
+    }
+    buf.extend(model.surface.mask.iter().map(|&m| m as u8));
+    for a in model.albedo.iter().chain(&model.white_albedo) {
+        f32s(&mut buf, a);
+    }
+    for v in &model.visibility {
+        buf.extend(v.iter().map(|&m| m as u8));
+    }
+    let section = |buf: &mut Vec<u8>, m: &LayerModel| {
+        let (offsets, layers) = m.parts();
+        for row in offsets.windows(2) {
+            buf.extend_from_slice(&((row[1] - row[0]) as u16).to_le_bytes());
+        }
+        let mut palette: Vec<(u16, f32, f32)> = Vec::new();
+        let mut ids = Vec::new();
+        for l in layers {
+            let key = (l.index, l.sigma_mm, l.depth_mm);
+            let id = match palette.iter().position(|p| *p == key) {
+                Some(id) => id,
+                None => {
+                    palette.push(key);
+                    palette.len() - 1
+                }
+            };
+            ids.push(id as u32);
+        }
+        buf.extend_from_slice(&(palette.len() as u32).to_le_bytes());
+        for (index, sigma, depth) in &palette {
+            buf.extend_from_slice(&index.to_le_bytes());
+            f32s(buf, &[*sigma, *depth]);
+        }
+        buf.extend_from_slice(&(layers.len() as u32).to_le_bytes());
+        let width = if palette.len() <= 256 {
+            1
+        } else if palette.len() <= 65536 {
+            2
+        } else {
+            4
+        };
+        buf.push(width as u8);
+        for id in ids {
+            buf.extend_from_slice(&id.to_le_bytes()[..width]);
+        }
+        for plane in 0..4 {
+            buf.extend(layers.iter().map(|l| l.weight.to_le_bytes()[plane]));
+        }
+    };
+    section(&mut buf, &model.layers);
+    buf.push(model.dipole.is_some() as u8);
+    if let Some(d) = &model.dipole {
+        section(&mut buf, d);
+    }
+    buf
+}
+
+/// The saved file is the magic, the version and gzip members that decompress to the sections
+/// the module doc specifies (written serially by the reference), for a layer model with 1-byte
+/// palette ids and a dipole with 2-byte ids and empty rows.
+#[test]
+fn the_saved_file_decompresses_to_the_documented_sections() {
+    use std::io::Read;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("model.mlsss");
+    let mut model = plane_model_sized(40, 30);
+    model.dipole = Some(LayerModel::from_fn(40, 30, |i, c| {
+        (0..(i + c) % 3)
+            .map(|k| SplatLayer {
+                index: k as u16,
+                weight: 1e-3 * (i * 3 + c) as f32,
+                sigma_mm: 0.1 + 1e-3 * (i % 300) as f32,
+                depth_mm: 0.05 * k as f32,
+            })
+            .collect::<Vec<_>>()
+    }));
+    model.save(&path).unwrap();
+    let file = std::fs::read(&path).unwrap();
+    assert_eq!(&file[..8], MAGIC);
+    assert_eq!(file[8..12], FORMAT_VERSION.to_le_bytes());
+    let mut sections = Vec::new();
+    flate2::read::MultiGzDecoder::new(&file[12..])
+        .read_to_end(&mut sections)
+        .unwrap();
+    let reference = reference_sections(&model);
+    assert_eq!(sections.len(), reference.len());
+    assert!(sections == reference);
+}
+
 #[test]
 fn a_model_survives_the_file_bit_for_bit_and_bad_files_are_refused() {
     let dir = tempfile::tempdir().unwrap();

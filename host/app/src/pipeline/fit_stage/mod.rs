@@ -683,10 +683,10 @@ fn fit_layers(
     })
 }
 
-/// Saves the model to `path`, then draws the figures. One after the other: side by side
-/// (saving is mostly serial, the figures' renders parallel) they were the run's peak at full
-/// size (1949 MiB RSS; one after the other, under 1750 MiB), for ~2 s more wall clock and the
-/// same CPU. Returns the wall-clock seconds of each.
+/// Saves the model to `path`, then draws the figures. One after the other: side by side they
+/// were the run's peak at full size (1949 MiB RSS; one after the other, under 1750 MiB), and
+/// both now keep every core busy on their own (the save compresses its parts side by side).
+/// Returns the wall-clock seconds of each.
 fn save_and_draw(
     ctx: &StageContext,
     inputs: &ProfileInputs,
