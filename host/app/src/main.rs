@@ -75,6 +75,7 @@ fn error_lines(err: &anyhow::Error) -> Vec<String> {
 
 fn main() -> ExitCode {
     use clap::{CommandFactory, FromArgMatches};
+    mlsss_core::resources::keep_freed_memory_for_reuse();
     let matches = allow_negative_numbers(Cli::command()).get_matches();
     let cli = match Cli::from_arg_matches(&matches) {
         Ok(cli) => cli,

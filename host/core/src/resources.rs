@@ -54,6 +54,26 @@ pub fn release_free_memory() {
     }
 }
 
+/// Makes glibc's allocator keep the memory of freed buffers of up to 32 MiB for the next
+/// allocations (`mallopt`: mmap threshold 32 MiB, trim threshold 1 GiB) instead of mapping the
+/// first ones afresh and giving back what its arenas free beyond twice the threshold it adapts to.
+/// Why: the simulator allocates and frees buffers of 1-30 MB per frame (noise-free components,
+/// noisy values, PNG data); each fresh mapping is page-faulted and zeroed page by page, 23 % of
+/// the CPU time of simulating the quick calibration poses. With these settings (as
+/// `GLIBC_TUNABLES`) the quick demo's system time fell from 3.4-4.7 s to 2.6-2.9 s, its peak
+/// resident memory unchanged (1.07-1.09 GB). [`release_free_memory`] still hands the free memory
+/// back between phases. Call once, first thing in `main`; a no-op where the allocator is not
+/// glibc's.
+pub fn keep_freed_memory_for_reuse() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: `mallopt` takes no pointers and only changes the allocator's thresholds; a value it
+    // refuses leaves the setting as it was (the result is ignored: the settings only save time).
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 1 << 30);
+    }
+}
+
 /// Buffers at least this large are advised onto huge pages (numpy's threshold, 4 MiB).
 const HUGE_PAGE_ADVICE_BYTES: usize = 4 << 20;
 
