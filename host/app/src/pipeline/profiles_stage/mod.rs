@@ -480,15 +480,15 @@ fn pixels(img: &image::Rgb32FImage) -> Vec<[f32; 3]> {
 }
 
 fn read_rgb(path: &Path, size: (u32, u32)) -> Result<Vec<[f32; 3]>, ProfilesStageError> {
-    let img = imageio::read_exr_rgb(path)?;
-    if img.dimensions() != size {
+    let (width, height, pixels) = imageio::read_exr_rgb_pixels(path)?;
+    if (width, height) != size {
         return Err(ProfilesStageError::Size {
             path: path.to_owned(),
-            got: img.dimensions(),
+            got: (width, height),
             expected: size,
         });
     }
-    Ok(pixels(&img))
+    Ok(pixels)
 }
 
 /// The surface from the geometry stage's points and photometric stereo's normals (the shading
