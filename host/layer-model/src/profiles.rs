@@ -420,18 +420,83 @@ impl SlitStack {
                 });
             }
         }
-        let ascending_inside = kept_pixels.windows(2).all(|w| w[0] < w[1])
-            && kept_pixels.last().is_none_or(|&i| i < pixels);
-        if !ascending_inside {
-            return Err(ProfileError::SizeMismatch {
-                what: "kept pixels (ascending, inside the frame)",
-                got: kept_pixels.last().map_or(0, |&i| i + 1),
-                want: pixels,
-            });
-        }
+        Self::check_kept(&kept_pixels, pixels)?;
         Ok(Self::gathered(patterns, pixels, kept_pixels, |j, n, _| {
             frames[j][n]
         }))
+    }
+
+    /// The stack of `patterns.len()` frames at the camera pixels `kept_pixels` (ascending,
+    /// below `pixels`), every value 0 until [`SlitStack::fill_frames`] writes it. Why: a stage
+    /// that makes the values pixel by pixel writes them in place, without a frame-sized buffer
+    /// per frame to allocate and gather from.
+    pub fn zeros(
+        patterns: Vec<Pattern>,
+        pixels: usize,
+        kept_pixels: Vec<usize>,
+    ) -> Result<Self, ProfileError> {
+        Self::check_kept(&kept_pixels, pixels)?;
+        Ok(Self::unfilled(patterns, pixels, &kept_pixels))
+    }
+
+    /// The stack of `patterns.len()` frames over `pixels` camera pixels holding `kept_pixels`
+    /// (ascending, at most [`SlitStack::NO_ROW`] of them are numbered), every value 0.
+    fn unfilled(patterns: Vec<Pattern>, pixels: usize, kept_pixels: &[usize]) -> Self {
+        let kept_pixels = &kept_pixels[..kept_pixels.len().min(Self::NO_ROW as usize)];
+        let mut rows = vec![Self::NO_ROW; pixels];
+        for (row, &i) in kept_pixels.iter().enumerate() {
+            rows[i] = row as u32;
+        }
+        let values = vec![0.0f32; kept_pixels.len() * patterns.len() * 3];
+        Self {
+            patterns,
+            rows,
+            values,
+        }
+    }
+
+    /// Refuses kept pixels that are not ascending or lie outside `pixels`.
+    fn check_kept(kept_pixels: &[usize], pixels: usize) -> Result<(), ProfileError> {
+        let ascending_inside = kept_pixels.windows(2).all(|w| w[0] < w[1])
+            && kept_pixels.last().is_none_or(|&i| i < pixels);
+        if ascending_inside {
+            Ok(())
+        } else {
+            Err(ProfileError::SizeMismatch {
+                what: "kept pixels (ascending, inside the frame)",
+                got: kept_pixels.last().map_or(0, |&i| i + 1),
+                want: pixels,
+            })
+        }
+    }
+
+    /// Writes the frames `frames` (indices into the patterns) at every pixel the stack holds:
+    /// `fill(i, values)` gets camera pixel `i` and its values of those frames (3 a frame, in
+    /// order) to write; rows in parallel. Stops at the first error of `fill`; refuses a range
+    /// past the patterns.
+    pub fn fill_frames<E: From<ProfileError> + Send>(
+        &mut self,
+        frames: std::ops::Range<usize>,
+        fill: impl Fn(usize, &mut [f32]) -> Result<(), E> + Sync,
+    ) -> Result<(), E> {
+        let n = self.patterns.len();
+        if frames.start > frames.end || frames.end > n {
+            return Err(ProfileError::SizeMismatch {
+                what: "frame range",
+                got: frames.end,
+                want: n,
+            }
+            .into());
+        }
+        // Rows are numbered in pixel order: the kept pixels, ascending, are the rows' pixels.
+        let kept: Vec<usize> = (0..self.rows.len())
+            .filter(|&i| self.rows[i] != Self::NO_ROW)
+            .collect();
+        let columns = 3 * frames.start..3 * frames.end;
+        self.values
+            .par_chunks_mut((n * 3).max(1))
+            .zip(kept.par_iter())
+            .try_for_each(|(row, &i)| fill(i, &mut row[columns.clone()]))
     }
 
     /// The stack of `patterns.len()` frames over `pixels` camera pixels holding `kept_pixels`
@@ -440,18 +505,14 @@ impl SlitStack {
     fn gathered(
         patterns: Vec<Pattern>,
         pixels: usize,
-        mut kept_pixels: Vec<usize>,
+        kept_pixels: Vec<usize>,
         value: impl Fn(usize, usize, usize) -> [f32; 3] + Sync,
     ) -> Self {
-        kept_pixels.truncate(Self::NO_ROW as usize);
-        let mut rows = vec![Self::NO_ROW; pixels];
-        for (row, &i) in kept_pixels.iter().enumerate() {
-            rows[i] = row as u32;
-        }
-        let n = patterns.len();
-        let mut values = vec![0.0f32; kept_pixels.len() * n * 3];
+        let mut stack = Self::unfilled(patterns, pixels, &kept_pixels);
+        let n = stack.patterns.len();
         // Row by row (in parallel): each row gathers its pixel from every frame.
-        values
+        stack
+            .values
             .par_chunks_mut((n * 3).max(1))
             .zip(kept_pixels.par_iter().enumerate())
             .for_each(|(row, (r, &i))| {
@@ -459,11 +520,7 @@ impl SlitStack {
                     row[j * 3..j * 3 + 3].copy_from_slice(&value(j, r, i));
                 }
             });
-        Self {
-            patterns,
-            rows,
-            values,
-        }
+        stack
     }
 
     /// Keeps only the pixels it holds that `keep` accepts too (the same values), in place: each
@@ -893,7 +950,48 @@ mod tests {
         assert!(SlitStack::from_kept(patterns.clone(), n, swapped, &at_kept).is_err());
         let mut outside = kept.clone();
         *outside.last_mut().unwrap() = n;
-        assert!(SlitStack::from_kept(patterns, n, outside, &at_kept).is_err());
+        assert!(SlitStack::from_kept(patterns.clone(), n, outside.clone(), &at_kept).is_err());
+        // Filled in place, in two ranges of frames: the same stack; the filler's error stops
+        // it, and ranges past the frames or kept pixels as above are refused.
+        let mut filled = SlitStack::zeros(patterns.clone(), n, kept.clone()).unwrap();
+        assert!(filled.values.iter().all(|v| *v == 0.0));
+        for frames in [0..3, 3..8] {
+            filled
+                .fill_frames(frames.clone(), |i, out| {
+                    for (j, o) in frames.clone().zip(out.chunks_exact_mut(3)) {
+                        o.copy_from_slice(&images[j][i]);
+                    }
+                    Ok::<(), ProfileError>(())
+                })
+                .unwrap();
+        }
+        assert_eq!(filled.rows, stack.rows);
+        assert_eq!(bits(&filled.values), bits(&stack.values));
+        let failing = filled.fill_frames(0..1, |i, _| {
+            if i == kept[2] {
+                Err(ProfileError::NotASlit {
+                    index: i,
+                    label: "test".into(),
+                })
+            } else {
+                Ok(())
+            }
+        });
+        assert!(matches!(failing, Err(ProfileError::NotASlit { .. })));
+        assert!(
+            filled
+                .fill_frames(7..9, |_, _| Ok::<(), ProfileError>(()))
+                .is_err()
+        );
+        assert!(SlitStack::zeros(patterns.clone(), n, swapped_again(&kept)).is_err());
+        assert!(SlitStack::zeros(patterns, n, outside).is_err());
+    }
+
+    /// `kept` with its first two pixels swapped (out of order).
+    fn swapped_again(kept: &[usize]) -> Vec<usize> {
+        let mut swapped = kept.to_vec();
+        swapped.swap(0, 1);
+        swapped
     }
 
     #[test]

@@ -322,22 +322,6 @@ impl Capture {
         Ok(pixels)
     }
 
-    /// Frame `index`'s linear RGB at the camera pixels `pixels` (row-major indices), in their
-    /// order: [`Capture::read_frame_pixels`] at those pixels alone. Why: the profiles keep a slit
-    /// frame only at the subject's pixels (two fifths of a full-size frame); a camera-sized
-    /// buffer per frame, 17 MB, was fresh memory for the kernel to fault in, frame after frame.
-    pub fn read_frame_pixels_at(
-        &self,
-        index: u32,
-        pixels: &[usize],
-    ) -> Result<Vec<[f32; 3]>, CaptureError> {
-        let (path, picked) = self.read_codes(index, |codes| codes.pixels_at(pixels))?;
-        picked.ok_or_else(|| CaptureError::BadFrame {
-            path,
-            reason: "a requested pixel lies outside the frame".into(),
-        })
-    }
-
     /// Frame `index`'s luminance, the mean of its linear RGB, row-major (what Gray-code decoding
     /// compares), made in one pass from the sensor codes.
     pub fn read_frame_luminance(&self, index: u32) -> Result<Vec<f32>, CaptureError> {
@@ -365,6 +349,20 @@ impl Capture {
         index: u32,
         convert: impl FnOnce(&FrameCodes) -> T,
     ) -> Result<(PathBuf, T), CaptureError> {
+        let (path, samples) = self.load_samples(index)?;
+        Ok((path, convert(&samples.codes())))
+    }
+
+    /// Frame `index`'s sensor codes held in memory, to read pixel by pixel
+    /// ([`FrameSamples::rgb`]: the values of [`Capture::read_frame_pixels`]). Why: a stage that
+    /// needs several frames at each pixel (the profiles: a projector's slit frames) reads them
+    /// side by side from the codes, without a linear copy of each frame to allocate.
+    pub fn read_frame_samples(&self, index: u32) -> Result<FrameSamples, CaptureError> {
+        Ok(self.load_samples(index)?.1)
+    }
+
+    /// Path of frame `index` and its codes, scaled back to the nominal exposure.
+    fn load_samples(&self, index: u32) -> Result<(PathBuf, FrameSamples), CaptureError> {
         let count = self.manifest.plan.len();
         if index as usize >= count {
             return Err(CaptureError::NoSuchFrame { index, count });
@@ -374,14 +372,9 @@ impl Capture {
         // Back to the nominal exposure, so every stage sees the same units whatever the metering.
         let exposure = self.manifest.frame_exposure_scale(index) as f32;
         let size = (cam.width, cam.height);
-        let converted = with_frame_codes(&path, self.manifest.bit_depth, size, |codes| {
-            let codes = FrameCodes {
-                scale: codes.scale / exposure,
-                ..*codes
-            };
-            convert(&codes)
-        })?;
-        Ok((path, converted))
+        let mut samples = load_frame_codes(&path, self.manifest.bit_depth, size)?;
+        samples.scale /= exposure;
+        Ok((path, samples))
     }
 
     /// Reads the frame described by `spec`.
@@ -440,37 +433,6 @@ impl FrameCodes<'_> {
                 .chunks_exact(3)
                 .map(|p| f([self.linear(p[0]), self.linear(p[1]), self.linear(p[2])]))
                 .collect(),
-        }
-    }
-
-    /// The linear RGB of the pixels `pixels` (row-major indices), as [`FrameCodes::map_pixels`]
-    /// makes them; `None` if one lies outside the frame (checked once, before any is read).
-    fn pixels_at(&self, pixels: &[usize]) -> Option<Vec<[f32; 3]>> {
-        let rgb = |[r, g, b]: [u16; 3]| [self.linear(r), self.linear(g), self.linear(b)];
-        match self.codes {
-            Codes::BigEndian(bytes) => {
-                let (all, _) = bytes.as_chunks::<6>();
-                pixels.iter().all(|&i| i < all.len()).then(|| {
-                    pixels
-                        .iter()
-                        .map(|&i| {
-                            let p = all[i];
-                            rgb([
-                                u16::from_be_bytes([p[0], p[1]]),
-                                u16::from_be_bytes([p[2], p[3]]),
-                                u16::from_be_bytes([p[4], p[5]]),
-                            ])
-                        })
-                        .collect()
-                })
-            }
-            Codes::Native(codes) => {
-                let (all, _) = codes.as_chunks::<3>();
-                pixels
-                    .iter()
-                    .all(|&i| i < all.len())
-                    .then(|| pixels.iter().map(|&i| rgb(all[i])).collect())
-            }
         }
     }
 
@@ -594,16 +556,101 @@ pub fn release_frame_buffers() {
 /// buffer is reused from the heap rather than page-faulted in per frame.
 const READ_BUFFER: usize = 64 * 1024;
 
+/// A frame's sensor codes in memory and their scale to linear units (see
+/// [`Capture::read_frame_samples`]). The bytes of a 16-bit RGB PNG go back to the pool of
+/// frame buffers when it is dropped.
+pub struct FrameSamples {
+    width: u32,
+    height: u32,
+    codes: OwnedCodes,
+    /// Right shift from the stored 16 bits to the sensor's `bit_depth`.
+    shift: u32,
+    /// One sensor code in linear units.
+    scale: f32,
+}
+
+/// The owned form of [`Codes`].
+enum OwnedCodes {
+    /// A pooled buffer and the length of the frame's bytes in it.
+    BigEndian(Vec<u8>, usize),
+    Native(Vec<u16>),
+}
+
+impl FrameSamples {
+    /// The codes as [`FrameCodes`] reads them.
+    fn codes(&self) -> FrameCodes<'_> {
+        FrameCodes {
+            width: self.width,
+            height: self.height,
+            codes: match &self.codes {
+                OwnedCodes::BigEndian(bytes, len) => Codes::BigEndian(&bytes[..*len]),
+                OwnedCodes::Native(codes) => Codes::Native(codes),
+            },
+            shift: self.shift,
+            scale: self.scale,
+        }
+    }
+
+    /// Pixels of the frame.
+    pub fn len(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Whether the frame has no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The linear RGB of pixel `i` (row-major), as [`Capture::read_frame_pixels`] gives it;
+    /// `None` outside the frame.
+    #[inline]
+    pub fn rgb(&self, i: usize) -> Option<[f32; 3]> {
+        let codes: [u16; 3] = match &self.codes {
+            OwnedCodes::BigEndian(bytes, len) => {
+                let p = bytes[..*len].get(6 * i..6 * i + 6)?;
+                [
+                    u16::from_be_bytes([p[0], p[1]]),
+                    u16::from_be_bytes([p[2], p[3]]),
+                    u16::from_be_bytes([p[4], p[5]]),
+                ]
+            }
+            OwnedCodes::Native(codes) => codes.get(3 * i..3 * i + 3)?.try_into().ok()?,
+        };
+        let view = self.codes();
+        Some(codes.map(|c| view.linear(c)))
+    }
+}
+
+impl Drop for FrameSamples {
+    fn drop(&mut self) {
+        if let OwnedCodes::BigEndian(bytes, _) = &mut self.codes {
+            give_back_frame_buffer(std::mem::take(bytes));
+        }
+    }
+}
+
 /// Calls `convert` with the sensor codes of the 16-bit PNG frame at `path` written by
-/// [`write_frame_png`]: read straight into a buffer from the pool [`FRAME_BYTES`] when it is
-/// 16-bit RGB, else through `image` ([`read_frame_codes`], which also refuses what is not a
-/// frame).
+/// [`write_frame_png`] ([`load_frame_codes`]).
+#[cfg(test)]
 fn with_frame_codes<T>(
     path: &Path,
     bit_depth: u32,
     expected_size: (u32, u32),
     convert: impl FnOnce(&FrameCodes) -> T,
 ) -> Result<T, CaptureError> {
+    Ok(convert(
+        &load_frame_codes(path, bit_depth, expected_size)?.codes(),
+    ))
+}
+
+/// The sensor codes of the 16-bit PNG frame at `path` written by [`write_frame_png`]: read
+/// straight into a buffer from the pool [`FRAME_BYTES`] when it is 16-bit RGB, else through
+/// `image` ([`read_frame_codes`], which also refuses what is not a frame).
+fn load_frame_codes(
+    path: &Path,
+    bit_depth: u32,
+    expected_size: (u32, u32),
+) -> Result<FrameSamples, CaptureError> {
     let shift = 16 - bit_depth.min(16);
     let scale = 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32;
     let image_error = |source| CaptureError::Image {
@@ -626,13 +673,13 @@ fn with_frame_codes<T>(
         && (info.width, info.height) == expected_size;
     if !plain_rgb16 {
         let codes = read_frame_codes(path, expected_size)?;
-        return Ok(convert(&FrameCodes {
+        return Ok(FrameSamples {
             width: codes.width(),
             height: codes.height(),
-            codes: Codes::Native(codes.as_raw()),
+            codes: OwnedCodes::Native(codes.into_raw()),
             shift,
             scale,
-        }));
+        });
     }
     let len = reader
         .output_buffer_size()
@@ -642,17 +689,19 @@ fn with_frame_codes<T>(
         })?;
     let mut bytes = take_frame_buffer();
     bytes.resize(len, 0);
-    let converted = reader.next_frame(&mut bytes).map(|frame| {
-        convert(&FrameCodes {
+    match reader.next_frame(&mut bytes) {
+        Ok(frame) => Ok(FrameSamples {
             width: frame.width,
             height: frame.height,
-            codes: Codes::BigEndian(&bytes[..frame.buffer_size()]),
+            codes: OwnedCodes::BigEndian(bytes, frame.buffer_size()),
             shift,
             scale,
-        })
-    });
-    give_back_frame_buffer(bytes);
-    converted.map_err(png_error)
+        }),
+        Err(e) => {
+            give_back_frame_buffer(bytes);
+            Err(png_error(e))
+        }
+    }
 }
 
 /// Reads a 16-bit RGB, RGBA or grey PNG as 16-bit RGB sensor codes through `image`, refusing
@@ -1042,14 +1091,13 @@ mod tests {
             assert_eq!(*p, b.0);
             assert_eq!(*l, (b.0[0] + b.0[1] + b.0[2]) / 3.0);
         }
-        // At chosen pixels (any order, repeats allowed): the same values; outside: an error.
-        let picked = [39, 0, 17, 17, 8];
-        let at = cap.read_frame_pixels_at(0, &picked).unwrap();
-        assert_eq!(at, picked.map(|i| back.pixels().nth(i).unwrap().0));
-        assert!(matches!(
-            cap.read_frame_pixels_at(0, &[3, 40]),
-            Err(CaptureError::BadFrame { .. })
-        ));
+        // Held in memory and read pixel by pixel: the same values; outside: none.
+        let samples = cap.read_frame_samples(0).unwrap();
+        assert_eq!(samples.len(), 40);
+        for (i, b) in back.pixels().enumerate() {
+            assert_eq!(samples.rgb(i), Some(b.0), "pixel {i}");
+        }
+        assert_eq!(samples.rgb(40), None);
         assert!(matches!(
             cap.read_frame_pixels(999),
             Err(CaptureError::NoSuchFrame { .. })

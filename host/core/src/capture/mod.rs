@@ -9,6 +9,8 @@ pub mod patterns;
 pub mod truth;
 
 pub use exposure::{FrameNoise, ProjectorExposure};
-pub use folder::{Capture, CaptureError, CaptureManifest, CaptureWriter, TriggerRecord};
+pub use folder::{
+    Capture, CaptureError, CaptureManifest, CaptureWriter, FrameSamples, TriggerRecord,
+};
 pub use frame_plan::{FramePlan, FrameSpec};
 pub use patterns::{Axis, Pattern};

@@ -90,3 +90,28 @@ fn the_reference_slit_is_the_first_vertical_one() {
     assert_eq!(reference_slit(&slits[..2]), Some(0), "else the first");
     assert!(reference_slit(&[]).is_none());
 }
+
+#[test]
+fn slit_frames_are_read_in_runs_of_one_axis() {
+    let slit = |axis, offset| Pattern::Slit {
+        axis,
+        width: 3,
+        period: 30,
+        offset,
+    };
+    let frames: Vec<(u32, Pattern)> = [
+        slit(Axis::X, 0),
+        slit(Axis::X, 3),
+        slit(Axis::Y, 0),
+        slit(Axis::X, 6),
+        slit(Axis::X, 9),
+        slit(Axis::Y, 3),
+    ]
+    .into_iter()
+    .enumerate()
+    .map(|(j, p)| (j as u32 + 40, p))
+    .collect();
+    assert_eq!(same_axis_runs(&frames), vec![0..2, 2..3, 3..5, 5..6]);
+    assert_eq!(same_axis_runs(&frames[..1]), vec![0..1]);
+    assert!(same_axis_runs(&[]).is_empty());
+}
