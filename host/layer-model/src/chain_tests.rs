@@ -106,7 +106,9 @@ fn truth_global(s: &Surface, k: usize, pattern: &Pattern) -> Vec<[f32; 3]> {
     out
 }
 
-fn slit_patterns() -> Vec<Pattern> {
+/// A booth's slit sweep: 10 slits 3 px wide every 30 px, offsets 3 px apart (consecutive
+/// slits share an edge), along x then y.
+pub(crate) fn slit_patterns() -> Vec<Pattern> {
     [Axis::X, Axis::Y]
         .into_iter()
         .flat_map(|axis| {

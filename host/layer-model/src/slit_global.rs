@@ -464,17 +464,7 @@ mod tests {
                 .collect()
         };
         let (direct, global, stray) = (rgb(3), rgb(6), rgb(9));
-        let patterns: Vec<Pattern> = [Axis::X, Axis::Y]
-            .into_iter()
-            .flat_map(|axis| {
-                (0..10).map(move |k| Pattern::Slit {
-                    axis,
-                    width: 3,
-                    period: 30,
-                    offset: 3 * k,
-                })
-            })
-            .collect();
+        let patterns = crate::chain_tests::slit_patterns();
         let frames: Vec<Vec<[f32; 3]>> = (0..patterns.len() as u32)
             .map(|j| rgb(20 + 3 * j))
             .collect();
