@@ -390,39 +390,8 @@ impl SlitStack {
         }
         let kept_pixels: Vec<usize> = (0..pixels).filter(|&i| keep(i)).collect();
         let patterns = frames.iter().map(|f| f.pattern).collect();
-        Ok(Self::gathered(patterns, pixels, kept_pixels, |j, _, i| {
+        Ok(Self::gathered(patterns, pixels, kept_pixels, |j, i| {
             frames[j].global[i]
-        }))
-    }
-
-    /// The stack of frames given at its pixels alone: `frames[j][n]` is frame `j` at camera
-    /// pixel `kept_pixels[n]` (ascending, below `pixels`). What [`SlitStack::new`] makes of
-    /// camera-sized frames kept at those pixels, without the camera-sized frames.
-    pub fn from_kept(
-        patterns: Vec<Pattern>,
-        pixels: usize,
-        kept_pixels: Vec<usize>,
-        frames: &[Vec<[f32; 3]>],
-    ) -> Result<Self, ProfileError> {
-        if frames.len() != patterns.len() {
-            return Err(ProfileError::SizeMismatch {
-                what: "slit frames for the patterns",
-                got: frames.len(),
-                want: patterns.len(),
-            });
-        }
-        for f in frames {
-            if f.len() != kept_pixels.len() {
-                return Err(ProfileError::SizeMismatch {
-                    what: "slit frame at the kept pixels",
-                    got: f.len(),
-                    want: kept_pixels.len(),
-                });
-            }
-        }
-        Self::check_kept(&kept_pixels, pixels)?;
-        Ok(Self::gathered(patterns, pixels, kept_pixels, |j, n, _| {
-            frames[j][n]
         }))
     }
 
@@ -500,13 +469,13 @@ impl SlitStack {
     }
 
     /// The stack of `patterns.len()` frames over `pixels` camera pixels holding `kept_pixels`
-    /// (ascending, at most [`SlitStack::NO_ROW`] of them are numbered), whose values `value(j, n,
-    /// i)` gives for frame `j` at the `n`-th kept pixel, camera pixel `i`.
+    /// (ascending, at most [`SlitStack::NO_ROW`] of them are numbered), whose values `value(j, i)`
+    /// gives for frame `j` at camera pixel `i`.
     fn gathered(
         patterns: Vec<Pattern>,
         pixels: usize,
         kept_pixels: Vec<usize>,
-        value: impl Fn(usize, usize, usize) -> [f32; 3] + Sync,
+        value: impl Fn(usize, usize) -> [f32; 3] + Sync,
     ) -> Self {
         let mut stack = Self::unfilled(patterns, pixels, &kept_pixels);
         let n = stack.patterns.len();
@@ -514,10 +483,10 @@ impl SlitStack {
         stack
             .values
             .par_chunks_mut((n * 3).max(1))
-            .zip(kept_pixels.par_iter().enumerate())
-            .for_each(|(row, (r, &i))| {
+            .zip(kept_pixels.par_iter())
+            .for_each(|(row, &i)| {
                 for j in 0..n {
-                    row[j * 3..j * 3 + 3].copy_from_slice(&value(j, r, i));
+                    row[j * 3..j * 3 + 3].copy_from_slice(&value(j, i));
                 }
             });
         stack
@@ -929,30 +898,14 @@ mod tests {
         all.retain_pixels(|_| true);
         assert_eq!(all.rows, stack.rows);
         assert_eq!(bits(&all.values), bits(&stack.values));
-        // Stacked from the frames at the kept pixels alone: the same stack.
         let kept: Vec<usize> = (0..n).filter(|&i| keep(i)).collect();
-        let at_kept: Vec<Vec<[f32; 3]>> = images
-            .iter()
-            .map(|image| kept.iter().map(|&i| image[i]).collect())
-            .collect();
         let patterns: Vec<Pattern> = frames.iter().map(|f| f.pattern).collect();
-        let from_kept = SlitStack::from_kept(patterns.clone(), n, kept.clone(), &at_kept).unwrap();
-        assert_eq!(from_kept.patterns, stack.patterns);
-        assert_eq!(from_kept.rows, stack.rows);
-        assert_eq!(bits(&from_kept.values), bits(&stack.values));
-        // Refused: a frame missing, a frame of the wrong length, pixels out of order or outside.
-        assert!(SlitStack::from_kept(patterns.clone(), n, kept.clone(), &at_kept[1..]).is_err());
-        let mut short = at_kept.clone();
-        short[2].pop();
-        assert!(SlitStack::from_kept(patterns.clone(), n, kept.clone(), &short).is_err());
         let mut swapped = kept.clone();
         swapped.swap(0, 1);
-        assert!(SlitStack::from_kept(patterns.clone(), n, swapped, &at_kept).is_err());
         let mut outside = kept.clone();
         *outside.last_mut().unwrap() = n;
-        assert!(SlitStack::from_kept(patterns.clone(), n, outside.clone(), &at_kept).is_err());
         // Filled in place, in two ranges of frames: the same stack; the filler's error stops
-        // it, and ranges past the frames or kept pixels as above are refused.
+        // it, and a range past the frames or kept pixels out of order or outside are refused.
         let mut filled = SlitStack::zeros(patterns.clone(), n, kept.clone()).unwrap();
         assert!(filled.values.iter().all(|v| *v == 0.0));
         for frames in [0..3, 3..8] {
@@ -983,15 +936,8 @@ mod tests {
                 .fill_frames(7..9, |_, _| Ok::<(), ProfileError>(()))
                 .is_err()
         );
-        assert!(SlitStack::zeros(patterns.clone(), n, swapped_again(&kept)).is_err());
+        assert!(SlitStack::zeros(patterns.clone(), n, swapped).is_err());
         assert!(SlitStack::zeros(patterns, n, outside).is_err());
-    }
-
-    /// `kept` with its first two pixels swapped (out of order).
-    fn swapped_again(kept: &[usize]) -> Vec<usize> {
-        let mut swapped = kept.to_vec();
-        swapped.swap(0, 1);
-        swapped
     }
 
     #[test]
