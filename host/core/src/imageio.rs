@@ -125,25 +125,20 @@ fn exr_io_error(path: &Path) -> impl FnOnce(std::io::Error) -> ImageIoError + '_
     }
 }
 
-/// Reads the RGB channels of an EXR (alpha ignored, missing channels read as 0).
+/// Reads the RGB channels of an EXR (alpha ignored, missing channels read as 0) as an image:
+/// [`read_exr_rgb_pixels`]' pixels, not copied.
 pub fn read_exr_rgb(path: &Path) -> Result<Rgb32FImage, ImageIoError> {
-    use exr::prelude::*;
-    let image = read_first_rgba_layer_from_file(
-        path,
-        |resolution, _| Rgb32FImage::new(resolution.width() as u32, resolution.height() as u32),
-        |img: &mut Rgb32FImage, pos, (r, g, b, _a): (f32, f32, f32, f32)| {
-            img.put_pixel(pos.x() as u32, pos.y() as u32, image::Rgb([r, g, b]))
-        },
-    )
-    .map_err(|source| ImageIoError::Exr {
+    let (width, height, pixels) = read_exr_rgb_pixels(path)?;
+    // Always `width * height` pixels: `read_exr_rgb_pixels` allocates exactly that many.
+    Rgb32FImage::from_raw(width, height, pixels.into_flattened()).ok_or_else(|| ImageIoError::Exr {
         path: path.to_owned(),
-        source,
-    })?;
-    Ok(image.layer_data.channel_data.pixels)
+        source: exr::error::Error::Invalid("pixel count differs from the resolution".into()),
+    })
 }
 
-/// [`read_exr_rgb`] as its width, height and row-major pixels. Why: the per-pixel stages index
-/// pixels as `[f32; 3]`, and copying them out of the image (a second frame-sized buffer to
+/// The RGB channels of an EXR (alpha ignored, missing channels read as 0) as its width, height
+/// and row-major pixels, read straight into them. Why: the per-pixel stages index pixels as
+/// `[f32; 3]`, and copying them out of an image (a second frame-sized buffer to
 /// fault in) was 8 % of the full-size profiles stage's CPU time (perf).
 pub fn read_exr_rgb_pixels(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), ImageIoError> {
     use exr::prelude::*;

@@ -345,9 +345,9 @@ pub fn evaluate_holdout(
     for pattern in &patterns {
         let reference = reference_image(capture, k, pattern, &stray)?;
         let true_global = match &truth_dir {
-            Some(t) if truth::global(t, k, pattern).is_file() => Some(pixels_of(
-                &imageio::read_exr_rgb(&truth::global(t, k, pattern))?,
-            )),
+            Some(t) if truth::global(t, k, pattern).is_file() => {
+                Some(imageio::read_exr_rgb_pixels(&truth::global(t, k, pattern))?.2)
+            }
             _ => None,
         };
         references.push((reference, true_global));

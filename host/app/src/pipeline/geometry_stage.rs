@@ -166,15 +166,15 @@ pub fn load_points_file(path: &Path, size: (u32, u32)) -> Result<Rgb32FImage, Ge
 /// The points' plane-fit normals the geometry stage in `dir` wrote, checked to be `size`.
 pub fn load_point_normals(dir: &Path, size: (u32, u32)) -> Result<PointNormals, GeometryReadError> {
     let path = point_normals_path(dir);
-    let normals = imageio::read_exr_rgb(&path)?;
-    check_size(&path, normals.dimensions(), size)?;
+    let (width, height, normals) = imageio::read_exr_rgb_pixels(&path)?;
+    check_size(&path, (width, height), size)?;
     let path = point_normals_reliable_path(dir);
     let reliable = imageio::read_exr_gray(&path)?;
     check_size(&path, (reliable.width, reliable.height), size)?;
     Ok(PointNormals {
         width: size.0,
         height: size.1,
-        normals: normals.pixels().map(|p| p.0).collect(),
+        normals,
         reliable: reliable.data.iter().map(|&r| r > 0.5).collect(),
     })
 }

@@ -895,11 +895,11 @@ fn heldout_errors(
         if !path.is_file() {
             continue;
         }
-        let img = imageio::read_exr_rgb(&path)?;
-        if img.dimensions() != size {
+        let (width, height, pixels) = imageio::read_exr_rgb_pixels(&path)?;
+        if (width, height) != size {
             continue;
         }
-        truths.push(img.pixels().map(|p| p.0).collect());
+        truths.push(pixels);
         compared.push(pattern);
     }
     let mut out: BTreeMap<String, BTreeMap<String, f64>> = compared
