@@ -1002,8 +1002,7 @@ fn write_preview(
                 continue;
             }
             for (x, y) in (0..th).flat_map(|y| (0..tw).map(move |x| (x, y))) {
-                let rgb = half_size_pixel(tile, x, y)
-                    .map(|v| (imageio::linear_to_srgb(v / white) * 255.0).round() as u8);
+                let rgb = half_size_pixel(tile, x, y).map(|v| imageio::srgb_byte(v / white));
                 canvas.put_pixel(col as u32 * tw + x, k as u32 * th + y, image::Rgb(rgb));
             }
         }
