@@ -418,10 +418,11 @@ fn run_separate(
     let dir = ctx.dir();
     let mut per_projector = Vec::new();
     let mut outputs = Vec::new();
+    // The Nayar baseline of each projector (its direct part alone without truth to compare
+    // with) and the cleaned whites: both written beside the lobe (each file is encoded mostly
+    // on one thread, the lobe leaves cores idle), from here, not from copies.
     let mut baseline = Vec::new();
-    // The Nayar direct parts and the cleaned whites, written beside the lobe (each file is
-    // encoded mostly on one thread, the lobe leaves cores idle).
-    let mut early = Vec::new();
+    let mut whites = Vec::new();
     for (k, frames) in frames.into_iter().enumerate() {
         let offset = stray.as_ref().map(|s| &s[k]);
         let cleaned = CleanFrames::new(frames, offset);
@@ -443,18 +444,31 @@ fn run_separate(
             SeparationMethod::Kernel => nayar_split(&setup, &cleaned)?,
         };
         clock.lap("nayar");
-        let nayar_direct = if truth_dir.is_some() {
-            let direct = nayar.direct.clone();
-            baseline.push(nayar);
-            direct
+        baseline.push(if truth_dir.is_some() {
+            nayar
         } else {
-            nayar.direct
-        };
-        early.push((nayar_direct_path(&dir, k), nayar_direct));
-        early.push((white_path(&dir, k), cleaned.white));
+            Split {
+                direct: nayar.direct,
+                global: Rgb32FImage::default(),
+                ok: Vec::new(),
+                deferred: None,
+            }
+        });
+        whites.push(cleaned.white);
         per_projector.push(entry);
         outputs.push(split);
     }
+    let early: Vec<(PathBuf, &Rgb32FImage)> = baseline
+        .iter()
+        .zip(&whites)
+        .enumerate()
+        .flat_map(|(k, (nayar, white))| {
+            [
+                (nayar_direct_path(&dir, k), &nayar.direct),
+                (white_path(&dir, k), white),
+            ]
+        })
+        .collect();
     let (written, lobe) = rayon::join(
         || write_all(&early),
         || match calib.filter(|_| lobe_runs) {
@@ -464,6 +478,10 @@ fn run_separate(
     );
     written?;
     drop(early);
+    drop(whites);
+    if truth_dir.is_none() {
+        baseline = Vec::new();
+    }
     let lobe = lobe?;
     if lobe_runs && lobe.is_none() && !with_slits {
         // The lobe found no body colour: the colour rule stands in, on the leak-corrected
