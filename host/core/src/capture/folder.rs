@@ -643,9 +643,11 @@ fn with_frame_codes<T>(
     ))
 }
 
-/// The sensor codes of the 16-bit PNG frame at `path` written by [`write_frame_png`]: read
-/// straight into a buffer from the pool [`FRAME_BYTES`] when it is 16-bit RGB, else through
-/// `image` ([`read_frame_codes`], which also refuses what is not a frame).
+/// The sensor codes of the 16-bit PNG frame at `path` written by [`write_frame_png`]: into a
+/// buffer from the pool [`FRAME_BYTES`], packed from the file's stored blocks when it is laid
+/// out as that writer lays it out ([`super::stored_png`]), else decoded by `png` when it is
+/// 16-bit RGB, else through `image` ([`read_frame_codes`], which also refuses what is not a
+/// frame).
 fn load_frame_codes(
     path: &Path,
     bit_depth: u32,
@@ -657,6 +659,24 @@ fn load_frame_codes(
         path: path.to_owned(),
         source,
     };
+    let mut bytes = take_frame_buffer();
+    match super::stored_png::read_stored_rgb16(path, expected_size, &mut bytes) {
+        Ok(Some(len)) => {
+            return Ok(FrameSamples {
+                width: expected_size.0,
+                height: expected_size.1,
+                codes: OwnedCodes::BigEndian(bytes, len),
+                shift,
+                scale,
+            });
+        }
+        // Not laid out as the frame writer lays it out: `png` reads it (or says why not).
+        Ok(None) => {}
+        Err(e) => {
+            give_back_frame_buffer(bytes);
+            return Err(image_error(image::ImageError::IoError(e)));
+        }
+    }
     let file = fs::File::open(path).map_err(|e| image_error(image::ImageError::IoError(e)))?;
     let png_error = |e: png::DecodingError| {
         image_error(image::ImageError::Decoding(
@@ -672,6 +692,7 @@ fn load_frame_codes(
         && !info.interlaced
         && (info.width, info.height) == expected_size;
     if !plain_rgb16 {
+        give_back_frame_buffer(bytes);
         let codes = read_frame_codes(path, expected_size)?;
         return Ok(FrameSamples {
             width: codes.width(),
@@ -687,7 +708,6 @@ fn load_frame_codes(
             path: path.to_owned(),
             reason: "too large".into(),
         })?;
-    let mut bytes = take_frame_buffer();
     bytes.resize(len, 0);
     match reader.next_frame(&mut bytes) {
         Ok(frame) => Ok(FrameSamples {

@@ -6,6 +6,7 @@ pub mod exposure;
 pub mod folder;
 pub mod frame_plan;
 pub mod patterns;
+mod stored_png;
 pub mod truth;
 
 pub use exposure::{FrameNoise, ProjectorExposure};
