@@ -339,8 +339,47 @@ impl Capture {
         index: u32,
         out: &mut Vec<f32>,
     ) -> Result<(), CaptureError> {
-        self.read_codes(index, |codes| codes.luminance_into(out))?;
+        if !self.read_stored_luminance(index, out)? {
+            self.read_codes(index, |codes| codes.luminance_into(out))?;
+        }
         Ok(())
+    }
+
+    /// [`Capture::read_frame_luminance_into`] row by row from a frame stored as
+    /// [`write_frame_png`] stores it ([`super::stored_png::for_each_stored_row`]: the samples
+    /// are not packed first); the same values, pixel for pixel. `false` for any other file.
+    fn read_stored_luminance(&self, index: u32, out: &mut Vec<f32>) -> Result<bool, CaptureError> {
+        let count = self.manifest.plan.len();
+        if index as usize >= count {
+            return Err(CaptureError::NoSuchFrame { index, count });
+        }
+        let cam = &self.manifest.booth.camera;
+        let path = self.root.join(frame_file(index));
+        // As `load_samples`: the codes' scale, then back to the nominal exposure.
+        let exposure = self.manifest.frame_exposure_scale(index) as f32;
+        let (shift, scale) = code_shift_and_scale(self.manifest.bit_depth);
+        let scale = scale / exposure;
+        let width = cam.width as usize;
+        resize_reusing(out, width * cam.height as usize);
+        let mut bytes = take_frame_buffer();
+        let mut scratch = Vec::new();
+        let size = (cam.width, cam.height);
+        let stored = super::stored_png::for_each_stored_row(
+            &path,
+            size,
+            &mut bytes,
+            &mut scratch,
+            |y, row| {
+                if let Some(out) = out.get_mut(y * width..(y + 1) * width) {
+                    luminance_of(row, shift, scale, out);
+                }
+            },
+        );
+        give_back_frame_buffer(bytes);
+        stored.map_err(|e| CaptureError::Image {
+            path,
+            source: image::ImageError::IoError(e),
+        })
     }
 
     /// Path of frame `index` and what `convert` makes of its sensor codes.
@@ -447,23 +486,8 @@ impl FrameCodes<'_> {
             *out = self.map_pixels(|p| (p[0] + p[1] + p[2]) / 3.0);
             return;
         };
-        let pixels = bytes.len() / 6;
-        if out.len() != pixels {
-            if out.capacity() >= pixels {
-                out.clear();
-                out.resize(pixels, 0.0);
-            } else {
-                // Zeroed pages straight from the allocator, not written twice.
-                *out = vec![0.0; pixels];
-            }
-        }
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2, the one feature `luminance_avx2` is compiled for.
-            unsafe { luminance_avx2(bytes, self.shift, self.scale, out) };
-            return;
-        }
-        luminance_portable(bytes, self.shift, self.scale, out);
+        resize_reusing(out, bytes.len() / 6);
+        luminance_of(bytes, self.shift, self.scale, out);
     }
 
     /// [`FrameCodes::luminance_into`] a new buffer.
@@ -478,6 +502,41 @@ impl FrameCodes<'_> {
     fn linear(&self, code: u16) -> f32 {
         (code >> self.shift) as f32 * self.scale
     }
+}
+
+/// `out` resized to `pixels` values (contents unspecified), its allocation reused when large
+/// enough.
+fn resize_reusing(out: &mut Vec<f32>, pixels: usize) {
+    if out.len() != pixels {
+        if out.capacity() >= pixels {
+            out.clear();
+            out.resize(pixels, 0.0);
+        } else {
+            // Zeroed pages straight from the allocator, not written twice.
+            *out = vec![0.0; pixels];
+        }
+    }
+}
+
+/// The luminance of the pixels of big-endian 16-bit RGB `bytes` into `out`
+/// ([`luminance_portable`], compiled for AVX2 where the CPU has it).
+fn luminance_of(bytes: &[u8], shift: u32, scale: f32, out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2, the one feature `luminance_avx2` is compiled for.
+        unsafe { luminance_avx2(bytes, shift, scale, out) };
+        return;
+    }
+    luminance_portable(bytes, shift, scale, out);
+}
+
+/// Right shift from a stored 16-bit code to `bit_depth` bits, and one code of that depth in
+/// linear units (`1 / (2^bit_depth - 1)`).
+fn code_shift_and_scale(bit_depth: u32) -> (u32, f32) {
+    (
+        16 - bit_depth.min(16),
+        1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32,
+    )
 }
 
 /// Pixels per block of [`FrameCodes::luminance`] (its linear samples stay in the L1 cache).
@@ -653,8 +712,7 @@ fn load_frame_codes(
     bit_depth: u32,
     expected_size: (u32, u32),
 ) -> Result<FrameSamples, CaptureError> {
-    let shift = 16 - bit_depth.min(16);
-    let scale = 1.0 / ((1u32 << bit_depth.min(16)) - 1) as f32;
+    let (shift, scale) = code_shift_and_scale(bit_depth);
     let image_error = |source| CaptureError::Image {
         path: path.to_owned(),
         source,
