@@ -189,20 +189,42 @@ impl Edge {
     /// [`Edge::tail_only`] and [`Edge::new`] (its results stay bit for bit).
     #[inline]
     pub fn tail_only_fast(z: f64) -> Self {
-        const SQRT_32: f64 = 5.656_854_249_492_381;
-        let y = z.abs();
-        let tail = if y >= UNDERFLOW_Z {
+        let tail = if z.abs() >= UNDERFLOW_Z {
             0.0
-        } else if y > SQRT_32 {
-            gaussian(z) * mlsss_core::special::normal_tail_scaled_far(y)
         } else {
-            tail_with(z, || gaussian(z))
+            fast_tail(z, || gaussian(z))
         };
         Self {
             z,
             tail,
             phi: f64::NAN,
         }
+    }
+
+    /// [`Edge::tail_only_fast`] with the density `phi(z)` as well (one exponential for both;
+    /// [`Edge::phi`]): for the dipole's extinction search, which takes the slope of a box's
+    /// mass from its edges' densities.
+    #[inline]
+    pub fn with_density_fast(z: f64) -> Self {
+        if z.abs() >= UNDERFLOW_Z {
+            return Self {
+                z,
+                tail: 0.0,
+                phi: 0.0,
+            };
+        }
+        let g = gaussian(z);
+        Self {
+            z,
+            tail: fast_tail(z, || g),
+            phi: g * INV_SQRT_2PI,
+        }
+    }
+
+    /// The standard normal density at the edge, `phi(z)` (NaN for an edge made without it).
+    #[inline]
+    pub fn phi(&self) -> f64 {
+        self.phi
     }
 
     /// The tail at `z` alone (for masses; [`BoxedGaussian::posterior_between`] needs [`Edge::new`]).
@@ -213,6 +235,20 @@ impl Edge {
             tail: small_tail(z),
             phi: f64::NAN,
         }
+    }
+}
+
+/// The tail of [`Edge::tail_only_fast`] below [`UNDERFLOW_Z`], given `gauss = exp(-z^2/2)`:
+/// beyond `sqrt 32` the far tail's one-division form
+/// ([`normal_tail_scaled_far`](mlsss_core::special::normal_tail_scaled_far)), else [`tail_with`].
+#[inline]
+fn fast_tail(z: f64, gauss: impl FnOnce() -> f64) -> f64 {
+    const SQRT_32: f64 = 5.656_854_249_492_381;
+    let y = z.abs();
+    if y > SQRT_32 {
+        gauss() * mlsss_core::special::normal_tail_scaled_far(y)
+    } else {
+        tail_with(z, gauss)
     }
 }
 

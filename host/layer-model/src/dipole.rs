@@ -7,8 +7,9 @@
 //!
 //! Fitting per pixel (Jensen's recipe): `a'` from the measured total diffuse reflectance
 //! (`sum_p F_p / sum_p E_p W_p`, the same quantity that scales the layer weights), then the scale
-//! `s_t'` by maximising the profiles' likelihood (a coarse log grid then Brent's method, or a
-//! walk from the neighbouring tile's optimum then a parabola's vertex). Rendering: the profile in units
+//! `s_t'` by maximising the profiles' likelihood (a coarse log grid then Brent's method, or
+//! Newton's method from the neighbouring tile's optimum, with a walk and a parabola's vertex
+//! where Newton's method cannot settle). Rendering: the profile in units
 //! of `1/s_t'` is represented once per `a'` as a sum of Gaussians (non-negative least squares on
 //! fixed widths), so the dipole renders through the same splatter as MLSSS, centred (depth 0): the
 //! line integral of a 2-D Gaussian is the 1-D Gaussian of the same sigma, which also makes the
@@ -222,7 +223,7 @@ fn maximise_in_log(
 const NEAR_STEP: f64 = 0.2;
 
 /// Maximum `(f(x), x)` of `f` over `[range.0, range.1]` in log `x`, starting from `hint` (e.g. a
-/// neighbour's optimum): walks uphill in steps of [`NEAR_STEP`] until the maximum is bracketed,
+/// neighbour's optimum; the fit's fallback where [`newton_in_log`] gives up): walks uphill in steps of [`NEAR_STEP`] until the maximum is bracketed,
 /// then [`refined_vertex`] of the bracket's three points (Brent's method when the bracket meets
 /// a range end). About 4 evaluations when the hint is close, against ~12 for the global
 /// [`maximise_in_log`]; finds the maximum of the hint's basin only.
@@ -267,6 +268,63 @@ fn maximise_in_log_near(
     let mut points = [(fm, m), (fl, l), (fr, r)];
     points.sort_by(|a, b| b.0.total_cmp(&a.0));
     brent(f, (l, r), points, resolution)
+}
+
+/// Largest move (in log `x`) of one step of [`newton_in_log`]: about the walk's bracket
+/// ([`NEAR_STEP`]), so that a step from a far or poorly modelled point stays local.
+const NEWTON_MAX_STEP: f64 = 0.3;
+
+/// [`newton_in_log`] stops once a step is shorter than this (in log `x`): Newton's method
+/// converges quadratically, so the unscored point it returns is then within ~`1e-4` of the
+/// maximum (the walk's refined vertex is within ~`1e-3`, Brent's method to
+/// [`EXTINCTION_RESOLUTION`] within `0.005`).
+const NEWTON_TOLERANCE: f64 = 0.01;
+
+/// Scores [`newton_in_log`] may take before it gives up.
+const NEWTON_SCORES: usize = 5;
+
+/// The maximum `(f(x), x)` of `f` over `range` in log `x` by Newton's method from `hint`
+/// (e.g. a neighbour's optimum): `f(x)` gives the function and its first two derivatives in
+/// `ln x`. Stops when a step is below [`NEWTON_TOLERANCE`] and returns the point it leads to
+/// (not scored; the value is the last one scored). `None` (the caller searches otherwise)
+/// where `f` gives none, the function is not concave at a scored point, a step would leave
+/// the range, or [`NEWTON_SCORES`] scores did not settle.
+///
+/// Why: the walk of [`maximise_in_log_near`] needs at least four scores (the bracket and its
+/// vertex): 242 619 for the full-size head's 55 893 pixel-channels. From the neighbour's
+/// optimum (55 380 of them) Newton's method took 1.94 scores with derivatives on average
+/// (107 501; plain scores, of the rows' first tiles' grid searches and of the walk where
+/// Newton's method gave up, 7 061): the dipole baseline 2.68 / 2.57 -> 1.60 / 1.64 CPU-s on
+/// one thread. It
+/// also lands closer to the maximum than the walk's vertex: the dipole's held-out global
+/// relative error 0.0970573 -> 0.0970451 there (Brent's method to 2 %: 0.097048).
+fn newton_in_log(
+    mut f: impl FnMut(f64) -> Option<[f64; 3]>,
+    hint: f64,
+    range: (f64, f64),
+) -> Option<(f64, f64)> {
+    let (lo, hi) = (range.0.ln(), range.1.ln());
+    let inside = |u: f64| u > lo && u < hi;
+    let mut u = hint.ln();
+    if !inside(u) {
+        return None;
+    }
+    for _ in 0..NEWTON_SCORES {
+        let [value, slope, curvature] = f(u.exp())?;
+        if curvature.is_nan() || curvature >= 0.0 {
+            return None;
+        }
+        let step = -slope / curvature;
+        let next = u + step.clamp(-NEWTON_MAX_STEP, NEWTON_MAX_STEP);
+        if !inside(next) {
+            return None;
+        }
+        if step.abs() < NEWTON_TOLERANCE {
+            return Some((value, next.exp()));
+        }
+        u = next;
+    }
+    None
 }
 
 /// The maximum `(value, exp x)` of `f(exp x)` near a bracket `[(l, f(l)), (m, f(m)), (r, f(r))]`
@@ -475,6 +533,55 @@ impl PreparedImage {
             previous = Some(upper);
         }
     }
+
+    /// [`PreparedImage::add_masses`] with the mass's first two derivatives in `ln ext`
+    /// (`sums[j]`: mass, slope, curvature). A box edge `z` scales with the extinction, so
+    /// `d Phi(z) / d ln ext = z phi(z)` and its derivative `z phi(z) (1 - z^2)`: each edge's
+    /// density gives both, one exponential per edge as for the mass.
+    fn add_masses_and_slopes(&self, scale: f64, weight: f64, sums: &mut [[f64; 3]]) {
+        let reach = NEGLIGIBLE_SIGMAS / scale;
+        let central = self.offset == 0.0;
+        let mut previous: Option<SlopedEdge> = None;
+        for b in &self.boxes {
+            if !central && b.distance > reach {
+                previous = None;
+                continue;
+            }
+            let lower = match previous {
+                Some(e) if b.shares_lower => e,
+                _ => SlopedEdge::new(b.lower * scale),
+            };
+            let upper = SlopedEdge::new(b.upper * scale);
+            let sum = &mut sums[b.sample];
+            sum[0] += weight * mass_between(&lower.edge, &upper.edge);
+            sum[1] += weight * (upper.slope - lower.slope);
+            sum[2] += weight * (upper.curvature - lower.curvature);
+            previous = Some(upper);
+        }
+    }
+}
+
+/// A box edge with the derivatives of `Phi(z)` in `ln ext` ([`PreparedImage::add_masses_and_slopes`]).
+#[derive(Debug, Clone, Copy)]
+struct SlopedEdge {
+    edge: Edge,
+    /// `z phi(z)`.
+    slope: f64,
+    /// `z phi(z) (1 - z^2)`.
+    curvature: f64,
+}
+
+impl SlopedEdge {
+    #[inline]
+    fn new(z: f64) -> Self {
+        let edge = Edge::with_density_fast(z);
+        let slope = z * edge.phi();
+        Self {
+            edge,
+            slope,
+            curvature: slope * (1.0 - z * z),
+        }
+    }
 }
 
 /// Below this a sample's summed density is recomputed in log space.
@@ -513,6 +620,22 @@ impl<'a> PreparedProfiles<'a> {
             .iter()
             .map(|p| p.log_likelihood(components, ext, &mut densities))
             .sum()
+    }
+
+    /// [`PreparedProfiles::log_likelihood`] and its first two derivatives in `ln ext`, the
+    /// value bit for bit the same; `None` where a sample's density is below
+    /// [`LINEAR_DENSITY_FLOOR`] (its log-space sum has no derivatives here) or a sum is not
+    /// finite.
+    fn log_likelihood_and_slopes(&self, components: &[(f64, f64)], ext: f64) -> Option<[f64; 3]> {
+        let mut sums = Vec::new();
+        let mut total = [0.0; 3];
+        for p in &self.profiles {
+            let terms = p.log_likelihood_and_slopes(components, ext, &mut sums)?;
+            for (t, x) in total.iter_mut().zip(terms) {
+                *t += x;
+            }
+        }
+        total.iter().all(|v| v.is_finite()).then_some(total)
     }
 }
 
@@ -571,6 +694,40 @@ impl<'a> PreparedProfile<'a> {
             ll += y * ln_density;
         }
         ll
+    }
+
+    /// This profile's term of [`PreparedProfiles::log_likelihood_and_slopes`]; `sums` is
+    /// scratch. The log-likelihood `sum y ln D` has the slope `sum y D' / D` and the curvature
+    /// `sum y (D'' / D - (D' / D)^2)`.
+    fn log_likelihood_and_slopes(
+        &self,
+        components: &[(f64, f64)],
+        ext: f64,
+        sums: &mut Vec<[f64; 3]>,
+    ) -> Option<[f64; 3]> {
+        sums.clear();
+        sums.resize(self.profile.samples.len(), [0.0; 3]);
+        let per_width = 1.0 / self.profile.slit_width;
+        for &(weight, width) in components.iter().filter(|c| c.0 > 0.0) {
+            let scale = ext / width;
+            for image in &self.images {
+                image.add_masses_and_slopes(scale, weight * per_width, sums);
+            }
+        }
+        let mut out = [0.0; 3];
+        for (&[density, slope, curvature], &y) in sums.iter().zip(&self.weights) {
+            if y <= 0.0 {
+                continue;
+            }
+            if density <= LINEAR_DENSITY_FLOOR {
+                return None;
+            }
+            let relative_slope = slope / density;
+            out[0] += y * density.ln();
+            out[1] += y * relative_slope;
+            out[2] += y * (curvature / density - relative_slope * relative_slope);
+        }
+        Some(out)
     }
 
     /// The log-density at `s` summed in log space, for a sample whose linear density
@@ -687,10 +844,12 @@ impl DipoleTable {
         let components = self.components[self.row_for_reflectance(reflectance)].as_deref()?;
         let prepared = PreparedProfiles::new(profiles);
         let score = |ext: f64| prepared.log_likelihood(components, ext);
+        let sloped = |ext: f64| prepared.log_likelihood_and_slopes(components, ext);
         let best = match hint {
-            Some(h) if h.is_finite() && h > 0.0 => {
-                maximise_in_log_near(score, h, EXTINCTION_RANGE, EXTINCTION_RESOLUTION)
-            }
+            Some(h) if h.is_finite() && h > 0.0 => newton_in_log(sloped, h, EXTINCTION_RANGE)
+                .unwrap_or_else(|| {
+                    maximise_in_log_near(score, h, EXTINCTION_RANGE, EXTINCTION_RESOLUTION)
+                }),
             _ => maximise_in_log(score, EXTINCTION_RANGE, 8, EXTINCTION_RESOLUTION),
         };
         if !best.0.is_finite() {
@@ -857,6 +1016,98 @@ mod tests {
         };
         let (_, at) = maximise_in_log(f, EXTINCTION_RANGE, 8, 1.02);
         assert!((at / 20.0 - 1.0).abs() < 0.02, "found {at}");
+    }
+
+    #[test]
+    fn newton_search_finds_a_known_maximum_and_refuses_what_it_cannot_climb() {
+        // f(u) = -(u - c)^2 + 0.3 (u - c)^3 in u = ln x: maximum at u = c, derivatives by hand.
+        let cubic = |c: f64| {
+            move |x: f64| {
+                let d = x.ln() - c;
+                Some([
+                    -d * d + 0.3 * d.powi(3),
+                    -2.0 * d + 0.9 * d * d,
+                    -2.0 + 1.8 * d,
+                ])
+            }
+        };
+        for (want, hint) in [(3.7, 2.9f64), (3.7, 4.6), (0.37, 0.3), (21.0, 30.0)] {
+            let (_, at) = newton_in_log(cubic(f64::ln(want)), hint, EXTINCTION_RANGE)
+                .unwrap_or_else(|| panic!("{want} from {hint}: no maximum"));
+            assert!((at / want).ln().abs() < 1e-4, "{want} from {hint}: {at}");
+        }
+        // Convex at the hint (a minimum), the maximum beyond the range, no scores.
+        let convex = |x: f64| Some([x.ln().powi(2), 2.0 * x.ln(), 2.0]);
+        assert_eq!(newton_in_log(convex, 3.0, EXTINCTION_RANGE), None);
+        assert_eq!(
+            newton_in_log(cubic(f64::ln(60.0)), 45.0, EXTINCTION_RANGE),
+            None
+        );
+        assert_eq!(newton_in_log(|_| None, 3.0, EXTINCTION_RANGE), None);
+    }
+
+    #[test]
+    fn score_slopes_are_the_derivatives_of_the_score() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(19);
+        let table = DipoleTable::new(1.4);
+        let mut compared = 0;
+        for case in 0..30 {
+            let period: f64 = rng.gen_range(2.0..12.0);
+            let profiles: Vec<Profile> = (0..rng.gen_range(1..7))
+                .map(|_| {
+                    let width: f64 = rng.gen_range(0.05..0.6);
+                    let phase = rng.gen_range(0.0..width);
+                    let n = (period / width).floor() as usize;
+                    Profile {
+                        noise: None,
+                        // A sweep: slit boxes edge to edge over one period (shared edges).
+                        samples: (0..n)
+                            .map(|j| Sample {
+                                s: -0.5 * period + phase + j as f64 * width,
+                                y: rng.gen_range(-0.05..1.0),
+                            })
+                            .collect(),
+                        slit_width: width,
+                        period: Some(period),
+                        shift_per_depth: 0.0,
+                    }
+                })
+                .collect();
+            let Some(components) = table.components[rng.gen_range(0..24)].as_deref() else {
+                continue;
+            };
+            let prepared = PreparedProfiles::new(&profiles);
+            for ext in [0.3, 1.7, 6.0, 25.0] {
+                let Some([value, slope, curvature]) =
+                    prepared.log_likelihood_and_slopes(components, ext)
+                else {
+                    continue;
+                };
+                compared += 1;
+                // The value is the score's, bit for bit; the derivatives by central
+                // differences of the score in ln ext.
+                let score = |u: f64| prepared.log_likelihood(components, u.exp());
+                assert_eq!(
+                    value,
+                    prepared.log_likelihood(components, ext),
+                    "case {case}, ext {ext}"
+                );
+                let h = 1e-4;
+                let (up, down) = (score(ext.ln() + h), score(ext.ln() - h));
+                let numeric_slope = (up - down) / (2.0 * h);
+                let numeric_curvature = (up - 2.0 * score(ext.ln()) + down) / (h * h);
+                assert!(
+                    (slope - numeric_slope).abs() <= 1e-6 * (1.0 + slope.abs()),
+                    "case {case}, ext {ext}: slope {slope} vs {numeric_slope}"
+                );
+                assert!(
+                    (curvature - numeric_curvature).abs() <= 1e-3 * (1.0 + curvature.abs()),
+                    "case {case}, ext {ext}: curvature {curvature} vs {numeric_curvature}"
+                );
+            }
+        }
+        assert!(compared >= 40, "only {compared} scores compared");
     }
 
     #[test]
