@@ -513,14 +513,19 @@ impl PreparedImage {
         Self { offset, boxes }
     }
 
-    /// Adds `weight` times the mass of the centred Gaussian of standard deviation `1 / scale`
-    /// in each box (`scale`: `ext / width`) to `densities`, skipping the boxes of a side image
-    /// further than [`NEGLIGIBLE_SIGMAS`] sigmas (as `image_reaches`); shared edges are
-    /// computed once.
-    fn add_masses(&self, scale: f64, weight: f64, densities: &mut [f64]) {
+    /// Calls `add(sample, lower, upper)` for each box with its edges made by `edge` at the
+    /// box's bounds times `scale`, skipping the boxes of a side image further than
+    /// [`NEGLIGIBLE_SIGMAS`] sigmas (as `image_reaches`); shared edges are made once.
+    #[inline(always)]
+    fn for_each_box<E: Copy>(
+        &self,
+        scale: f64,
+        edge: impl Fn(f64) -> E,
+        mut add: impl FnMut(usize, &E, &E),
+    ) {
         let reach = NEGLIGIBLE_SIGMAS / scale;
         let central = self.offset == 0.0;
-        let mut previous: Option<Edge> = None;
+        let mut previous: Option<E> = None;
         for b in &self.boxes {
             if !central && b.distance > reach {
                 previous = None;
@@ -528,12 +533,20 @@ impl PreparedImage {
             }
             let lower = match previous {
                 Some(e) if b.shares_lower => e,
-                _ => Edge::tail_only_fast(b.lower * scale),
+                _ => edge(b.lower * scale),
             };
-            let upper = Edge::tail_only_fast(b.upper * scale);
-            densities[b.sample] += weight * mass_between(&lower, &upper);
+            let upper = edge(b.upper * scale);
+            add(b.sample, &lower, &upper);
             previous = Some(upper);
         }
+    }
+
+    /// Adds `weight` times the mass of the centred Gaussian of standard deviation `1 / scale`
+    /// in each box (`scale`: `ext / width`) to `densities` ([`PreparedImage::for_each_box`]).
+    fn add_masses(&self, scale: f64, weight: f64, densities: &mut [f64]) {
+        self.for_each_box(scale, Edge::tail_only_fast, |sample, lower, upper| {
+            densities[sample] += weight * mass_between(lower, upper);
+        });
     }
 
     /// [`PreparedImage::add_masses`] with the mass's first two derivatives in `ln ext`
@@ -541,25 +554,12 @@ impl PreparedImage {
     /// `d Phi(z) / d ln ext = z phi(z)` and its derivative `z phi(z) (1 - z^2)`: each edge's
     /// density gives both, one exponential per edge as for the mass.
     fn add_masses_and_slopes(&self, scale: f64, weight: f64, sums: &mut [[f64; 3]]) {
-        let reach = NEGLIGIBLE_SIGMAS / scale;
-        let central = self.offset == 0.0;
-        let mut previous: Option<SlopedEdge> = None;
-        for b in &self.boxes {
-            if !central && b.distance > reach {
-                previous = None;
-                continue;
-            }
-            let lower = match previous {
-                Some(e) if b.shares_lower => e,
-                _ => SlopedEdge::new(b.lower * scale),
-            };
-            let upper = SlopedEdge::new(b.upper * scale);
-            let sum = &mut sums[b.sample];
+        self.for_each_box(scale, SlopedEdge::new, |sample, lower, upper| {
+            let sum = &mut sums[sample];
             sum[0] += weight * mass_between(&lower.edge, &upper.edge);
             sum[1] += weight * (upper.slope - lower.slope);
             sum[2] += weight * (upper.curvature - lower.curvature);
-            previous = Some(upper);
-        }
+        });
     }
 }
 

@@ -349,14 +349,9 @@ impl Capture {
     /// [`write_frame_png`] stores it ([`super::stored_png::for_each_stored_row`]: the samples
     /// are not packed first); the same values, pixel for pixel. `false` for any other file.
     fn read_stored_luminance(&self, index: u32, out: &mut Vec<f32>) -> Result<bool, CaptureError> {
-        let count = self.manifest.plan.len();
-        if index as usize >= count {
-            return Err(CaptureError::NoSuchFrame { index, count });
-        }
+        let (path, exposure) = self.frame_path_and_exposure(index)?;
         let cam = &self.manifest.booth.camera;
-        let path = self.root.join(frame_file(index));
         // As `load_samples`: the codes' scale, then back to the nominal exposure.
-        let exposure = self.manifest.frame_exposure_scale(index) as f32;
         let (shift, scale) = code_shift_and_scale(self.manifest.bit_depth);
         let scale = scale / exposure;
         let width = cam.width as usize;
@@ -402,18 +397,23 @@ impl Capture {
 
     /// Path of frame `index` and its codes, scaled back to the nominal exposure.
     fn load_samples(&self, index: u32) -> Result<(PathBuf, FrameSamples), CaptureError> {
-        let count = self.manifest.plan.len();
-        if index as usize >= count {
-            return Err(CaptureError::NoSuchFrame { index, count });
-        }
+        let (path, exposure) = self.frame_path_and_exposure(index)?;
         let cam = &self.manifest.booth.camera;
-        let path = self.root.join(frame_file(index));
-        // Back to the nominal exposure, so every stage sees the same units whatever the metering.
-        let exposure = self.manifest.frame_exposure_scale(index) as f32;
         let size = (cam.width, cam.height);
         let mut samples = load_frame_codes(&path, self.manifest.bit_depth, size)?;
         samples.scale /= exposure;
         Ok((path, samples))
+    }
+
+    /// Path of frame `index` and its exposure relative to the nominal one (the codes are
+    /// divided by it, so every stage sees the same units whatever the metering).
+    fn frame_path_and_exposure(&self, index: u32) -> Result<(PathBuf, f32), CaptureError> {
+        let count = self.manifest.plan.len();
+        if index as usize >= count {
+            return Err(CaptureError::NoSuchFrame { index, count });
+        }
+        let exposure = self.manifest.frame_exposure_scale(index) as f32;
+        Ok((self.root.join(frame_file(index)), exposure))
     }
 
     /// Reads the frame described by `spec`.
