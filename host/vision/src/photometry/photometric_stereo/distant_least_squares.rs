@@ -73,7 +73,10 @@ impl<'a> DistantLeastSquares<'a> {
             Some((cholesky, condition)) => {
                 // (A^T A)^-1 A^T, column i for light i.
                 let at = Matrix3xX::from_columns(&vectors);
-                (cholesky.solve(&at), condition > params.max_condition)
+                (
+                    cholesky.solve(&at),
+                    !condition.at_most(params.max_condition),
+                )
             }
             None => (Matrix3xX::zeros(lights.len()), true),
         };
