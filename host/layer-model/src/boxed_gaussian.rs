@@ -167,19 +167,7 @@ impl Edge {
     /// fall): the tail is the density's Gaussian times Cody's rational.
     #[inline(always)]
     pub fn new(z: f64) -> Self {
-        if z.abs() >= UNDERFLOW_Z {
-            return Self {
-                z,
-                tail: 0.0,
-                phi: 0.0,
-            };
-        }
-        let g = gaussian(z);
-        Self {
-            z,
-            tail: tail_with(z, || g),
-            phi: g * INV_SQRT_2PI,
-        }
+        Self::with_density_and_tail(z, |z, g| tail_with(z, || g))
     }
 
     /// [`Edge::tail_only`] with the far tail's one-division form
@@ -206,6 +194,13 @@ impl Edge {
     /// mass from its edges' densities.
     #[inline]
     pub fn with_density_fast(z: f64) -> Self {
+        Self::with_density_and_tail(z, |z, g| fast_tail(z, || g))
+    }
+
+    /// The edge at `z` with its density and `tail(z, gaussian(z))` (one exponential for both);
+    /// both 0 where the Gaussian underflows.
+    #[inline(always)]
+    fn with_density_and_tail(z: f64, tail: impl FnOnce(f64, f64) -> f64) -> Self {
         if z.abs() >= UNDERFLOW_Z {
             return Self {
                 z,
@@ -216,7 +211,7 @@ impl Edge {
         let g = gaussian(z);
         Self {
             z,
-            tail: fast_tail(z, || g),
+            tail: tail(z, g),
             phi: g * INV_SQRT_2PI,
         }
     }
