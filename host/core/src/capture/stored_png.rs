@@ -222,6 +222,17 @@ mod tests {
         out
     }
 
+    /// A PNG of `samples` as the frame writer stores it (no compression, no row filter),
+    /// written by `png` itself.
+    fn stored(samples: &[u8], size: (u32, u32)) -> Vec<u8> {
+        encoded(
+            samples,
+            size,
+            png::Compression::NoCompression,
+            png::Filter::NoFilter,
+        )
+    }
+
     /// What `png` decodes from `file`.
     fn decoded_by_png(file: &[u8]) -> Vec<u8> {
         let mut reader = png::Decoder::new(std::io::Cursor::new(file))
@@ -247,12 +258,7 @@ mod tests {
             (11_000, 3),
         ] {
             let want = samples(size);
-            let mut file = encoded(
-                &want,
-                size,
-                png::Compression::NoCompression,
-                png::Filter::NoFilter,
-            );
+            let mut file = stored(&want, size);
             assert_eq!(decoded_by_png(&file), want, "{size:?}");
             let segments = stored_segments(&file, size).unwrap();
             let len = pack(&mut file, &segments);
@@ -267,12 +273,7 @@ mod tests {
     fn other_layouts_and_damaged_files_are_left_to_png() {
         let size = (40, 30);
         let want = samples(size);
-        let stored = encoded(
-            &want,
-            size,
-            png::Compression::NoCompression,
-            png::Filter::NoFilter,
-        );
+        let stored = stored(&want, size);
         let packed = |mut file: Vec<u8>, size| {
             stored_segments(&file, size).map(|segments| pack(&mut file, &segments))
         };
@@ -312,12 +313,7 @@ mod tests {
         let want = samples(size);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("frame.png");
-        let file = encoded(
-            &want,
-            size,
-            png::Compression::NoCompression,
-            png::Filter::NoFilter,
-        );
+        let file = stored(&want, size);
         std::fs::write(&path, file).unwrap();
         for start in [Vec::new(), vec![7u8; 5], vec![9u8; 100_000]] {
             let mut bytes = start;
@@ -338,12 +334,7 @@ mod tests {
         let (mut bytes, mut scratch) = (Vec::new(), Vec::new());
         for size in [(1, 1), (37, 1213), (1379, 29), (11_000, 3)] {
             let want = samples(size);
-            let file = encoded(
-                &want,
-                size,
-                png::Compression::NoCompression,
-                png::Filter::NoFilter,
-            );
+            let file = stored(&want, size);
             std::fs::write(&path, file).unwrap();
             let mut rows = Vec::new();
             let stored = for_each_stored_row(&path, size, &mut bytes, &mut scratch, |y, row| {
