@@ -13,7 +13,7 @@ use super::frame_render::{FrameRadiance, ProjectorTransport, Scene};
 use super::subjects::Chessboard;
 use mlsss_core::capture::{Pattern, truth};
 // The truth is run-length coded: kept with the capture, and mostly background zeros.
-use mlsss_core::imageio::{GrayF32, linear_to_srgb, write_exr_gray_compact, write_exr_rgb_compact};
+use mlsss_core::imageio::{GrayF32, srgb_byte, write_exr_gray_compact, write_exr_rgb_compact};
 
 fn rgb_image(w: u32, h: u32, f: impl Fn(usize) -> [f32; 3]) -> Rgb32FImage {
     Rgb32FImage::from_fn(w, h, |x, y| image::Rgb(f((y * w + x) as usize)))
@@ -180,7 +180,7 @@ pub fn write_contact_sheet(
                     }
                 }
                 let n = (factor * factor) as f32;
-                let px = acc.map(|v| (linear_to_srgb(v / n) * 255.0).round() as u8);
+                let px = acc.map(|v| srgb_byte(v / n));
                 sheet.put_pixel(ox + x, oy + y, image::Rgb(px));
             }
         }

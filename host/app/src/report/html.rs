@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use base64::Engine;
 use image::{ImageFormat, RgbImage};
 
-use mlsss_core::imageio::linear_to_srgb;
+use mlsss_core::imageio::srgb_byte;
 
 /// Errors of report generation.
 #[derive(Debug, thiserror::Error)]
@@ -140,7 +140,7 @@ pub fn linear_preview(
         let p = pixels[(y * width + x) as usize];
         image::Rgb(p.map(|v| {
             let v = if v.is_finite() { v * scale } else { 0.0 };
-            (linear_to_srgb(v.clamp(0.0, 1.0)) * 255.0).round() as u8
+            srgb_byte(v.clamp(0.0, 1.0))
         }))
     }))
 }
