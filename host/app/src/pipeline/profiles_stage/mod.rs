@@ -501,11 +501,20 @@ pub fn load_surface(
     camera_centre: Vector3<f64>,
 ) -> Result<Surface, ProfilesStageError> {
     let geo = ctx.stage_dir("geometry");
-    let points = read_rgb(&geo.join("points.exr"), size)?;
-    let depth = imageio::read_exr_gray(&geo.join("depth.exr"))?;
-    let ps_normals = read_rgb(&photometric_normals_path(&ctx.stage_dir("normals")), size)?;
+    // Three independent reads, each mostly serial EXR decoding: side by side.
+    let ((points, depth), ps_normals) = rayon::join(
+        || {
+            rayon::join(
+                || read_rgb(&geo.join("points.exr"), size),
+                || imageio::read_exr_gray(&geo.join("depth.exr")),
+            )
+        },
+        || read_rgb(&photometric_normals_path(&ctx.stage_dir("normals")), size),
+    );
+    let (points, depth, ps_normals) = (points?, depth?, ps_normals?);
     let (w, h) = (size.0 as usize, size.1 as usize);
     let mask: Vec<bool> = (0..w * h)
+        .into_par_iter()
         .map(|i| {
             depth.data.get(i).is_some_and(|d| *d > 0.0) && points[i].iter().all(|v| v.is_finite())
         })
@@ -514,7 +523,7 @@ pub fn load_surface(
         width: w,
         height: h,
         points: points
-            .iter()
+            .par_iter()
             .map(|p| Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])))
             .collect(),
         normals: vec![Vector3::zeros(); w * h],
@@ -522,6 +531,7 @@ pub fn load_surface(
         camera_centre,
     };
     let normals: Vec<Vector3<f64>> = (0..w * h)
+        .into_par_iter()
         .map(|i| {
             if !surface.mask[i] {
                 return Vector3::zeros();
@@ -625,42 +635,47 @@ impl ProfileInputs {
         let cam = &ctx.capture.manifest.booth.camera;
         let size = (cam.width, cam.height);
         let camera_centre = calib.camera.extrinsics.centre().coords;
-        let surface = load_surface(ctx, size, camera_centre)?;
         let black: Vec<f64> = (0..captured)
             .map(|k| calib.projectors[k].response.map_or(0.0, |r| r.black_level))
             .collect();
-        let stray = stray_for_all(ctx, &black)?;
-        let sep = ctx.stage_dir("separate");
-        let decode = ctx.stage_dir("decode");
+        // The surface, the stray light and every projector's cached images are independent
+        // reads, each mostly serial EXR or PNG decoding: read side by side instead of one
+        // after another (one core sat idle through them, about 0.8 CPU-s at full size).
+        let (surface, (stray, cached)) = rayon::join(
+            || load_surface(ctx, size, camera_centre),
+            || {
+                rayon::join(
+                    || stray_for_all(ctx, &black),
+                    || {
+                        (0..captured)
+                            .into_par_iter()
+                            .map(|k| CachedImages::read(ctx, params, k, size))
+                            .collect::<Result<Vec<_>, _>>()
+                    },
+                )
+            },
+        );
+        let (surface, stray, cached) = (surface?, stray?, cached?);
         let subject: Vec<usize> = (0..surface.len()).filter(|&i| surface.mask[i]).collect();
         let mut projectors = Vec::with_capacity(captured);
-        for (k, stray) in stray.into_iter().enumerate() {
+        for (k, (stray, cached)) in stray.into_iter().zip(cached).enumerate() {
             let device = &calib.projectors[k].device;
             let centre = device.extrinsics.centre().coords;
             let falloff = Falloff::Projector {
                 axis: device.extrinsics.device_to_world_dir(&Vector3::z()).into(),
                 scale: centre.norm_squared(),
             };
-            let path = coords_path(&decode, k);
-            let coords: Vec<Option<(f32, f32)>> = if path.is_file() {
-                load_coords(&path, size)?
-                    .into_iter()
-                    .map(|c| c.map(|(u, v)| (u as f32, v as f32)))
-                    .collect()
-            } else {
-                vec![None; surface.len()]
-            };
+            let CachedImages {
+                decoded,
+                separation_direct,
+                separation_global,
+                direct_white,
+                global_white,
+            } = cached;
             let coords = match params.coordinates {
-                SlitCoordinates::Decoded => coords,
-                SlitCoordinates::Projected => projected_coords(&surface, device, &coords),
+                SlitCoordinates::Decoded => decoded,
+                SlitCoordinates::Projected => projected_coords(&surface, device, &decoded),
             };
-            let separation_direct = read_rgb(&direct_path(&sep, k), size)?;
-            let separation_global = read_rgb(&global_path(&sep, k), size)?;
-            let (direct_white, global_white) = params.direct.split(
-                params.direct_fraction_range,
-                &separation_direct,
-                &separation_global,
-            );
             let mut inputs = ProjectorInputs {
                 k,
                 centre,
@@ -698,6 +713,62 @@ impl ProfileInputs {
             surface,
             projectors,
             params: params.clone(),
+        })
+    }
+}
+
+/// What [`ProfileInputs::load`] reads of one projector from the earlier stages' artefacts and
+/// does not need the surface for: its decoded coordinates and the separation's white images,
+/// split by [`ProfilesParams::direct`].
+struct CachedImages {
+    decoded: Vec<Option<(f32, f32)>>,
+    separation_direct: Vec<[f32; 3]>,
+    separation_global: Vec<[f32; 3]>,
+    direct_white: Vec<[f32; 3]>,
+    global_white: Vec<[f32; 3]>,
+}
+
+impl CachedImages {
+    /// Projector `k`'s images, the three files read side by side (none without its
+    /// coordinates file: no pixel decoded).
+    fn read(
+        ctx: &StageContext,
+        params: &ProfilesParams,
+        k: usize,
+        size: (u32, u32),
+    ) -> Result<Self, ProfilesStageError> {
+        let path = coords_path(&ctx.stage_dir("decode"), k);
+        let sep = ctx.stage_dir("separate");
+        let (decoded, (separation_direct, separation_global)) = rayon::join(
+            || -> Result<Vec<Option<(f32, f32)>>, ProfilesStageError> {
+                if !path.is_file() {
+                    return Ok(vec![None; size.0 as usize * size.1 as usize]);
+                }
+                Ok(load_coords(&path, size)?
+                    .into_iter()
+                    .map(|c| c.map(|(u, v)| (u as f32, v as f32)))
+                    .collect())
+            },
+            || {
+                rayon::join(
+                    || read_rgb(&direct_path(&sep, k), size),
+                    || read_rgb(&global_path(&sep, k), size),
+                )
+            },
+        );
+        let (decoded, separation_direct, separation_global) =
+            (decoded?, separation_direct?, separation_global?);
+        let (direct_white, global_white) = params.direct.split(
+            params.direct_fraction_range,
+            &separation_direct,
+            &separation_global,
+        );
+        Ok(Self {
+            decoded,
+            separation_direct,
+            separation_global,
+            direct_white,
+            global_white,
         })
     }
 }
@@ -1029,59 +1100,78 @@ fn truth_check(
     variants: bool,
 ) -> Result<Vec<Option<f64>>, ProfilesStageError> {
     let rules = if variants { &VARIANTS[..] } else { &[] };
+    // The projectors side by side: each reads its white truth, mostly serial EXR decoding,
+    // before its slits go in parallel. Their sums are added in projector order below, as one
+    // after another added them.
+    let per_projector = inputs
+        .projectors
+        .par_iter()
+        .map(|p| projector_truth_sums(ctx, inputs, p, rules, truth_dir, size))
+        .collect::<Result<Vec<_>, _>>()?;
     let mut acc = vec![(0.0, 0.0); rules.len() + 1];
     let mut compared = 0;
-    for p in &inputs.projectors {
-        let Some(white_truth) = true_white_global(truth_dir, p.k, size)? else {
-            continue;
-        };
-        let splits: Vec<WhiteSplit> = rules
-            .iter()
-            .map(|(_, rule)| match rule {
-                None => (p.direct_white.clone(), p.global_white.clone(), 0.0),
-                Some(r) => {
-                    let (d, g) = r.split(
-                        inputs.params.direct_fraction_range,
-                        &p.separation_direct,
-                        &p.separation_global,
-                    );
-                    (d, g, p.blur_px)
-                }
-            })
-            .collect();
-        // Only the slits with a truth image are made into images again (two of twenty in a
-        // simulated capture).
-        let patterns = p.slit_patterns();
-        let per_slit = (0..patterns.len())
-            .into_par_iter()
-            .filter(|&j| truth::global(truth_dir, p.k, &patterns[j]).is_file())
-            .filter_map(|j| p.slit_image(j))
-            .map(|(pattern, global)| {
-                check_slit(
-                    ctx,
-                    inputs,
-                    p,
-                    &splits,
-                    &pattern,
-                    &global,
-                    &white_truth,
-                    truth_dir,
-                    size,
-                )
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        for sums in per_slit.into_iter().flatten() {
-            compared += 1;
-            for (a, s) in acc.iter_mut().zip(sums) {
-                a.0 += s.0;
-                a.1 += s.1;
-            }
+    for sums in per_projector.into_iter().flatten() {
+        compared += 1;
+        for (a, s) in acc.iter_mut().zip(sums) {
+            a.0 += s.0;
+            a.1 += s.1;
         }
     }
     Ok(acc
         .into_iter()
         .map(|a| (compared > 0 && a.1 > 0.0).then(|| (a.0 / a.1).sqrt()))
         .collect())
+}
+
+/// [`truth_check`]'s error sums of projector `p`'s slit frames that have truth, in capture
+/// order ([`check_slit`]); none without its white truth.
+fn projector_truth_sums(
+    ctx: &StageContext,
+    inputs: &ProfileInputs,
+    p: &ProjectorInputs,
+    rules: &[(&str, Option<DirectPart>)],
+    truth_dir: &Path,
+    size: (u32, u32),
+) -> Result<Vec<Vec<(f64, f64)>>, ProfilesStageError> {
+    let Some(white_truth) = true_white_global(truth_dir, p.k, size)? else {
+        return Ok(Vec::new());
+    };
+    let splits: Vec<WhiteSplit> = rules
+        .iter()
+        .map(|(_, rule)| match rule {
+            None => (p.direct_white.clone(), p.global_white.clone(), 0.0),
+            Some(r) => {
+                let (d, g) = r.split(
+                    inputs.params.direct_fraction_range,
+                    &p.separation_direct,
+                    &p.separation_global,
+                );
+                (d, g, p.blur_px)
+            }
+        })
+        .collect();
+    // Only the slits with a truth image are made into images again (two of twenty in a
+    // simulated capture).
+    let patterns = p.slit_patterns();
+    let per_slit = (0..patterns.len())
+        .into_par_iter()
+        .filter(|&j| truth::global(truth_dir, p.k, &patterns[j]).is_file())
+        .filter_map(|j| p.slit_image(j))
+        .map(|(pattern, global)| {
+            check_slit(
+                ctx,
+                inputs,
+                p,
+                &splits,
+                &pattern,
+                &global,
+                &white_truth,
+                truth_dir,
+                size,
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(per_slit.into_iter().flatten().collect())
 }
 
 /// The error sums `(sum err^2, sum truth^2)` of one slit frame of projector `p`: its extracted
