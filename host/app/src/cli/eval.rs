@@ -9,7 +9,7 @@ use mlsss::capture::Capture;
 use mlsss::demo::DemoReport;
 use mlsss::demo::html_report::{RelightFigures, write_report};
 use mlsss::evaluate::backscatter::evaluate_backscatter;
-use mlsss::evaluate::holdout::evaluate_holdout;
+use mlsss::evaluate::holdout::{HeldOutImages, evaluate_read_holdout};
 use mlsss::layer_model::model_file::{Baseline, SubsurfaceModel};
 use mlsss::layer_model::render::RenderOptions;
 
@@ -37,8 +37,19 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let capture = Capture::open(&args.capture)
         .with_context(|| format!("opening capture {}", args.capture.display()))?;
-    let model = SubsurfaceModel::load(&args.model)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+    let load = || {
+        SubsurfaceModel::load(&args.model)
+            .with_context(|| format!("loading model {}", args.model.display()))
+    };
+    // With the projector given, its images are read beside the model's loading (one core
+    // inflates the model).
+    let (model, images) = match args.holdout {
+        Some(k) => {
+            let (model, images) = rayon::join(load, || HeldOutImages::read(&capture, k));
+            (model?, Some(images?))
+        }
+        None => (load()?, None),
+    };
     let k = args
         .holdout
         .or(model.header.holdout)
@@ -65,7 +76,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ..RenderOptions::default()
     };
     eprintln!("rendering projector {k} under its evaluation patterns ...");
-    let result = evaluate_holdout(&capture, &model, k, &renderers, &opts)?;
+    let images = match images {
+        Some(images) => images,
+        None => HeldOutImages::read(&capture, k)?,
+    };
+    let result = evaluate_read_holdout(&capture, images, &model, &renderers, &opts)?;
     let mut relight = result.report.clone();
     // A simulated capture has the true slit light: report the back-scatter split as the demo does.
     if capture.truth_dir().is_some()

@@ -7,7 +7,8 @@
 //! and calibrated beside it), of which `simulate_scan`, `simulate_calibration` and `calibrate`
 //! are each step's own time (the last two overlap the first, so they do not add up to
 //! `simulate`); one per pipeline stage (the `fit` stage includes its own figures and check
-//! renders), `eval` (the held-out evaluation: reading frames, rendering, metrics) of which
+//! renders), `eval` (the held-out evaluation: loading the model beside reading the frames,
+//! rendering, metrics) of which
 //! `render` is the rendering, `total` (wall clock of everything).
 //!
 //! `timing_cpu_s` (CPU seconds, user + system, all threads): `simulate` (the scan, the poses and
@@ -46,7 +47,7 @@ use crate::evaluate::backscatter::{BackscatterError, evaluate_backscatter};
 use crate::evaluate::calibration_error::{
     CalibrationErrorError, CalibrationErrors, align_world_frame, calibration_errors,
 };
-use crate::evaluate::holdout::{HoldoutError, RelightReport, evaluate_holdout};
+use crate::evaluate::holdout::{HeldOutImages, HoldoutError, RelightReport, evaluate_read_holdout};
 use crate::pipeline::decode_stage::ProjectorDecodeReport;
 use crate::pipeline::fit_stage::{FitParams, FitReport, model_path};
 use crate::pipeline::geometry_stage::GeometryReport;
@@ -797,15 +798,22 @@ fn relight_held_out(
     processed: &Path,
     timing: &mut Timings,
 ) -> Result<(RelightReport, html_report::RelightFigures), DemoError> {
-    let model = SubsurfaceModel::load(&model_path(processed))?;
+    let scan = Capture::open(capture)?;
+    // The capture's images need no model: read beside its loading (one core inflates it).
+    let (model, images) = timing.time("eval", || {
+        rayon::join(
+            || SubsurfaceModel::load(&model_path(processed)),
+            || HeldOutImages::read(&scan, opts.holdout),
+        )
+    });
+    let (model, images) = (model?, images?);
     let mut renderers = vec![Baseline::Mlsss, Baseline::Homogeneous];
     if model.dipole.is_some() {
         renderers.push(Baseline::Dipole);
     }
     renderers.push(Baseline::Direct);
-    let scan = Capture::open(capture)?;
     let relight = timing.time("eval", || {
-        evaluate_holdout(&scan, &model, opts.holdout, &renderers, &opts.render)
+        evaluate_read_holdout(&scan, images, &model, &renderers, &opts.render)
     })?;
     timing.add("render", relight.render_seconds);
     let mut report = relight.report;

@@ -17,6 +17,7 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use image::Rgb32FImage;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::metrics::{MetricsError, SquaredErrors};
@@ -84,12 +85,9 @@ const SATURATED_VALUE: f32 = 0.995;
 /// overexposed (a specular highlight covers a few percent).
 const MAX_SATURATED_SHARE: f64 = 0.2;
 
-/// Refuses a black or overexposed white frame of projector `k` as the evaluation's reference.
-fn check_reference(capture: &Capture, k: usize, mask: &[bool]) -> Result<(), HoldoutError> {
-    let Some(spec) = capture.manifest.plan.find(k as u8, &Pattern::White) else {
-        return Ok(());
-    };
-    let frame = capture.read_frame_pixels(spec.index)?;
+/// Refuses a black or overexposed white frame of projector `k` (`frame`, as recorded) as the
+/// evaluation's reference.
+fn check_reference(frame: &[[f32; 3]], k: usize, mask: &[bool]) -> Result<(), HoldoutError> {
     let compared: Vec<&[f32; 3]> = frame
         .iter()
         .zip(mask)
@@ -291,36 +289,114 @@ fn pixels_of(img: &Rgb32FImage) -> Vec<[f32; 3]> {
 }
 
 /// Stray light under projector `k` (the other projectors' black level), from the capture's
-/// white frames; zero when the black levels are unknown or the system is singular.
+/// white frames (`whites[j]`: projector `j`'s); zero when the black levels are unknown or the
+/// system is singular.
 fn stray_under(
-    capture: &Capture,
+    whites: &[Rgb32FImage],
     model: &SubsurfaceModel,
     k: usize,
 ) -> Result<Vec<[f32; 3]>, HoldoutError> {
     let n = model.header.projectors.len();
+    if whites.len() != n {
+        return Err(HoldoutError::Mismatch(format!(
+            "the capture has {} projectors, the model {n}",
+            whites.len()
+        )));
+    }
     let blacks: Vec<f64> = model
         .header
         .projectors
         .iter()
         .map(|p| f64::from(p.black_level))
         .collect();
-    let plan = &capture.manifest.plan;
-    let mut whites = Vec::with_capacity(n);
-    for j in 0..n {
-        let spec = plan
-            .find(j as u8, &Pattern::White)
-            .ok_or(HoldoutError::MissingFrame {
-                projector: j,
-                pattern: Pattern::White.label(),
-            })?;
-        whites.push(capture.read_frame(spec.index)?);
-    }
     let refs: Vec<&Rgb32FImage> = whites.iter().collect();
     let pixels = model.header.width * model.header.height;
     Ok(match stray_light(&refs, &blacks) {
         Some(s) => pixels_of(&s[k]),
         None => vec![[0.0; 3]; pixels],
     })
+}
+
+/// What the evaluation of projector `k` reads from the capture, none of it depending on the
+/// model: every projector's white frame (for the stray light), and the held-out projector's
+/// recorded frame and (simulated captures) true global image under each evaluated pattern.
+/// Why apart from the evaluation: the images are read in parallel, and a caller can load the
+/// model beside them (one core inflates the quick demo's model for about 0.3 s).
+pub struct HeldOutImages {
+    projector: usize,
+    patterns: Vec<Pattern>,
+    whites: Vec<Rgb32FImage>,
+    /// Per pattern: the recorded frame and the true global image, if any.
+    recorded: Vec<RecordedPattern>,
+}
+
+/// The recorded frame of one pattern and the simulator's true global image of it, if any.
+struct RecordedPattern {
+    frame: Vec<[f32; 3]>,
+    true_global: Option<Vec<[f32; 3]>>,
+}
+
+impl HeldOutImages {
+    /// Reads the images of projector `k`'s evaluation ([`evaluation_patterns`]).
+    pub fn read(capture: &Capture, k: usize) -> Result<Self, HoldoutError> {
+        let plan = &capture.manifest.plan;
+        let white_frames = (0..capture.manifest.booth.projectors.len())
+            .map(|j| {
+                plan.find(j as u8, &Pattern::White)
+                    .map(|spec| spec.index)
+                    .ok_or(HoldoutError::MissingFrame {
+                        projector: j,
+                        pattern: Pattern::White.label(),
+                    })
+            })
+            .collect::<Result<Vec<u32>, _>>()?;
+        let patterns = evaluation_patterns(capture, k);
+        let (whites, recorded) = rayon::join(
+            || {
+                white_frames
+                    .par_iter()
+                    .map(|&index| Ok(capture.read_frame(index)?))
+                    .collect::<Result<Vec<_>, HoldoutError>>()
+            },
+            || {
+                patterns
+                    .par_iter()
+                    .map(|pattern| recorded_and_truth(capture, k, pattern))
+                    .collect::<Result<Vec<_>, HoldoutError>>()
+            },
+        );
+        Ok(Self {
+            projector: k,
+            patterns,
+            whites: whites?,
+            recorded: recorded?,
+        })
+    }
+}
+
+/// The recorded frame of projector `k` under `pattern` and the simulator's true global image
+/// of it, when the capture has one.
+fn recorded_and_truth(
+    capture: &Capture,
+    k: usize,
+    pattern: &Pattern,
+) -> Result<RecordedPattern, HoldoutError> {
+    let spec = capture
+        .manifest
+        .plan
+        .find(k as u8, pattern)
+        .ok_or_else(|| HoldoutError::MissingFrame {
+            projector: k,
+            pattern: pattern.label(),
+        })?;
+    let frame = pixels_of(&capture.read_frame(spec.index)?);
+    let true_global = match capture.truth_dir() {
+        Some(t) if truth::global(&t, k, pattern).is_file() => {
+            Some(imageio::read_exr_rgb_pixels(&truth::global(&t, k, pattern))?.2)
+        }
+        _ => None,
+    };
+    Ok(RecordedPattern { frame, true_global })
 }
 
 /// Runs the evaluation of projector `k`.
@@ -331,31 +407,45 @@ pub fn evaluate_holdout(
     renderers: &[Baseline],
     opts: &RenderOptions,
 ) -> Result<HoldoutResult, HoldoutError> {
+    let images = HeldOutImages::read(capture, k)?;
+    evaluate_read_holdout(capture, images, model, renderers, opts)
+}
+
+/// Runs the evaluation of the projector whose capture images `images` holds.
+pub fn evaluate_read_holdout(
+    capture: &Capture,
+    images: HeldOutImages,
+    model: &SubsurfaceModel,
+    renderers: &[Baseline],
+    opts: &RenderOptions,
+) -> Result<HoldoutResult, HoldoutError> {
+    let k = images.projector;
     let baselines: Vec<(Baseline, &str)> = BASELINES
         .iter()
         .copied()
         .filter(|(b, _)| renderers.contains(b))
         .collect();
     let mask = compared_mask(capture, model, k)?;
-    check_reference(capture, k, &mask)?;
-    let stray = stray_under(capture, model, k)?;
-    let truth_dir = capture.truth_dir();
-    let patterns = evaluation_patterns(capture, k);
+    let HeldOutImages {
+        patterns,
+        whites,
+        recorded,
+        ..
+    } = images;
+    if let Some(i) = patterns.iter().position(|p| *p == Pattern::White) {
+        check_reference(&recorded[i].frame, k, &mask)?;
+    }
+    let stray = stray_under(&whites, model, k)?;
+    drop(whites);
     let mut pooled = Pooled::new(baselines.len());
     let mut per_pattern = Vec::new();
     let mut kept = Vec::new();
     let mut slits = Vec::new();
-    let mut references = Vec::with_capacity(patterns.len());
-    for pattern in &patterns {
-        let reference = reference_image(capture, k, pattern, &stray)?;
-        let true_global = match &truth_dir {
-            Some(t) if truth::global(t, k, pattern).is_file() => {
-                Some(imageio::read_exr_rgb_pixels(&truth::global(t, k, pattern))?.2)
-            }
-            _ => None,
-        };
-        references.push((reference, true_global));
-    }
+    // (Recorded frame less the stray light, true global image), per pattern.
+    let references: Vec<_> = recorded
+        .into_iter()
+        .map(|r| (less_stray(&r.frame, &stray), r.true_global))
+        .collect();
     // The figures show the white and the first Gray-code pattern: only their renders are kept.
     let first_gray = patterns
         .iter()
@@ -473,27 +563,13 @@ fn compared_mask(
         .collect())
 }
 
-/// The recorded frame of projector `k` under `pattern` less the stray light.
-fn reference_image(
-    capture: &Capture,
-    k: usize,
-    pattern: &Pattern,
-    stray: &[[f32; 3]],
-) -> Result<Vec<[f32; 3]>, HoldoutError> {
-    let spec = capture
-        .manifest
-        .plan
-        .find(k as u8, pattern)
-        .ok_or_else(|| HoldoutError::MissingFrame {
-            projector: k,
-            pattern: pattern.label(),
-        })?;
-    let frame = pixels_of(&capture.read_frame(spec.index)?);
-    Ok(frame
+/// A recorded frame less the stray light.
+fn less_stray(frame: &[[f32; 3]], stray: &[[f32; 3]]) -> Vec<[f32; 3]> {
+    frame
         .iter()
         .zip(stray)
         .map(|(f, s)| [f[0] - s[0], f[1] - s[1], f[2] - s[2]])
-        .collect())
+        .collect()
 }
 
 /// What one pattern of the held-out projector is compared with.
