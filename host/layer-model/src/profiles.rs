@@ -749,6 +749,30 @@ impl<'a> SlitSweep<'a> {
         })
     }
 
+    /// The samples of [`SlitSweep::profile`]'s profiles of pixel `i` along axis `a` in all three
+    /// channels at once, as `(s, [y; 3])`, without building the profiles (`None` where it gives
+    /// none): the same numbers bit for bit. Why: the spatial prior's width statistics read
+    /// every fitted tile's profiles in every channel, and building them was half its choice.
+    pub fn samples_rgb<'s>(
+        &'s self,
+        i: usize,
+        a: usize,
+        geo: &PixelGeometry,
+    ) -> Option<impl Iterator<Item = (f64, [f64; 3])> + 's> {
+        let frames = &self.frames[a];
+        frames.first()?;
+        // A profile is all or nothing: a stack holds all of a pixel's slits or none.
+        if frames.iter().any(|f| f.3.value(i, 0).is_none()) {
+            return None;
+        }
+        let ax = geo.axes[a];
+        let coord = if a == 0 { geo.coords.0 } else { geo.coords.1 };
+        Some(frames.iter().map(move |&(w, p, o, img)| {
+            let y = std::array::from_fn(|c| img.value(i, c).map_or(0.0, f64::from));
+            (slit_distance_px(coord, w, p, o) / ax.px_per_mm, y)
+        }))
+    }
+
     /// `(flux, slit width)` (radiance x mm, mm) of [`SlitSweep::profile`]'s profile, the same
     /// numbers as its [`Profile::flux`] and `slit_width`, without building the samples: the
     /// amplitudes of every pixel need them, and building ~25 million profiles at full size for
