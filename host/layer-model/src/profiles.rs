@@ -587,6 +587,53 @@ pub struct SlitSweep<'a> {
     frames: [Vec<SweepFrame<'a>>; 2],
     /// Camera noise of the frames, handed to every profile ([`Profile::noise`]).
     noise: Option<FrameNoise>,
+    /// The stack's slit sums that [`SlitSweep::flux`] reads ([`SlitSweep::with_flux_totals`]).
+    totals: Option<FluxTotals<'a>>,
+}
+
+/// Per row of a [`SlitStack`], per axis and channel: the sum of the axis' slit values clamped
+/// at 0, in frame order, as [`SlitSweep::flux`] sums them. Why: the shading regression, the
+/// EM's amplitudes and the spatial prior's each ask every pixel's flux under every training
+/// projector (~4 million pixel-channel-projectors at full size, 20 slit values each, read one
+/// by one through the stack's row index); summed once per row they are read once.
+#[derive(Debug, Clone)]
+struct FluxTotals<'a> {
+    stack: &'a SlitStack,
+    sums: Vec<[[f64; 3]; 2]>,
+}
+
+impl<'a> FluxTotals<'a> {
+    /// The sums of `stack`'s rows over the frames `axes[a]` (indices into its patterns).
+    fn new(stack: &'a SlitStack, axes: &[Vec<usize>; 2]) -> Self {
+        let n = stack.patterns.len();
+        let rows = if n == 0 {
+            0
+        } else {
+            stack.values.len() / (n * 3)
+        };
+        let sums = (0..rows)
+            .into_par_iter()
+            .map(|r| {
+                let row = &stack.values[r * n * 3..(r + 1) * n * 3];
+                std::array::from_fn(|a| {
+                    std::array::from_fn(|c| {
+                        axes[a]
+                            .iter()
+                            .map(|&j| f64::from(row[j * 3 + c]).max(0.0))
+                            .sum()
+                    })
+                })
+            })
+            .collect();
+        Self { stack, sums }
+    }
+
+    /// Pixel `i`'s sum along axis `a` in channel `c`; `None` where the stack holds no row.
+    #[inline]
+    fn get(&self, i: usize, a: usize, c: usize) -> Option<f64> {
+        let row = *self.stack.rows.get(i)?;
+        Some(self.sums.get(row as usize)?[a][c])
+    }
 }
 
 impl<'a> SlitSweep<'a> {
@@ -652,6 +699,7 @@ impl<'a> SlitSweep<'a> {
         Ok(Self {
             frames: out,
             noise: None,
+            totals: None,
         })
     }
 
@@ -662,6 +710,39 @@ impl<'a> SlitSweep<'a> {
             noise: Some(noise),
             ..self
         }
+    }
+
+    /// The sweep with its slits' sums per pixel made once (in parallel), so that
+    /// [`SlitSweep::flux`] reads one number instead of every slit's value; the same fluxes bit
+    /// for bit. Unchanged unless every frame is of one [`SlitStack`] ([`SlitSweep::from_stack`]).
+    pub fn with_flux_totals(self) -> Self {
+        let Some(stack) = self.single_stack() else {
+            return self;
+        };
+        let axes: [Vec<usize>; 2] = std::array::from_fn(|a| {
+            self.frames[a]
+                .iter()
+                .filter_map(|f| match f.3 {
+                    SweepImage::Stacked(_, j) => Some(j),
+                    SweepImage::Dense(_) => None,
+                })
+                .collect()
+        });
+        Self {
+            totals: Some(FluxTotals::new(stack, &axes)),
+            ..self
+        }
+    }
+
+    /// The stack every frame is read from, if there is one.
+    fn single_stack(&self) -> Option<&'a SlitStack> {
+        let mut frames = self.frames.iter().flatten();
+        let SweepImage::Stacked(stack, _) = frames.next()?.3 else {
+            return None;
+        };
+        frames
+            .all(|f| matches!(f.3, SweepImage::Stacked(s, _) if std::ptr::eq(s, stack)))
+            .then_some(stack)
     }
 
     /// The profile of pixel `i`, channel `c`, along axis `a` (0 = x, 1 = y), or `None` when this
@@ -689,6 +770,30 @@ impl<'a> SlitSweep<'a> {
         })
     }
 
+    /// The samples of [`SlitSweep::profile`]'s profiles of pixel `i` along axis `a` in all three
+    /// channels at once, as `(s, [y; 3])`, without building the profiles (`None` where it gives
+    /// none): the same numbers bit for bit. Why: the spatial prior's width statistics read
+    /// every fitted tile's profiles in every channel, and building them was half its choice.
+    pub fn samples_rgb<'s>(
+        &'s self,
+        i: usize,
+        a: usize,
+        geo: &PixelGeometry,
+    ) -> Option<impl Iterator<Item = (f64, [f64; 3])> + 's> {
+        let frames = &self.frames[a];
+        frames.first()?;
+        // A profile is all or nothing: a stack holds all of a pixel's slits or none.
+        if frames.iter().any(|f| f.3.value(i, 0).is_none()) {
+            return None;
+        }
+        let ax = geo.axes[a];
+        let coord = if a == 0 { geo.coords.0 } else { geo.coords.1 };
+        Some(frames.iter().map(move |&(w, p, o, img)| {
+            let y = std::array::from_fn(|c| img.value(i, c).map_or(0.0, f64::from));
+            (slit_distance_px(coord, w, p, o) / ax.px_per_mm, y)
+        }))
+    }
+
     /// `(flux, slit width)` (radiance x mm, mm) of [`SlitSweep::profile`]'s profile, the same
     /// numbers as its [`Profile::flux`] and `slit_width`, without building the samples: the
     /// amplitudes of every pixel need them, and building ~25 million profiles at full size for
@@ -697,10 +802,13 @@ impl<'a> SlitSweep<'a> {
         let frames = &self.frames[a];
         let &(width, period, _, _) = frames.first()?;
         let px_per_mm = geo.axes[a].px_per_mm;
-        let total: f64 = frames
-            .iter()
-            .map(|&(_, _, _, img)| img.value(i, c).map(|v| f64::from(v).max(0.0)))
-            .sum::<Option<f64>>()?;
+        let total: f64 = match &self.totals {
+            Some(totals) => totals.get(i, a, c)?,
+            None => frames
+                .iter()
+                .map(|&(_, _, _, img)| img.value(i, c).map(|v| f64::from(v).max(0.0)))
+                .sum::<Option<f64>>()?,
+        };
         let period_mm = f64::from(period) / px_per_mm;
         Some((
             total / frames.len() as f64 * period_mm,
@@ -826,6 +934,89 @@ mod tests {
             assert_eq!(sweep.flux(2, c, 0, &geo), Some((p.flux(), p.slit_width)));
         }
         assert_eq!(sweep.flux(2, 0, 1, &geo), None, "no slit along y");
+    }
+
+    /// The flux sums made once per row give every pixel's flux bit for bit as the dense sweep
+    /// sums it slit by slit (the reference), on random stacks: axes interleaved in any order or
+    /// one of them without slits, negative values (clamped), pixels the stack does not hold or
+    /// dropped by `retain_pixels`, and a dense sweep, which keeps summing itself.
+    #[test]
+    fn flux_totals_give_the_slit_by_slit_flux_bit_for_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(29);
+        let geo = PixelGeometry {
+            coords: (3.1, 8.6),
+            irradiance: 0.7,
+            axes: [AxisGeometry {
+                px_per_mm: 1.9,
+                shift_per_depth: 0.1,
+            }; 2],
+            shift: Vector3::zeros(),
+        };
+        let mut compared = 0;
+        for _ in 0..50 {
+            let n = rng.gen_range(1..40);
+            let frames_count = rng.gen_range(1..12);
+            let y_share = [0.0, 0.5, 1.0][rng.gen_range(0..3)];
+            let images: Vec<Vec<[f32; 3]>> = (0..frames_count)
+                .map(|_| {
+                    (0..n)
+                        .map(|_| std::array::from_fn(|_| rng.gen_range(-0.3f32..2.0)))
+                        .collect()
+                })
+                .collect();
+            let frames: Vec<SlitFrame> = images
+                .iter()
+                .enumerate()
+                .map(|(j, g)| SlitFrame {
+                    pattern: Pattern::Slit {
+                        axis: if rng.gen_bool(y_share) {
+                            Axis::Y
+                        } else {
+                            Axis::X
+                        },
+                        width: 2,
+                        period: 10,
+                        offset: j as u32,
+                    },
+                    global: g,
+                })
+                .collect();
+            let held: Vec<bool> = (0..n).map(|_| rng.gen_bool(0.7)).collect();
+            let kept: Vec<bool> = (0..n).map(|_| rng.gen_bool(0.8)).collect();
+            let mut stack = SlitStack::new(&frames, n, |i| held[i]).unwrap();
+            let retain = rng.gen_bool(0.5);
+            if retain {
+                stack.retain_pixels(|i| kept[i]);
+            }
+            let dense = SlitSweep::new(&frames, n).unwrap();
+            let summed = SlitSweep::from_stack(&stack, n).unwrap().with_flux_totals();
+            assert!(summed.totals.is_some());
+            let dense_summed = SlitSweep::new(&frames, n).unwrap().with_flux_totals();
+            assert!(
+                dense_summed.totals.is_none(),
+                "a dense sweep has no stack to sum"
+            );
+            for i in 0..n {
+                let holds = held[i] && (!retain || kept[i]);
+                for (c, a) in (0..3).flat_map(|c| (0..2).map(move |a| (c, a))) {
+                    let want = dense.flux(i, c, a, &geo);
+                    let got = summed.flux(i, c, a, &geo);
+                    if holds {
+                        assert_eq!(
+                            got.map(|(f, w)| (f.to_bits(), w.to_bits())),
+                            want.map(|(f, w)| (f.to_bits(), w.to_bits())),
+                            "pixel {i} channel {c} axis {a}"
+                        );
+                        compared += usize::from(want.is_some());
+                    } else {
+                        assert_eq!(got, None, "pixel {i} is not in the stack");
+                    }
+                    assert_eq!(dense_summed.flux(i, c, a, &geo), want);
+                }
+            }
+        }
+        assert!(compared > 1000, "only {compared} fluxes compared");
     }
 
     #[test]

@@ -206,25 +206,61 @@ impl PixelSums {
 
     /// The posterior mode with strengths `lambda` and `kappa` (see [`solve_pixel`]).
     fn solve(&self, mu: &[f64; 3], lambda: f64, kappa: f64) -> Option<PixelShading> {
+        self.with_kappa(mu, kappa).solve(lambda)
+    }
+
+    /// What [`PixelSums::solve`] computes before the ridge `lambda` enters, for amplitude
+    /// prior strength `kappa` and channel means `mu`.
+    fn with_kappa(&self, mu: &[f64; 3], kappa: f64) -> KappaTerms<'_> {
         let Self {
-            n,
-            s,
-            u_sum,
-            uu,
-            uy,
+            n, s, u_sum, uy, ..
         } = self;
         // A tiny amplitude prior keeps channels without an observation at the subject mean.
         let k = kappa.max(1e-9);
-        let mut m = uu + Matrix2::identity() * lambda;
         let mut r = *uy;
+        let mut outer = [Matrix2::<f64>::zeros(); 3];
         for c in 0..3 {
             let inv = 1.0 / (n[c] + k);
-            m -= u_sum[c] * u_sum[c].transpose() * inv;
+            outer[c] = u_sum[c] * u_sum[c].transpose() * inv;
             r -= u_sum[c] * ((s[c] + k * mu[c]) * inv);
         }
-        let delta = m.cholesky()?.solve(&r);
+        KappaTerms {
+            sums: self,
+            prior: std::array::from_fn(|c| s[c] + k * mu[c]),
+            count: std::array::from_fn(|c| n[c] + k),
+            outer,
+            r,
+        }
+    }
+}
+
+/// A pixel's normal equations for one amplitude prior strength `kappa`, every term that does
+/// not depend on the ridge `lambda` made ([`PixelSums::with_kappa`]). Why: the cross-validation
+/// solves each left-out observation for 9 ridges per `kappa`, and the amplitudes' elimination
+/// (three divisions and outer products) is the same for all 9. The same operations in the same
+/// order as solving afresh, so the same solutions bit for bit.
+struct KappaTerms<'a> {
+    sums: &'a PixelSums,
+    /// Per channel `s_c + k mu_c` and `n_c + k`.
+    prior: [f64; 3],
+    count: [f64; 3],
+    /// Per channel `U_c U_c^T / (n_c + k)`, subtracted from `S + lambda I`.
+    outer: [Matrix2<f64>; 3],
+    /// The right-hand side `t - sum_c U_c (s_c + k mu_c) / (n_c + k)`.
+    r: Vector2<f64>,
+}
+
+impl KappaTerms<'_> {
+    /// The posterior mode with ridge `lambda`.
+    fn solve(&self, lambda: f64) -> Option<PixelShading> {
+        let mut m = self.sums.uu + Matrix2::identity() * lambda;
+        for outer in &self.outer {
+            m -= outer;
+        }
+        let delta = m.cholesky()?.solve(&self.r);
+        let u_sum = &self.sums.u_sum;
         let alpha: [f64; 3] =
-            std::array::from_fn(|c| (s[c] + k * mu[c] - u_sum[c].dot(&delta)) / (n[c] + k));
+            std::array::from_fn(|c| (self.prior[c] - u_sum[c].dot(&delta)) / self.count[c]);
         Some(PixelShading {
             alpha,
             delta: clamped_correction(delta),
@@ -243,15 +279,9 @@ fn clamped_correction(delta: Vector2<f64>) -> Vector2<f64> {
 }
 
 /// Squared prediction errors and count of observation `left` (with its pixel's other
-/// observations' sums `others`, `None` when it has none).
-fn left_out_error(
-    left: &Observation,
-    others: Option<&PixelSums>,
-    mu: &[f64; 3],
-    lambda: f64,
-    kappa: f64,
-) -> (f64, usize) {
-    let Some(fit) = others.and_then(|sums| sums.solve(mu, lambda, kappa)) else {
+/// observations' terms `others` for one `kappa`, `None` when it has none) under ridge `lambda`.
+fn left_out_error(left: &Observation, others: Option<&KappaTerms>, lambda: f64) -> (f64, usize) {
+    let Some(fit) = others.and_then(|terms| terms.solve(lambda)) else {
         return (0.0, 0);
     };
     let shade = fit.delta.dot(&left.u);
@@ -289,10 +319,6 @@ fn cross_validate(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> (Vec<(f64, f64,
     let scorable: Vec<&Vec<Observation>> = pixels.iter().filter(|o| o.len() >= 2).collect();
     let step = scorable.len().div_ceil(CV_PIXELS).max(1);
     let chosen: Vec<&Vec<Observation>> = scorable.into_iter().step_by(step).collect();
-    let grid: Vec<(f64, f64)> = LAMBDAS
-        .iter()
-        .flat_map(|&l| KAPPAS.iter().map(move |&k| (l, k)))
-        .collect();
     // Every left-out observation with the sums of the others, in the order they are scored.
     let left_out: Vec<(&Observation, Option<PixelSums>)> = chosen
         .par_iter()
@@ -302,20 +328,36 @@ fn cross_validate(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> (Vec<(f64, f64,
                 .map(|(left, o)| (o, PixelSums::of(obs, Some(left))))
         })
         .collect();
-    let table = grid
+    // Per kappa, every ridge's sum over the left-out observations in their order (each
+    // observation's terms made once for its 9 ridges).
+    let per_kappa: Vec<[(f64, usize); LAMBDAS.len()]> = KAPPAS
         .par_iter()
-        .map(|&(lambda, kappa)| {
-            let (mut sum, mut n) = (0.0, 0usize);
+        .map(|&kappa| {
+            let mut sums = [(0.0, 0usize); LAMBDAS.len()];
             for (left, others) in &left_out {
-                let (s, m) = left_out_error(left, others.as_ref(), mu, lambda, kappa);
-                sum += s;
-                n += m;
+                let terms = others.as_ref().map(|o| o.with_kappa(mu, kappa));
+                for (acc, &lambda) in sums.iter_mut().zip(&LAMBDAS) {
+                    let (s, m) = left_out_error(left, terms.as_ref(), lambda);
+                    acc.0 += s;
+                    acc.1 += m;
+                }
             }
-            (
-                lambda,
-                kappa,
-                if n > 0 { sum / n as f64 } else { f64::INFINITY },
-            )
+            sums
+        })
+        .collect();
+    // The table ridge by ridge, then strength, as the choice reads it (first minimum wins).
+    let table = LAMBDAS
+        .iter()
+        .enumerate()
+        .flat_map(|(l, &lambda)| {
+            KAPPAS.iter().zip(&per_kappa).map(move |(&kappa, sums)| {
+                let (sum, n) = sums[l];
+                (
+                    lambda,
+                    kappa,
+                    if n > 0 { sum / n as f64 } else { f64::INFINITY },
+                )
+            })
         })
         .collect();
     (table, chosen.len())
@@ -529,6 +571,73 @@ mod tests {
             alpha: [x[0], x[1], x[2]],
             delta: clamped_correction(delta),
         })
+    }
+
+    /// [`PixelSums::solve`] as it was written before the terms of one `kappa` were shared
+    /// between ridges: the reference [`KappaTerms`] is checked against bit for bit.
+    fn solve_in_one(
+        sums: &PixelSums,
+        mu: &[f64; 3],
+        lambda: f64,
+        kappa: f64,
+    ) -> Option<PixelShading> {
+        let PixelSums {
+            n,
+            s,
+            u_sum,
+            uu,
+            uy,
+        } = sums;
+        let k = kappa.max(1e-9);
+        let mut m = uu + Matrix2::identity() * lambda;
+        let mut r = *uy;
+        for c in 0..3 {
+            let inv = 1.0 / (n[c] + k);
+            m -= u_sum[c] * u_sum[c].transpose() * inv;
+            r -= u_sum[c] * ((s[c] + k * mu[c]) * inv);
+        }
+        let delta = m.cholesky()?.solve(&r);
+        let alpha: [f64; 3] =
+            std::array::from_fn(|c| (s[c] + k * mu[c] - u_sum[c].dot(&delta)) / (n[c] + k));
+        Some(PixelShading {
+            alpha,
+            delta: clamped_correction(delta),
+        })
+    }
+
+    /// One `kappa`'s terms solved for every ridge give what solving each strength in one go
+    /// gives, bit for bit, on random pixels: channels missing, an observation left out, every
+    /// strength of the cross-validation's grid.
+    #[test]
+    fn kappa_terms_solve_every_ridge_as_solving_in_one_go() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(41);
+        let mut compared = 0;
+        for _ in 0..3000 {
+            let count = rng.gen_range(1..6);
+            let obs: Vec<Observation> = (0..count)
+                .map(|_| Observation {
+                    u: Vector2::new(rng.gen_range(-1.5..1.5), rng.gen_range(-1.5..1.5)),
+                    y: std::array::from_fn(|_| rng.gen_bool(0.8).then(|| rng.gen_range(-3.0..1.0))),
+                })
+                .collect();
+            let skip = rng.gen_bool(0.5).then(|| rng.gen_range(0..count));
+            let mu = [-1.0, -1.3, -1.8];
+            let Some(sums) = PixelSums::of(&obs, skip) else {
+                continue;
+            };
+            for &kappa in &KAPPAS {
+                let terms = sums.with_kappa(&mu, kappa);
+                for &lambda in &LAMBDAS {
+                    let bits = |f: Option<PixelShading>| {
+                        f.map(|f| (f.alpha.map(f64::to_bits), f.delta.map(f64::to_bits)))
+                    };
+                    let want = solve_in_one(&sums, &mu, lambda, kappa);
+                    compared += usize::from(want.is_some());
+                    assert_eq!(bits(terms.solve(lambda)), bits(want), "{lambda} {kappa}");
+                }
+            }
+        }
+        assert!(compared > 50_000, "only {compared} solutions compared");
     }
 
     /// Eliminating the amplitudes gives the whole system's solution (to rounding) on random

@@ -170,29 +170,32 @@ fn tile_likelihoods(
     Ok(out)
 }
 
-/// Log of the second moment (mm^2) of the profiles of pixel `i`, channel `c`, per training
+/// Log of the second moment (mm^2) of the profiles of pixel `i`, per channel and training
 /// projector (both axes pooled; `None` where that projector gives the pixel no light): a
-/// one-number summary of the kernel width each light direction measured.
-fn log_widths(inputs: &Inputs, i: usize, c: usize) -> Vec<Option<f64>> {
-    inputs
-        .geometries
-        .iter()
-        .zip(inputs.sweeps)
-        .map(|(geo, sweep)| {
-            let g = *geo.get(i)?;
-            let (mut m0, mut m2) = (0.0, 0.0);
-            for a in 0..2 {
-                if let Some(p) = sweep.profile(i, c, a, &g) {
-                    for s in &p.samples {
-                        let y = s.y.max(0.0);
-                        m0 += y;
-                        m2 += y * s.s * s.s;
-                    }
+/// one-number summary of the kernel width each light direction measured. The three channels
+/// from one pass over the samples ([`SlitSweep::samples_rgb`]), each summed in sample order.
+pub(super) fn log_widths(inputs: &Inputs, i: usize) -> [Vec<Option<f64>>; 3] {
+    let mut out: [Vec<Option<f64>>; 3] = Default::default();
+    for (geo, sweep) in inputs.geometries.iter().zip(inputs.sweeps) {
+        let Some(g) = geo.get(i) else {
+            out.iter_mut().for_each(|o| o.push(None));
+            continue;
+        };
+        let (mut m0, mut m2) = ([0.0f64; 3], [0.0f64; 3]);
+        for samples in (0..2).filter_map(|a| sweep.samples_rgb(i, a, g)) {
+            for (s, ys) in samples {
+                for c in 0..3 {
+                    let y = ys[c].max(0.0);
+                    m0[c] += y;
+                    m2[c] += y * s * s;
                 }
             }
-            (m0 > 0.0 && m2 > 0.0).then(|| (m2 / m0).ln())
-        })
-        .collect()
+        }
+        for (c, o) in out.iter_mut().enumerate() {
+            o.push((m0[c] > 0.0 && m2[c] > 0.0).then(|| (m2[c] / m0[c]).ln()));
+        }
+    }
+    out
 }
 
 /// Per tile and channel, the negated squared errors of predicting the validation pixel's log
@@ -231,7 +234,7 @@ impl FittedWidths {
         let per_tile: Vec<[Vec<Option<f64>>; 3]> = (0..inputs.tiles.count())
             .into_par_iter()
             .map(|t| match inputs.fitted_pixel(t) {
-                Some(i) => std::array::from_fn(|c| log_widths(inputs, i, c)),
+                Some(i) => log_widths(inputs, i),
                 None => Default::default(),
             })
             .collect();
@@ -307,8 +310,8 @@ fn tile_width_scores(
     let Some((v, exclude)) = inputs.validation_pixel(t) else {
         return out;
     };
-    for (c, o) in out.iter_mut().enumerate() {
-        let own = log_widths(inputs, v, c);
+    let own_widths = log_widths(inputs, v);
+    for ((c, o), own) in out.iter_mut().enumerate().zip(own_widths) {
         let mut scores = vec![0.0; candidates.len()];
         let mut scored = false;
         for (p, x) in own.iter().enumerate() {

@@ -465,3 +465,81 @@ fn switched_off_the_model_is_untouched() {
         Err(SpatialPriorError::ProjectorCount { .. })
     ));
 }
+
+/// The log widths as they were computed before [`SlitSweep::samples_rgb`]: from each axis'
+/// profile, channel by channel (the reference).
+fn log_widths_from_profiles(inputs: &tiles::Inputs, i: usize, c: usize) -> Vec<Option<f64>> {
+    inputs
+        .geometries
+        .iter()
+        .zip(inputs.sweeps)
+        .map(|(geo, sweep)| {
+            let g = *geo.get(i)?;
+            let (mut m0, mut m2) = (0.0, 0.0);
+            for a in 0..2 {
+                if let Some(p) = sweep.profile(i, c, a, &g) {
+                    for s in &p.samples {
+                        let y = s.y.max(0.0);
+                        m0 += y;
+                        m2 += y * s.s * s.s;
+                    }
+                }
+            }
+            (m0 > 0.0 && m2 > 0.0).then(|| (m2 / m0).ln())
+        })
+        .collect()
+}
+
+/// The three channels' log widths from one pass over the samples equal the profiles' channel
+/// by channel, bit for bit: dense sweeps, and stacked ones that do not hold every pixel, with
+/// pixels some projector does not light and negative (noisy, clamped) slit values.
+#[test]
+fn log_widths_of_all_channels_at_once_equal_the_profiles_bit_for_bit() {
+    use crate::profiles::SlitStack;
+    let mut s = scene(|_| 0.5, |_| 1.0, 71);
+    let n = SIZE * SIZE;
+    for (p, geo) in s.geometries.iter_mut().enumerate() {
+        let full: Vec<Option<PixelGeometry>> = (0..n).map(|i| geo.get(i).copied()).collect();
+        *geo = full
+            .into_iter()
+            .enumerate()
+            .map(|(i, g)| g.filter(|_| (i + p) % 7 != 0))
+            .collect();
+    }
+    let model = LayerModel::from_fn(SIZE, SIZE, |_, _| std::iter::empty());
+    let frames = slit_frames(&s);
+    let stacks: Vec<SlitStack> = frames
+        .iter()
+        .enumerate()
+        .map(|(p, f)| SlitStack::new(f, n, |i| (i + 2 * p) % 5 != 0).unwrap())
+        .collect();
+    let dense = sweeps(&frames);
+    let stacked: Vec<SlitSweep> = stacks
+        .iter()
+        .map(|st| SlitSweep::from_stack(st, n).unwrap())
+        .collect();
+    let opts = PriorOptions::default();
+    let mut compared = 0;
+    for sweeps in [&dense, &stacked] {
+        let inputs = tiles::Inputs {
+            model: &model,
+            surface: &s.surface,
+            geometries: &s.geometries,
+            sweeps,
+            tiles: tiles::Tiles::new(SIZE, SIZE, 3),
+            depth_spacing: 0.0,
+            opts: &opts,
+        };
+        for i in 0..n {
+            let widths = cross_validation::log_widths(&inputs, i);
+            for (c, got) in widths.iter().enumerate() {
+                let want = log_widths_from_profiles(&inputs, i, c);
+                let bits =
+                    |w: &[Option<f64>]| w.iter().map(|x| x.map(f64::to_bits)).collect::<Vec<_>>();
+                assert_eq!(bits(got), bits(&want), "pixel {i} channel {c}");
+                compared += want.iter().flatten().count();
+            }
+        }
+    }
+    assert!(compared > 10_000, "only {compared} widths compared");
+}

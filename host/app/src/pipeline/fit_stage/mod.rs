@@ -319,7 +319,8 @@ struct TrainingProfiles<'a> {
 }
 
 impl<'a> TrainingProfiles<'a> {
-    /// The training projectors' slit sweeps, borrowed from `inputs`, beside their `geometries`.
+    /// The training projectors' slit sweeps, borrowed from `inputs`, beside their `geometries`;
+    /// with their flux sums, as the EM's amplitudes and the spatial prior's read every pixel's.
     fn new(
         inputs: &'a ProfileInputs,
         training: &[usize],
@@ -328,7 +329,11 @@ impl<'a> TrainingProfiles<'a> {
         Ok(Self {
             sweeps: training
                 .iter()
-                .map(|&k| inputs.projectors[k].sweep())
+                .map(|&k| {
+                    inputs.projectors[k]
+                        .sweep()
+                        .map(SlitSweep::with_flux_totals)
+                })
                 .collect::<Result<_, _>>()?,
             geometries,
         })
@@ -569,9 +574,14 @@ fn refine_surface(
     training: &[usize],
     geometries: &mut Vec<GeometryMap>,
 ) -> Result<ShadingReport, FitStageError> {
+    // With their flux sums: the regression reads every pixel's flux under every projector.
     let sweeps: Vec<SlitSweep> = training
         .iter()
-        .map(|&k| inputs.projectors[k].sweep())
+        .map(|&k| {
+            inputs.projectors[k]
+                .sweep()
+                .map(SlitSweep::with_flux_totals)
+        })
         .collect::<Result<_, _>>()?;
     let centres: Vec<Vector3<f64>> = training
         .iter()
