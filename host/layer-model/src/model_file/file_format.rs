@@ -30,7 +30,7 @@ impl SubsurfaceModel {
             path: path.to_owned(),
             source,
         };
-        let members: Vec<Vec<Vec<u8>>> = self
+        let members: Vec<Vec<Member>> = self
             .parts(version)?
             .par_iter()
             .map(Part::members)
@@ -46,7 +46,7 @@ impl SubsurfaceModel {
             members
                 .iter()
                 .flatten()
-                .try_for_each(|member| out.write_all(member))
+                .try_for_each(|member| member.write_to(out))
         })
         .map_err(io)
     }
@@ -164,9 +164,13 @@ struct Piece {
 
 impl Piece {
     /// The piece as a gzip member.
-    fn member(&self) -> std::io::Result<Vec<u8>> {
+    fn member(self) -> std::io::Result<Member> {
         if !self.deflate {
-            return Ok(stored_member(&self.bytes));
+            let crc = crc32fast::hash(&self.bytes);
+            return Ok(Member::Stored {
+                bytes: self.bytes,
+                crc,
+            });
         }
         let capacity = self.bytes.len() / 2;
         let mut gz = flate2::write::GzEncoder::new(
@@ -174,41 +178,55 @@ impl Piece {
             flate2::Compression::fast(),
         );
         gz.write_all(&self.bytes)?;
-        gz.finish()
+        gz.finish().map(Member::Compressed)
     }
 }
 
 /// Bytes per stored deflate block (the most its 16-bit length holds).
 const STORED_BLOCK: usize = 0xffff;
 
-/// `bytes` as one gzip member of stored deflate blocks (RFC 1951 section 3.2.4, RFC 1952),
-/// made here: a copy and the CRC. Why: `flate2` at level 0 went through miniz_oxide's stored
-/// path at about 310 MB/s (the full-size weight planes' 88 MB: 70 perf samples at 250 Hz, 0.28
-/// CPU-s).
-fn stored_member(bytes: &[u8]) -> Vec<u8> {
-    let blocks = bytes.len().div_ceil(STORED_BLOCK).max(1);
-    let mut out = Vec::with_capacity(10 + bytes.len() + 5 * blocks + 8);
+/// One gzip member of the file, ready to write.
+enum Member {
+    /// Written as it is.
+    Compressed(Vec<u8>),
+    /// Bytes to write as stored deflate blocks, with their CRC-32.
+    Stored { bytes: Vec<u8>, crc: u32 },
+}
+
+impl Member {
+    fn write_to(&self, out: &mut impl Write) -> std::io::Result<()> {
+        match self {
+            Self::Compressed(member) => out.write_all(member),
+            Self::Stored { bytes, crc } => write_stored_member(out, bytes, *crc),
+        }
+    }
+}
+
+/// Writes `bytes` (CRC-32 `crc`) as one gzip member of stored deflate blocks (RFC 1951
+/// section 3.2.4, RFC 1952), straight from `bytes`. Why: `flate2` at level 0 went through
+/// miniz_oxide's stored path at about 310 MB/s (the full-size weight planes' 88 MB: 70 perf
+/// samples at 250 Hz, 0.28 CPU-s), and a member built in memory first was an 88 MB copy.
+fn write_stored_member(out: &mut impl Write, bytes: &[u8], crc: u32) -> std::io::Result<()> {
     // Magic, deflate, no flags, no time, no extra flags, operating system unknown.
-    out.extend_from_slice(&[0x1f, 0x8b, 8, 0, 0, 0, 0, 0, 0, 255]);
+    out.write_all(&[0x1f, 0x8b, 8, 0, 0, 0, 0, 0, 0, 255])?;
     let mut chunks = bytes.chunks(STORED_BLOCK).peekable();
     let mut block = |chunk: &[u8], last: bool| {
         // BFINAL, BTYPE 00 (stored) and the padding to the byte, then LEN and its complement.
-        out.push(u8::from(last));
         let len = chunk.len() as u16;
-        out.extend_from_slice(&len.to_le_bytes());
-        out.extend_from_slice(&(!len).to_le_bytes());
-        out.extend_from_slice(chunk);
+        let [l0, l1] = len.to_le_bytes();
+        let [n0, n1] = (!len).to_le_bytes();
+        out.write_all(&[u8::from(last), l0, l1, n0, n1])?;
+        out.write_all(chunk)
     };
     if chunks.peek().is_none() {
-        block(&[], true);
+        block(&[], true)?;
     }
     while let Some(chunk) = chunks.next() {
-        block(chunk, chunks.peek().is_none());
+        block(chunk, chunks.peek().is_none())?;
     }
-    out.extend_from_slice(&crc32fast::hash(bytes).to_le_bytes());
+    out.write_all(&crc.to_le_bytes())?;
     // ISIZE: the length modulo 2^32.
-    out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
-    out
+    out.write_all(&(bytes.len() as u32).to_le_bytes())
 }
 
 /// A part of the file's uncompressed sections, encoded beside the others.
@@ -230,10 +248,10 @@ impl<'m> Part<'m> {
     }
 
     /// The part encoded, as gzip members (its pieces compressed side by side).
-    fn members(&self) -> Result<Vec<Vec<u8>>, EncodeError> {
+    fn members(&self) -> Result<Vec<Member>, EncodeError> {
         let pieces = (self.encode)().map_err(EncodeError::Model)?;
         pieces
-            .par_iter()
+            .into_par_iter()
             .map(Piece::member)
             .collect::<Result<_, _>>()
             .map_err(EncodeError::Io)
@@ -633,7 +651,8 @@ mod tests {
             200_000,
         ] {
             let bytes: Vec<u8> = (0..len).map(|i| (i * 7 + i / 300) as u8).collect();
-            let member = stored_member(&bytes);
+            let mut member = Vec::new();
+            write_stored_member(&mut member, &bytes, crc32fast::hash(&bytes)).unwrap();
             assert_eq!(
                 member.len(),
                 18 + len + 5 * len.div_ceil(STORED_BLOCK).max(1)
