@@ -295,9 +295,11 @@ impl LayerModel {
         extent((0..3).flat_map(|c| self.layers(i, c)))
     }
 
-    /// Pixels with layers in some channel.
+    /// Pixels with layers in some channel (on every core: Fig. 10 asks at full size, beside
+    /// nothing else).
     pub fn fitted(&self) -> Vec<bool> {
         (0..self.width * self.height)
+            .into_par_iter()
             .map(|i| (0..3).any(|c| !self.layers(i, c).is_empty()))
             .collect()
     }

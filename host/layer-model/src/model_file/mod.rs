@@ -197,8 +197,20 @@ impl SubsurfaceModel {
     /// The model of image rows `rows` alone (clamped to the image): renders it gives agree with
     /// the whole model's on the rows [`SubsurfaceModel::rows_reaching`] says they need.
     pub fn rows(&self, rows: std::ops::Range<usize>) -> Self {
-        let end = rows.end.min(self.header.height);
-        let start = rows.start.min(end);
+        Self {
+            dipole: self
+                .dipole
+                .as_ref()
+                .map(|d| d.rows(self.clamped(rows.clone()))),
+            ..self.rows_without_dipole(rows)
+        }
+    }
+
+    /// As [`SubsurfaceModel::rows`] without the dipole baseline: for renders of the other
+    /// baselines, which never read it (Fig. 10 copied the full-size dipole's rows for nothing).
+    pub fn rows_without_dipole(&self, rows: std::ops::Range<usize>) -> Self {
+        let rows = self.clamped(rows);
+        let (start, end) = (rows.start, rows.end);
         let span = start * self.header.width..end * self.header.width;
         Self {
             header: ModelHeader {
@@ -214,8 +226,14 @@ impl SubsurfaceModel {
                 .map(|v| v[span.clone()].to_vec())
                 .collect(),
             layers: self.layers.rows(start..end),
-            dipole: self.dipole.as_ref().map(|d| d.rows(start..end)),
+            dipole: None,
         }
+    }
+
+    /// `rows` clamped to the image.
+    fn clamped(&self, rows: std::ops::Range<usize>) -> std::ops::Range<usize> {
+        let end = rows.end.min(self.header.height);
+        rows.start.min(end)..end
     }
 
     /// The rows a render with `opts` needs to get rows `rows` right when pixel `i` is rendered

@@ -343,3 +343,39 @@ fn renders_white_and_slits_with_every_baseline() {
         Err(ModelFileError::NoSuchProjector { .. })
     ));
 }
+
+/// The rows without the dipole are the rows with it, less the dipole (whose rows are cut as
+/// the rest), clamped to the image alike.
+#[test]
+fn rows_without_the_dipole_are_the_rows_less_the_dipole() {
+    let mut model = plane_model_sized(24, 16);
+    model.dipole = Some(LayerModel::from_fn(24, 16, |i, c| {
+        (0..(i + c) % 3)
+            .map(|k| SplatLayer {
+                index: k as u16,
+                weight: 1e-3 * (i * 3 + c) as f32,
+                sigma_mm: 0.2,
+                depth_mm: 0.0,
+            })
+            .collect::<Vec<_>>()
+    }));
+    for rows in [0..16, 3..9, 10..40, 20..30] {
+        let with = model.rows(rows.clone());
+        let dipole = with.dipole.clone().unwrap();
+        assert_eq!((dipole.width, dipole.height), (24, with.header.height));
+        let whole = model.dipole.as_ref().unwrap();
+        let first = rows.start.min(16) * 24;
+        for i in 0..24 * with.header.height {
+            assert_eq!(dipole.layers(i, 1), whole.layers(first + i, 1));
+        }
+        let without = model.rows_without_dipole(rows);
+        assert_eq!(without.dipole, None);
+        assert_eq!(
+            SubsurfaceModel {
+                dipole: None,
+                ..with
+            },
+            without
+        );
+    }
+}

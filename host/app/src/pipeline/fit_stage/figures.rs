@@ -238,7 +238,7 @@ fn rendered_slit_series(
         &opts,
     );
     let r = row - band.start;
-    let mut crop = model.rows(band);
+    let mut crop = model.rows_without_dipole(band);
     let homogeneous = LayerModel::uniform(w, crop.header.height, &mean, &crop.surface.mask);
     let ours_alone = render_pattern_alone(&crop, k, slit, Baseline::Mlsss, &opts)?.global;
     crop.layers = homogeneous;
