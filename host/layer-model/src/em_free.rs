@@ -26,8 +26,20 @@ pub struct FreeFit {
     pub trace: Trace,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct FreeMeans(Vec<f64>);
+
+/// By hand for `clone_from`, which reuses the vector (the EM keeps a copy of its state at
+/// every step).
+impl Clone for FreeMeans {
+    fn clone(&self) -> Self {
+        Self(self.0.clone())
+    }
+
+    fn clone_from(&mut self, source: &Self) {
+        self.0.clone_from(&source.0);
+    }
+}
 
 impl MeanModel for FreeMeans {
     fn mean(&self, _profiles: &[Profile], _p: usize, l: usize) -> f64 {

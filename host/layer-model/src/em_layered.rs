@@ -45,12 +45,30 @@ pub struct LayeredFit {
     pub trace: Trace,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct LayerMeans {
     depth_index: Vec<usize>,
     spacing: f64,
     /// `Some(max)` when the spacing is estimated.
     estimate: Option<f64>,
+}
+
+/// By hand for `clone_from`, which reuses the vector (the EM keeps a copy of its state at
+/// every step).
+impl Clone for LayerMeans {
+    fn clone(&self) -> Self {
+        Self {
+            depth_index: self.depth_index.clone(),
+            spacing: self.spacing,
+            estimate: self.estimate,
+        }
+    }
+
+    fn clone_from(&mut self, source: &Self) {
+        self.depth_index.clone_from(&source.depth_index);
+        self.spacing = source.spacing;
+        self.estimate = source.estimate;
+    }
 }
 
 impl MeanModel for LayerMeans {

@@ -621,6 +621,8 @@ fn fit_layers(
             max_iterations: params.max_iterations,
             tolerance: params.tolerance,
             squarem: true,
+            // See `EmConfig::bic_min_components`.
+            bic_min_components: 2,
             ..EmConfig::default()
         },
         variant: params.em,
