@@ -61,6 +61,10 @@ echo "-- quick demo, cold cache" | tee -a "$SUMMARY"
 timed demo_quick "$BIN" demo --quick --cache "$OUT/demo-cache" --out "$OUT/demo" --json
 if [ "${SKIP_PEERS:-}" != 1 ]; then
     echo "-- stages against their peers (ratio = peer time / ours)" | tee -a "$SUMMARY"
+    # The simulate and the demo leave gigabytes of dirty pages; their write-back beside the races'
+    # tens of milliseconds halved two ratios in one sitting (24b1472: Nayar 3.59x, then 5.86x
+    # alone a minute later), so it happens first.
+    sync
     scripts/peers.sh | tee -a "$SUMMARY"
 fi
 echo "== summary in $SUMMARY"
