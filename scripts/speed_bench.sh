@@ -48,6 +48,7 @@ fi
 echo "-- full-size booth (268 frames, 1379x1029), empty Monte Carlo cache" | tee -a "$SUMMARY"
 timed simulate_full "$BIN" simulate --subject head --skin I --seed 96 --cache "$OUT/cache" \
     --out "$OUT/full" --json
+sync # the capture's write-back is the simulate's work, not the process's
 timed process_full "$BIN" process "$OUT/full" --calib truth --until fit --holdout 3 \
     --components 4 --block 6 --out "$OUT/full-out" --json
 python3 - "$OUT/process_full.json" <<'EOF' | tee -a "$SUMMARY"
@@ -58,12 +59,13 @@ print(f"   process stages, CPU s: {stages}")
 print(f"   separation direct error {d['separation']['direct_rel_rmse']:.4f}, normals {d['normals']['mean_angular_error_deg']:.3f} deg")
 EOF
 echo "-- quick demo, cold cache" | tee -a "$SUMMARY"
+sync
 timed demo_quick "$BIN" demo --quick --cache "$OUT/demo-cache" --out "$OUT/demo" --json
 if [ "${SKIP_PEERS:-}" != 1 ]; then
     echo "-- stages against their peers (ratio = peer time / ours)" | tee -a "$SUMMARY"
-    # The simulate and the demo leave gigabytes of dirty pages; their write-back beside the races'
-    # tens of milliseconds halved two ratios in one sitting (24b1472: Nayar 3.59x, then 5.86x
-    # alone a minute later), so it happens first.
+    # Each step leaves up to gigabytes of dirty pages; their write-back beside the races' tens of
+    # milliseconds halved two ratios in one sitting (24b1472: Nayar 3.59x, then 5.86x alone a
+    # minute later), so it happens first (and before the process and the demo).
     sync
     scripts/peers.sh | tee -a "$SUMMARY"
 fi
