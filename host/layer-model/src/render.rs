@@ -477,6 +477,30 @@ struct Bin {
     image: Vec<f32>,
 }
 
+impl Bin {
+    /// The empty bin `b` of `channel` in `frame` for a `w x h` image: its sigma, its pyramid
+    /// level and that level's grid.
+    fn empty(
+        opts: &RenderOptions,
+        b: usize,
+        (w, h): (usize, usize),
+        frame: usize,
+        channel: usize,
+    ) -> Self {
+        let sigma_px = opts.bin_sigma(b);
+        let level = opts.bin_level(sigma_px);
+        let (gw, gh) = level_grid(w, h, level);
+        Self {
+            frame,
+            channel,
+            sigma_px,
+            level,
+            grid: (gw, gh),
+            image: vec![0.0; gw * gh],
+        }
+    }
+}
+
 /// Size of the grid of pyramid level `level` for a `w x h` image: coarse sample `j` sits on fine
 /// pixel `j * 2^level`; one extra sample covers the last fine pixel's interpolation.
 fn level_grid(w: usize, h: usize, level: u32) -> (usize, usize) {
@@ -906,17 +930,7 @@ impl FrameBins {
         let bins = &mut self.bins;
         let (frame, channel) = (self.frame, self.channel);
         let k = *self.index[b].get_or_insert_with(|| {
-            let sigma_px = opts.bin_sigma(b);
-            let level = opts.bin_level(sigma_px);
-            let (gw, gh) = level_grid(w, h, level);
-            bins.push(Bin {
-                frame,
-                channel,
-                sigma_px,
-                level,
-                grid: (gw, gh),
-                image: vec![0.0; gw * gh],
-            });
+            bins.push(Bin::empty(opts, b, (w, h), frame, channel));
             bins.len() - 1
         });
         let bin = &mut bins[k];
@@ -1105,17 +1119,7 @@ mod tests {
                         index.resize(b + 1, None);
                     }
                     let k = *index[b].get_or_insert_with(|| {
-                        let sigma_px = opts.bin_sigma(b);
-                        let level = opts.bin_level(sigma_px);
-                        let (gw, gh) = level_grid(w, h, level);
-                        bins.push(Bin {
-                            frame: 0,
-                            channel: c,
-                            sigma_px,
-                            level,
-                            grid: (gw, gh),
-                            image: vec![0.0; gw * gh],
-                        });
+                        bins.push(Bin::empty(opts, b, (w, h), 0, c));
                         bins.len() - 1
                     });
                     let bin = &mut bins[k];

@@ -605,6 +605,20 @@ mod tests {
         })
     }
 
+    /// A pixel of 1 to `most` random observations (each channel missing one time in five) and,
+    /// half the time, one of them to leave out.
+    fn random_pixel(rng: &mut rand_pcg::Pcg64, most: usize) -> (Vec<Observation>, Option<usize>) {
+        let count = rng.gen_range(1..=most);
+        let obs: Vec<Observation> = (0..count)
+            .map(|_| Observation {
+                u: Vector2::new(rng.gen_range(-1.5..1.5), rng.gen_range(-1.5..1.5)),
+                y: std::array::from_fn(|_| rng.gen_bool(0.8).then(|| rng.gen_range(-3.0..1.0))),
+            })
+            .collect();
+        let skip = rng.gen_bool(0.5).then(|| rng.gen_range(0..count));
+        (obs, skip)
+    }
+
     /// One `kappa`'s terms solved for every ridge give what solving each strength in one go
     /// gives, bit for bit, on random pixels: channels missing, an observation left out, every
     /// strength of the cross-validation's grid.
@@ -613,14 +627,7 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(41);
         let mut compared = 0;
         for _ in 0..3000 {
-            let count = rng.gen_range(1..6);
-            let obs: Vec<Observation> = (0..count)
-                .map(|_| Observation {
-                    u: Vector2::new(rng.gen_range(-1.5..1.5), rng.gen_range(-1.5..1.5)),
-                    y: std::array::from_fn(|_| rng.gen_bool(0.8).then(|| rng.gen_range(-3.0..1.0))),
-                })
-                .collect();
-            let skip = rng.gen_bool(0.5).then(|| rng.gen_range(0..count));
+            let (obs, skip) = random_pixel(&mut rng, 5);
             let mu = [-1.0, -1.3, -1.8];
             let Some(sums) = PixelSums::of(&obs, skip) else {
                 continue;
@@ -648,14 +655,7 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
         let mut compared = 0;
         for _ in 0..2000 {
-            let count = rng.gen_range(1..7);
-            let obs: Vec<Observation> = (0..count)
-                .map(|_| Observation {
-                    u: Vector2::new(rng.gen_range(-1.5..1.5), rng.gen_range(-1.5..1.5)),
-                    y: std::array::from_fn(|_| rng.gen_bool(0.8).then(|| rng.gen_range(-3.0..1.0))),
-                })
-                .collect();
-            let skip = rng.gen_bool(0.5).then(|| rng.gen_range(0..count));
+            let (obs, skip) = random_pixel(&mut rng, 6);
             let mu = [-1.0, -1.3, -1.8];
             let lambda = 10f64.powf(rng.gen_range(-3.0..2.0));
             let kappa = 10f64.powf(rng.gen_range(-4.0..2.0));
