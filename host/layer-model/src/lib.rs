@@ -8,6 +8,7 @@ pub mod em_free;
 pub mod em_layered;
 pub mod fit;
 pub mod fit_options;
+mod inline_floor;
 pub mod layer_depth;
 pub mod mixture;
 pub mod model_file;

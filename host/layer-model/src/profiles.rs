@@ -19,6 +19,7 @@
 use nalgebra::{Matrix2, Vector2, Vector3};
 use rayon::prelude::*;
 
+use super::inline_floor;
 use super::mixture::{Profile, Sample};
 use super::surface::{Footprint, Surface, ViewRay, shift_per_depth};
 use mlsss_core::capture::{Axis, FrameNoise, Pattern};
@@ -329,29 +330,8 @@ pub fn slit_distance_px(coord: f64, width: u32, period: u32, offset: u32) -> f64
 /// `p` makes; the fix-up `r + p` of a tiny negative `r` rounds that same exact value.
 #[inline]
 fn euclid_mod(x: f64, p: f64) -> f64 {
-    let r = x - floor_inline(x / p) * p;
+    let r = x - inline_floor::floor(x / p) * p;
     if r < 0.0 { r + p } else { r }
-}
-
-/// `x.floor()` without a call: the build's baseline x86_64 has no rounding instruction, so
-/// `f64::floor` is a call into libm (2.2 % of the full-size profiles stage's CPU time, perf,
-/// at one call per slit sample). Truncating through `i64` is exact below 2^52 in magnitude
-/// (every such `f64` with a fraction lies there), and one less than a truncation above `x` is
-/// its floor; larger magnitudes, infinities and NaN go to `f64::floor`. The one difference is
-/// the sign of a zero (`-0.0` gives `+0.0`), which [`euclid_mod`] does not see: its remainder is
-/// `x - 0 p` either way, up to that same sign.
-#[inline]
-fn floor_inline(x: f64) -> f64 {
-    const EXACT: f64 = 4_503_599_627_370_496.0; // 2^52
-    if x.is_nan() || x.abs() >= EXACT {
-        return x.floor();
-    }
-    let truncated = x as i64 as f64;
-    if truncated > x {
-        truncated - 1.0
-    } else {
-        truncated
-    }
 }
 
 /// One checked slit frame: width, period, offset (projector px) and the global image.
@@ -1150,43 +1130,6 @@ mod tests {
         );
         assert!(SlitStack::zeros(patterns.clone(), n, swapped).is_err());
         assert!(SlitStack::zeros(patterns, n, outside).is_err());
-    }
-
-    /// The inline floor equals `f64::floor` bit for bit but for the sign of a zero.
-    #[test]
-    fn inline_floor_is_libms() {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
-        let check = |x: f64| {
-            let (got, want) = (floor_inline(x), x.floor());
-            let same = got.to_bits() == want.to_bits() || (got == 0.0 && want == 0.0);
-            assert!(same || (got.is_nan() && want.is_nan()), "{x}: {got} {want}");
-        };
-        for _ in 0..200_000 {
-            check(rng.gen_range(-5000.0..5000.0));
-            check(rng.gen_range(-1.0..1.0));
-        }
-        for e in [0.5f64, 1.0, 2.0, 1e15, 4_503_599_627_370_496.0, 9e15, 1e300] {
-            for x in [e, -e] {
-                check(x);
-                check(x.next_up());
-                check(x.next_down());
-            }
-        }
-        for x in [
-            0.0,
-            -0.0,
-            4.9e-324,
-            -4.9e-324,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            f64::NAN,
-        ] {
-            check(x);
-        }
-        assert_eq!(floor_inline(-0.5), -1.0);
-        assert_eq!(floor_inline(-3.0), -3.0);
-        assert_eq!(floor_inline(2.75), 2.0);
     }
 
     #[test]

@@ -24,6 +24,7 @@
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
+use super::inline_floor::floor;
 use super::surface::Surface;
 use mlsss_core::gaussian_blur::{BlurError, Border, GaussianKernel, Normalisation, blur_2d};
 
@@ -555,20 +556,6 @@ impl BinTable {
             Some(&f) => f,
             None => Self::factor_of(&self.opts, b),
         }
-    }
-}
-
-/// `x.floor()` without the libm call the baseline x86-64 target makes of it: equal for
-/// `|x| < 2^52` (a truncation then a step down for negatives; `-0.0` gives `0.0`, which splats
-/// the same), the library's beyond.
-#[inline(always)]
-fn floor(x: f64) -> f64 {
-    const EXACT_BELOW: f64 = 4_503_599_627_370_496.0; // 2^52: every such float truncates exactly
-    if x.abs() < EXACT_BELOW {
-        let t = x as i64 as f64;
-        if t > x { t - 1.0 } else { t }
-    } else {
-        x.floor()
     }
 }
 
