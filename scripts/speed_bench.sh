@@ -32,7 +32,12 @@ timed() {
         name, $1, $2 + $3, $4 / 1048576, load }' "$OUT/$name.time" | tee -a "$SUMMARY"
 }
 
-echo "== speed bench, $(git rev-parse --short HEAD), $(date -u +%FT%TZ), $(nproc) cores" | tee "$SUMMARY"
+# The CPU and its widest vector set go in the header: the same code's figures differ by machine
+# (the Monte Carlo ran 10.9x MCML on an AVX-512 EPYC and 5.4x on an AVX2-only one, MCML itself
+# 2.4e4-2.7e4 against 1.3e4-1.7e4 photons per CPU second).
+CPU=$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -n 1)
+VECTORS=$(grep -q -w avx512f /proc/cpuinfo && echo AVX-512 || { grep -q -w avx2 /proc/cpuinfo && echo AVX2 || echo "no AVX2"; })
+echo "== speed bench, $(git rev-parse --short HEAD), $(date -u +%FT%TZ), $(nproc) cores, ${CPU:-unknown CPU} ($VECTORS)" | tee "$SUMMARY"
 if [ "${SKIP_MCML:-}" != 1 ]; then
     echo "-- Monte Carlo against MCML (per CPU second, one thread each)" | tee -a "$SUMMARY"
     # A disagreement (some |z| > 3 among the 9 quantities pooled over the rounds; MCML draws new
