@@ -529,8 +529,15 @@ impl Pipeline {
         let mut report = PipelineReport::default();
         let mut keys: BTreeMap<&'static str, String> = BTreeMap::new();
         let handed_over = HandedOver::default();
-        // The stages start from memory handed back (the demo simulated the capture just before:
-        // its freed memory, kept, raised the quick demo's peak from 1.06-1.14 to 1.19-1.25 GB).
+        // Freed memory goes back to the system before the first stage and after the last, not
+        // between stages: what a stage frees stays with the allocator for the next one, since
+        // memory handed back comes again as fresh pages that the kernel faults in and zeroes one
+        // by one. Handed back after every stage, the full-size `process --until fit` took
+        // 1.63-1.66 million page faults and 7.4-8.3 s of system time; kept, 1.22-1.26 million and
+        // 6.1-7.8 s (3 runs each, alternated; the total CPU time within its noise), peak 1.84 GB
+        // either way (the fit stage hands memory back itself where its peak needs it), artefacts
+        // byte-identical. Before the first stage: the demo simulated the capture just before, and
+        // its freed memory, kept, raised the quick demo's peak from 1.06-1.14 to 1.19-1.25 GB.
         release_free_memory();
         for stage in order {
             let key = self.stage_key(stage, &keys);
@@ -564,7 +571,7 @@ impl Pipeline {
             }
             keys.insert(stage.name, key);
         }
-        // And the caller's next work (the demo's evaluation renders) as well.
+        // After the last: the caller's next work (the demo's evaluation renders).
         release_free_memory();
         let path = self.out.join(REPORT_FILE);
         write_json(&path, &serde_json::to_value(&report).unwrap_or(Value::Null))?;
@@ -598,13 +605,6 @@ impl Pipeline {
         };
         let start = Instant::now();
         let cpu_start = cpu_seconds();
-        // What a stage frees stays with the allocator for the next stage, not handed back to the
-        // system in between (only before the first stage and after the last): memory handed back
-        // comes again as fresh pages, which the kernel faults in and zeroes one by one. Handed
-        // back after every stage, the full-size `process --until fit` took 1.63-1.66 million page
-        // faults and 7.4-8.3 s of system time; kept, 1.22-1.26 million and 6.1-7.8 s (3 runs
-        // each, alternated; the total CPU time within its noise), peak 1.84 GB either way (the
-        // fit stage hands memory back itself where its peak needs it), artefacts byte-identical.
         let report = (stage.run)(&ctx).map_err(|source| source.into_pipeline_error(stage.name))?;
         let record = StageRecord {
             key,
