@@ -419,10 +419,19 @@ fn the_tile_gather_finds_the_pairs_of_a_plain_search() {
                             expected.push(pair_bits(si as u32, k, gx, gy));
                         }
                     }
-                    let got: Vec<_> = got
-                        .iter()
-                        .map(|p| pair_bits(p.source, p.k, p.gx, p.gy))
-                        .collect();
+                    let got: Vec<_> = if gradient {
+                        got.pairs
+                            .iter()
+                            .zip(&got.gradients)
+                            .map(|(p, g)| pair_bits(p.source, p.k, g.gx, g.gy))
+                            .collect()
+                    } else {
+                        assert!(got.gradients.is_empty());
+                        got.pairs
+                            .iter()
+                            .map(|p| pair_bits(p.source, p.k, [0.0; 3], [0.0; 3]))
+                            .collect()
+                    };
                     assert_eq!(got, expected, "level {level_index}, cell ({ox}, {oy})");
                     compared += expected.len();
                 }
