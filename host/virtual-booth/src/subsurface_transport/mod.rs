@@ -292,15 +292,7 @@ impl<'k> SubsurfaceOperator<'k> {
             .iter()
             .map(|level| {
                 let (w, h) = (width.div_ceil(level.scale), height.div_ceil(level.scale));
-                let cells = aggregate(
-                    width,
-                    height,
-                    entries,
-                    level.scale,
-                    w,
-                    h,
-                    &kernel.angles_deg,
-                );
+                let cells = aggregate(width, height, entries, level, &kernel.angles_deg);
                 LevelCells::new(cells, w, h)
             })
             .collect();
@@ -492,16 +484,17 @@ fn sum_block<const B: usize>(
     }
 }
 
-/// Area-weighted aggregation of the entry samples into cells of `scale x scale` pixels.
+/// Area-weighted aggregation of the entry samples of a `width x height` view into the cells of
+/// `level` (`scale x scale` pixels), their taps into its tables of `angles`.
 fn aggregate(
     width: usize,
     height: usize,
     entries: &[Option<EntrySample>],
-    scale: usize,
-    w: usize,
-    h: usize,
+    level: &KernelLevel,
     angles: &[f64],
 ) -> Vec<Option<(CellFrame, Cell)>> {
+    let scale = level.scale;
+    let (w, h) = (width.div_ceil(scale), height.div_ceil(scale));
     (0..w * h)
         .into_par_iter()
         .map(|ci| {
@@ -538,6 +531,7 @@ fn aggregate(
                 angle_index,
                 angle_t,
                 angles.len(),
+                level.tables.plane,
             );
             let f32v = |v: Vector3<f64>| [v.x as f32, v.y as f32, v.z as f32];
             let frame = CellFrame {

@@ -95,7 +95,7 @@ fn packed_lookup_equals_the_weighted_per_table_lookups() {
         .collect();
     let materials = [0.55, 0.3, 0.0, 0.15];
     let (angle_index, angle_t) = (1u16, 0.3f32);
-    let (taps, count) = mix_taps(&materials, angle_index, angle_t, angles.len());
+    let (taps, count) = mix_taps(&materials, angle_index, angle_t, angles.len(), packed.plane);
     assert_eq!(count, 6, "three materials x two angles");
     for i in 0..200 {
         let (x, y) = (-3.0 + 0.031 * i as f32, 2.5 * (0.37 * i as f32).sin());
