@@ -290,11 +290,7 @@ impl<'k> SubsurfaceOperator<'k> {
         let levels = kernel
             .levels
             .iter()
-            .map(|level| {
-                let (w, h) = (width.div_ceil(level.scale), height.div_ceil(level.scale));
-                let cells = aggregate(width, height, entries, level, &kernel.angles_deg);
-                LevelCells::new(cells, w, h)
-            })
+            .map(|level| aggregate(width, height, entries, level, &kernel.angles_deg))
             .collect();
         let points = entries
             .iter()
@@ -492,10 +488,10 @@ fn aggregate(
     entries: &[Option<EntrySample>],
     level: &KernelLevel,
     angles: &[f64],
-) -> Vec<Option<(CellFrame, Cell)>> {
+) -> LevelCells {
     let scale = level.scale;
     let (w, h) = (width.div_ceil(scale), height.div_ceil(scale));
-    (0..w * h)
+    let cells = (0..w * h)
         .into_par_iter()
         .map(|ci| {
             let (cx, cy) = (ci % w, ci / w);
@@ -541,7 +537,8 @@ fn aggregate(
             };
             Some((frame, Cell { taps, tap_count }))
         })
-        .collect()
+        .collect();
+    LevelCells::new(cells, w, h)
 }
 
 /// Forward (tangential, away from the light) and side unit vectors at a surface point.
