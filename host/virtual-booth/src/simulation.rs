@@ -567,7 +567,13 @@ fn held_projectors(frames_per_projector: &[usize], pixels: usize, budget: usize)
 
 /// Noise-free camera values (direct + global, RGB) of every pixel of a frame.
 fn frame_totals(frame: &FrameRadiance) -> Vec<[f32; 3]> {
-    (0..frame.direct.len()).map(|i| frame.total(i)).collect()
+    // As `FrameRadiance::total`, without an index check per pixel.
+    frame
+        .direct
+        .iter()
+        .zip(&frame.global)
+        .map(|(&d, g)| g.map(|g| d + g))
+        .collect()
 }
 
 /// The light the black level of every projector but `k` adds to `k`'s frames; `whites[j]` is
@@ -608,23 +614,24 @@ struct FrameFinisher<'a> {
 }
 
 impl FrameFinisher<'_> {
-    /// Finishes frame `spec` at `exposure` (its projector's; nominal units when `None`).
+    /// Finishes frame `spec` from its noise-free `totals` (its buffer becomes the frame's) at
+    /// `exposure` (its projector's; nominal units when `None`).
     fn finish(
         &self,
         spec: &FrameSpec,
-        totals: &[[f32; 3]],
+        mut totals: Vec<[f32; 3]>,
         stray: &[[f32; 3]],
         exposure: Option<ProjectorExposure>,
     ) -> Result<(), VirtualBoothError> {
         let geo = &self.scene.geometry;
         let (scale, gain) = exposure.map_or((1.0, 1.0), |e| (e.scale as f32, e.analog_gain));
         // The exposure scales all the light the camera collects, stray light included.
-        let mut values = vec![0.0f32; totals.len() * 3];
-        for ((v, t), s) in values.chunks_exact_mut(3).zip(totals).zip(stray) {
+        for (t, s) in totals.iter_mut().zip(stray) {
             for c in 0..3 {
-                v[c] = (t[c] + s[c]) * scale;
+                t[c] = (t[c] + s[c]) * scale;
             }
         }
+        let mut values = totals.into_flattened();
         // The frame's own noise stream: the same draws whichever thread finishes it, when.
         let mut normals = NormalStream::new(self.seed, FRAME_NOISE_STREAM + u64::from(spec.index));
         self.scene
@@ -805,7 +812,7 @@ fn render_frames(
             let stray = strays[k].as_deref().unwrap_or(&no_stray);
             batch
                 .par_iter()
-                .zip(totals.par_iter())
+                .zip(totals)
                 .try_for_each(|(spec, t)| finisher.finish(spec, t, stray, Some(exposure)))?;
         }
     }
@@ -848,12 +855,12 @@ fn finish_held_frames(
             *stray = Some(stray_light(finisher.scene, whites, k, n)?);
         }
     }
-    held_frames.par_iter().try_for_each(|(k, spec, t)| {
+    held_frames.into_par_iter().try_for_each(|(k, spec, t)| {
         finisher.finish(
-            spec,
+            &spec,
             t,
-            strays[*k].as_deref().unwrap_or(no_stray),
-            exposures.get(*k).copied(),
+            strays[k].as_deref().unwrap_or(no_stray),
+            exposures.get(k).copied(),
         )
     })
 }
