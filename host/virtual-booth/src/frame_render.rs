@@ -148,53 +148,10 @@ impl<'a> ProjectorTransport<'a> {
         let exitance = self.operator.as_ref().map(|op| op.apply(&flux, frames));
         // Not needed past the operator: freed before the frames are built (batch peak memory).
         drop(flux);
-        self.frames_from_pixel_major(&direct, exitance.as_deref(), frames)
-    }
-
-    /// The frames of a batch from its pixel-major sums (`direct[i * frames + f]`,
-    /// `exitance[(i * 3 + c) * frames + f]`), the global part scaled to camera values.
-    ///
-    /// Transposed a block of [`TRANSPOSE_BLOCK`] pixels at a time, every frame's part of the
-    /// block in turn: the block's sums stay in the core's cache while each frame reads
-    /// them. Frame by frame over the whole image instead, every read of one frame's value pulled
-    /// a cache line of which that frame used 4 bytes (the transposition was 13 % of a
-    /// calibration pose's CPU time, perf).
-    fn frames_from_pixel_major(
-        &self,
-        direct: &[f32],
-        exitance: Option<&[f32]>,
-        frames: usize,
-    ) -> Vec<FrameRadiance> {
-        let n = self.scene.geometry.pixels();
-        let mut out: Vec<FrameRadiance> = (0..frames).map(|_| FrameRadiance::zeros(n)).collect();
-        // Per block of pixels, that block's part of every frame.
-        let mut blocks: Vec<Vec<FramePart>> = (0..n.div_ceil(TRANSPOSE_BLOCK))
-            .map(|_| Vec::with_capacity(frames))
-            .collect();
-        for frame in &mut out {
-            let parts = frame
-                .direct
-                .chunks_mut(TRANSPOSE_BLOCK)
-                .zip(frame.global.chunks_mut(TRANSPOSE_BLOCK));
-            for (block, part) in blocks.iter_mut().zip(parts) {
-                block.push(part);
-            }
-        }
-        blocks.into_par_iter().enumerate().for_each(|(b, parts)| {
-            let first = b * TRANSPOSE_BLOCK;
-            for (f, (d, g)) in parts.into_iter().enumerate() {
-                for (j, value) in d.iter_mut().enumerate() {
-                    *value = direct[(first + j) * frames + f];
-                }
-                let Some(ex) = exitance else { continue };
-                for (j, value) in g.iter_mut().enumerate() {
-                    let i = first + j;
-                    let k = self.exit_factor[i];
-                    *value = [0, 1, 2].map(|c| k * ex[(i * 3 + c) * frames + f]);
-                }
-            }
-        });
-        out
+        let global = exitance
+            .as_deref()
+            .map(|ex| (ex, self.exit_factor.as_slice()));
+        frames_from_pixel_major(&direct, global, n, frames)
     }
 
     /// Renders a batch of patterns, deriving each complement frame from the batch's white and
@@ -239,10 +196,57 @@ impl<'a> ProjectorTransport<'a> {
     }
 }
 
+/// The `frames` frames of `n` pixels from a batch's pixel-major sums: `direct[i * frames + f]`
+/// and, for the global part, `exitance[(i * 3 + c) * frames + f]` times the pixel's camera value
+/// per unit exitance `exit_factor[i]` (the global part stays zero without them).
+///
+/// Transposed a block of [`TRANSPOSE_BLOCK`] pixels at a time, every frame's part of the block in
+/// turn: the block's sums stay in the core's cache while each frame reads them. Frame by frame
+/// over the whole image instead, every read of one frame's value pulled a cache line of which
+/// that frame used 4 bytes (the transposition was 13 % of a calibration pose's CPU time, perf).
+fn frames_from_pixel_major(
+    direct: &[f32],
+    global: Option<(&[f32], &[f32])>,
+    n: usize,
+    frames: usize,
+) -> Vec<FrameRadiance> {
+    let mut out: Vec<FrameRadiance> = (0..frames).map(|_| FrameRadiance::zeros(n)).collect();
+    // Per block of pixels, that block's part of every frame.
+    let mut blocks: Vec<Vec<FramePart>> = (0..n.div_ceil(TRANSPOSE_BLOCK))
+        .map(|_| Vec::with_capacity(frames))
+        .collect();
+    for frame in &mut out {
+        let parts = frame
+            .direct
+            .chunks_mut(TRANSPOSE_BLOCK)
+            .zip(frame.global.chunks_mut(TRANSPOSE_BLOCK));
+        for (block, part) in blocks.iter_mut().zip(parts) {
+            block.push(part);
+        }
+    }
+    blocks.into_par_iter().enumerate().for_each(|(b, parts)| {
+        let first = b * TRANSPOSE_BLOCK;
+        for (f, (d, g)) in parts.into_iter().enumerate() {
+            for (j, value) in d.iter_mut().enumerate() {
+                *value = direct[(first + j) * frames + f];
+            }
+            let Some((exitance, exit_factor)) = global else {
+                continue;
+            };
+            for (j, value) in g.iter_mut().enumerate() {
+                let i = first + j;
+                let k = exit_factor[i];
+                *value = [0, 1, 2].map(|c| k * exitance[(i * 3 + c) * frames + f]);
+            }
+        }
+    });
+    out
+}
+
 /// One frame's direct and global values over one block of pixels.
 type FramePart<'a> = (&'a mut [f32], &'a mut [[f32; 3]]);
 
-/// Pixels per block of [`ProjectorTransport::frames_from_pixel_major`]: a block's sums of a
+/// Pixels per block of [`frames_from_pixel_major`]: a block's sums of a
 /// 40-frame batch take 256 x 40 x 16 bytes, 160 KB, within a core's L2 cache.
 const TRANSPOSE_BLOCK: usize = 256;
 
@@ -412,4 +416,34 @@ fn exit_factors(scene: &Scene, entries: &[Option<EntrySample>]) -> Vec<f32> {
             })
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The blocked transposition gives every frame's values as reading the sums frame by frame
+    /// does (the layout before it), bit for bit, over a partial last block, with and without
+    /// the global part.
+    #[test]
+    fn blocked_transposition_equals_reading_frame_by_frame() {
+        let (n, frames) = (2 * TRANSPOSE_BLOCK + 37, 5);
+        let value = |k: usize| ((k * 7919 % 1009) as f32).sqrt() - 13.0;
+        let direct: Vec<f32> = (0..n * frames).map(value).collect();
+        let exitance: Vec<f32> = (0..n * 3 * frames).map(|k| value(k + 5)).collect();
+        let exit_factor: Vec<f32> = (0..n).map(|i| 0.5 + value(i) / 64.0).collect();
+        for global in [None, Some((exitance.as_slice(), exit_factor.as_slice()))] {
+            let got = frames_from_pixel_major(&direct, global, n, frames);
+            assert_eq!(got.len(), frames);
+            for (f, frame) in got.iter().enumerate() {
+                for i in 0..n {
+                    assert_eq!(frame.direct[i].to_bits(), direct[i * frames + f].to_bits());
+                    let want = global.map_or([0.0; 3], |(ex, k)| {
+                        [0, 1, 2].map(|c| k[i] * ex[(i * 3 + c) * frames + f])
+                    });
+                    assert_eq!(frame.global[i].map(f32::to_bits), want.map(f32::to_bits));
+                }
+            }
+        }
+    }
 }
