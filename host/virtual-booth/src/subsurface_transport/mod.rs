@@ -9,9 +9,11 @@
 //! (rho_{j-1} < r < 2 rho_j, rho_j = 2^j rho_0) between cells of 2^j x 2^j pixels whose flux
 //! is summed, and whose result is interpolated back to pixels. A band only ever sees cells at
 //! least 1.5 cells apart, where the (low-passed) response is smooth over a cell, so the error
-//! is second order in cell size over distance; energy is conserved exactly by construction (the
-//! bands sum to the full response). This is the hierarchical evaluation of Jensen & Buhler 2002
-//! ("A rapid hierarchical rendering technique for translucent materials") on the camera grid.
+//! is second order in cell size over distance; energy is conserved by construction (the bands
+//! sum to the full response), up to the filtered tables' ends `FILTER_REACH_CELLS` beyond their
+//! band (below 5e-5 of a response per band: `the_filtered_bands_end_within_the_reach`). This is
+//! the hierarchical evaluation of Jensen & Buhler 2002 ("A rapid hierarchical rendering technique
+//! for translucent materials") on the camera grid.
 //!
 //! Conventions
 //! - Response grids: exitance per unit incident power, 1/mm^2, per channel, on square cells
