@@ -48,10 +48,13 @@ impl FrameRadiance {
         }
     }
 
-    /// Direct + global, RGB.
-    pub fn total(&self, i: usize) -> [f32; 3] {
-        let g = self.global[i];
-        [0, 1, 2].map(|c| self.direct[i] + g[c])
+    /// Direct + global, RGB, of every pixel.
+    pub fn totals(&self) -> Vec<[f32; 3]> {
+        self.direct
+            .iter()
+            .zip(&self.global)
+            .map(|(&d, g)| g.map(|g| d + g))
+            .collect()
     }
 }
 

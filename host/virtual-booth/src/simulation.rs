@@ -565,17 +565,6 @@ fn held_projectors(frames_per_projector: &[usize], pixels: usize, budget: usize)
     held
 }
 
-/// Noise-free camera values (direct + global, RGB) of every pixel of a frame.
-fn frame_totals(frame: &FrameRadiance) -> Vec<[f32; 3]> {
-    // As `FrameRadiance::total`, without an index check per pixel.
-    frame
-        .direct
-        .iter()
-        .zip(&frame.global)
-        .map(|(&d, g)| g.map(|g| d + g))
-        .collect()
-}
-
 /// The light the black level of every projector but `k` adds to `k`'s frames; `whites[j]` is
 /// projector `j`'s noise-free white (needed for every `j != k`).
 fn stray_light(
@@ -892,7 +881,7 @@ fn whites_rendered_alone(
         whites[k] = Some(
             white
                 .first()
-                .map_or_else(|| vec![[0.0; 3]; n], frame_totals),
+                .map_or_else(|| vec![[0.0; 3]; n], FrameRadiance::totals),
         );
         progress.advance(1);
     }
@@ -920,7 +909,7 @@ fn render_batch(
             if truth_for(&spec.pattern) {
                 truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
             }
-            Ok(frame_totals(frame))
+            Ok(frame.totals())
         })
         .collect::<Result<_, _>>()
 }

@@ -29,6 +29,17 @@ fn synthetic_response(cell_mm: f64, cells: usize, total: [f64; 3]) -> ResponseGr
     }
 }
 
+/// Moves half of the blue channel's energy (its total 0.2) into the central Monte Carlo cell:
+/// a peak much sharper than a pixel, like skin's.
+fn with_sharp_blue_peak(grid: &mut ResponseGrid) {
+    let centre = (grid.cells / 2) * grid.cells + grid.cells / 2;
+    let cell_area = grid.cell_mm * grid.cell_mm;
+    for v in grid.values.iter_mut() {
+        v[2] *= 0.5;
+    }
+    grid.values[centre][2] += (0.1 / cell_area) as f32;
+}
+
 fn plane_entries(
     w: usize,
     h: usize,
@@ -156,13 +167,7 @@ fn bands_partition_the_response() {
 fn uniform_light_with_pixels_wider_than_the_response_keeps_the_total() {
     let (w, h, pixel_mm) = (40, 40, 1.0);
     let mut grid = synthetic_response(0.333, 61, [0.6, 0.4, 0.2]);
-    // Blue: half the energy in the central cell (much sharper than a pixel), like skin.
-    let centre = 30 * 61 + 30;
-    let cell_area = 0.333 * 0.333;
-    for v in grid.values.iter_mut() {
-        v[2] *= 0.5;
-    }
-    grid.values[centre][2] += (0.1 / cell_area) as f32;
+    with_sharp_blue_peak(&mut grid);
     let totals = grid.total();
     let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
     // Light from a diagonal: the pixel lattice is rotated 45 degrees against the tables.
@@ -461,11 +466,7 @@ fn pair_bits(source: u32, k: [f32; 3], gx: [f32; 3], gy: [f32; 3]) -> [u32; 10] 
 #[test]
 fn the_filtered_bands_end_within_the_reach() {
     let mut grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
-    let centre = 150 * 301 + 150;
-    for v in grid.values.iter_mut() {
-        v[2] *= 0.5;
-    }
-    grid.values[centre][2] += (0.1 / (0.05 * 0.05)) as f32;
+    with_sharp_blue_peak(&mut grid);
     let totals = grid.total();
     let pixel_mm = 0.25;
     let rho0 = INNER_BAND_PIXELS * pixel_mm;
