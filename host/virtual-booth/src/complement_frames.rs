@@ -75,12 +75,25 @@ pub fn derive(
             .zip(&frame.direct)
             .map(|(&w, &f)| rest(w, f))
             .collect(),
-        global: white
-            .global
-            .iter()
-            .zip(&frame.global)
-            .map(|(w, f)| [0, 1, 2].map(|c| rest(w[c], f[c])))
-            .collect(),
+        global: match (&white.global, &frame.global) {
+            (Some(w), Some(f)) => Some(
+                w.iter()
+                    .zip(f)
+                    .map(|(w, f)| [0, 1, 2].map(|c| rest(w[c], f[c])))
+                    .collect(),
+            ),
+            // Without a subsurface operator neither has a global part, nor has the complement.
+            (None, None) => None,
+            // One of them black (`FrameRadiance::black`).
+            _ => Some(
+                (0..white.direct.len())
+                    .map(|i| {
+                        let (w, f) = (white.global_at(i), frame.global_at(i));
+                        [0, 1, 2].map(|c| rest(w[c], f[c]))
+                    })
+                    .collect(),
+            ),
+        },
     }
 }
 
@@ -90,6 +103,31 @@ mod tests {
     use mlsss_core::booth::Booth;
     use mlsss_core::capture::Axis;
     use mlsss_core::capture::frame_plan::scan_patterns;
+
+    /// Hand-derived: the complement is `white_plus_black * white - frame`, clamped at zero, in
+    /// both parts; frames without a global part (not skin) give a complement without one, and a
+    /// black frame's missing part counts as zero beside a skin frame's.
+    #[test]
+    fn complements_subtract_from_the_white_with_or_without_a_global_part() {
+        let frame = |direct: [f32; 2], global: Option<[[f32; 3]; 2]>| FrameRadiance {
+            direct: direct.to_vec(),
+            global: global.map(|g| g.to_vec()),
+        };
+        let white = frame([1.0, 0.5], Some([[0.25, 0.5, 0.75], [0.125, 0.0, 0.25]]));
+        let lit = frame([0.25, 0.5], Some([[0.125; 3], [0.0625, 0.25, 0.125]]));
+        let c = derive(&white, &lit, 1.5);
+        assert_eq!(c.direct, vec![1.25, 0.25]);
+        assert_eq!(c.global, Some(vec![[0.25, 0.625, 1.0], [0.125, 0.0, 0.25]]));
+
+        let board = derive(&frame([1.0, 0.5], None), &frame([0.25, 0.5], None), 1.5);
+        assert_eq!((board.direct, board.global), (vec![1.25, 0.25], None));
+
+        let against_black = derive(&white, &FrameRadiance::black(2), 1.5);
+        assert_eq!(
+            against_black.global,
+            Some(vec![[0.375, 0.75, 1.125], [0.1875, 0.0, 0.375]])
+        );
+    }
 
     /// Property: a pattern and its complement light every projector pixel exactly once (their
     /// requested levels sum to 1), checked on every pixel of a projector image.

@@ -35,26 +35,37 @@ pub struct Scene {
 pub struct FrameRadiance {
     /// Direct (surface) component, one value per pixel.
     pub direct: Vec<f32>,
-    /// Global (subsurface) component, RGB per pixel.
-    pub global: Vec<[f32; 3]>,
+    /// Global (subsurface) component, RGB per pixel; `None` where the subject carries no light
+    /// under its surface (not skin: a chessboard), so the frame holds, derives and sums no
+    /// zeros for it.
+    pub global: Option<Vec<[f32; 3]>>,
 }
 
 impl FrameRadiance {
     /// A black frame of `pixels` pixels.
-    pub fn zeros(pixels: usize) -> Self {
+    pub fn black(pixels: usize) -> Self {
         Self {
             direct: vec![0.0; pixels],
-            global: vec![[0.0; 3]; pixels],
+            global: None,
         }
+    }
+
+    /// The global component of pixel `i` (zero without one).
+    pub fn global_at(&self, i: usize) -> [f32; 3] {
+        self.global.as_ref().map_or([0.0; 3], |g| g[i])
     }
 
     /// Direct + global, RGB, of every pixel.
     pub fn totals(&self) -> Vec<[f32; 3]> {
-        self.direct
-            .iter()
-            .zip(&self.global)
-            .map(|(&d, g)| g.map(|g| d + g))
-            .collect()
+        match &self.global {
+            Some(global) => self
+                .direct
+                .iter()
+                .zip(global)
+                .map(|(&d, g)| g.map(|g| d + g))
+                .collect(),
+            None => self.direct.iter().map(|&d| [d; 3]).collect(),
+        }
     }
 }
 
@@ -117,44 +128,55 @@ impl<'a> ProjectorTransport<'a> {
         let geo = &self.scene.geometry;
         let (n, spp, frames) = (geo.pixels(), geo.spp(), emissions.len());
         let mut direct = vec![0.0f32; n * frames];
+        // Pixel `i`'s direct light into `d` and, for the subsurface operator, the flux entering
+        // the skin into `phi` (none without an operator: not skin).
+        let light = |i: usize, d: &mut [f32], mut phi: Option<&mut [f32]>| {
+            // Written before they are read: a fresh zeroed allocation read first maps the
+            // shared zero page, and the first write then copies it and flushes the other
+            // core's TLB, page by page (a fifth of a calibration pose's CPU time).
+            d.fill(0.0);
+            if let Some(phi) = phi.as_deref_mut() {
+                phi.fill(0.0);
+            }
+            let Some(first) = emissions.first() else {
+                return;
+            };
+            for s in i * spp..(i + 1) * spp {
+                let irr = self.sub_irradiance[s];
+                if irr <= 0.0 {
+                    continue;
+                }
+                let [u, v] = self.sub_uv[s];
+                // Located once, read for every frame (all fields share one layout).
+                let position = first.position(u, v);
+                let refl = self.sub_reflect[s] / spp as f32;
+                let area = geo.subs[s].map_or(0.0, |x| x.area_mm2) as f32;
+                for (f, emission) in emissions.iter().enumerate() {
+                    let e = irr * emission.at_position(&position);
+                    d[f] += refl * e;
+                    if let Some(phi) = phi.as_deref_mut() {
+                        phi[f] += area * e;
+                    }
+                }
+            }
+        };
+        let Some(operator) = &self.operator else {
+            direct
+                .par_chunks_mut(frames)
+                .enumerate()
+                .for_each(|(i, d)| light(i, d, None));
+            return frames_from_pixel_major(&direct, None, n, frames);
+        };
         let mut flux = vec![0.0f32; n * frames];
         direct
             .par_chunks_mut(frames)
             .zip(flux.par_chunks_mut(frames))
             .enumerate()
-            .for_each(|(i, (d, phi))| {
-                // Written before they are read: a fresh zeroed allocation read first maps the
-                // shared zero page, and the first write then copies it and flushes the other
-                // core's TLB, page by page (a fifth of a calibration pose's CPU time).
-                d.fill(0.0);
-                phi.fill(0.0);
-                let Some(first) = emissions.first() else {
-                    return;
-                };
-                for s in i * spp..(i + 1) * spp {
-                    let irr = self.sub_irradiance[s];
-                    if irr <= 0.0 {
-                        continue;
-                    }
-                    let [u, v] = self.sub_uv[s];
-                    // Located once, read for every frame (all fields share one layout).
-                    let position = first.position(u, v);
-                    let refl = self.sub_reflect[s] / spp as f32;
-                    let area = geo.subs[s].map_or(0.0, |x| x.area_mm2) as f32;
-                    for (f, emission) in emissions.iter().enumerate() {
-                        let e = irr * emission.at_position(&position);
-                        d[f] += refl * e;
-                        phi[f] += area * e;
-                    }
-                }
-            });
-        let exitance = self.operator.as_ref().map(|op| op.apply(&flux, frames));
+            .for_each(|(i, (d, phi))| light(i, d, Some(phi)));
+        let exitance = operator.apply(&flux, frames);
         // Not needed past the operator: freed before the frames are built (batch peak memory).
         drop(flux);
-        let global = exitance
-            .as_deref()
-            .map(|ex| (ex, self.exit_factor.as_slice()));
-        frames_from_pixel_major(&direct, global, n, frames)
+        frames_from_pixel_major(&direct, Some((&exitance, &self.exit_factor)), n, frames)
     }
 
     /// Renders a batch of patterns, deriving each complement frame from the batch's white and
@@ -189,7 +211,7 @@ impl<'a> ProjectorTransport<'a> {
         let pixels = self.scene.geometry.pixels();
         frames
             .into_iter()
-            .map(|f| f.unwrap_or_else(|| FrameRadiance::zeros(pixels)))
+            .map(|f| f.unwrap_or_else(|| FrameRadiance::black(pixels)))
             .collect()
     }
 
@@ -201,7 +223,7 @@ impl<'a> ProjectorTransport<'a> {
 
 /// The `frames` frames of `n` pixels from a batch's pixel-major sums: `direct[i * frames + f]`
 /// and, for the global part, `exitance[(i * 3 + c) * frames + f]` times the pixel's camera value
-/// per unit exitance `exit_factor[i]` (the global part stays zero without them).
+/// per unit exitance `exit_factor[i]` (the frames have no global part without them).
 ///
 /// Transposed a block of [`TRANSPOSE_BLOCK`] pixels at a time, every frame's part of the block in
 /// turn: the block's sums stay in the core's cache while each frame reads them. Frame by frame
@@ -213,16 +235,22 @@ fn frames_from_pixel_major(
     n: usize,
     frames: usize,
 ) -> Vec<FrameRadiance> {
-    let mut out: Vec<FrameRadiance> = (0..frames).map(|_| FrameRadiance::zeros(n)).collect();
+    let mut out: Vec<FrameRadiance> = (0..frames)
+        .map(|_| FrameRadiance {
+            direct: vec![0.0; n],
+            global: global.map(|_| vec![[0.0; 3]; n]),
+        })
+        .collect();
     // Per block of pixels, that block's part of every frame.
     let mut blocks: Vec<Vec<FramePart>> = (0..n.div_ceil(TRANSPOSE_BLOCK))
         .map(|_| Vec::with_capacity(frames))
         .collect();
     for frame in &mut out {
+        let mut global_parts = frame.global.as_mut().map(|g| g.chunks_mut(TRANSPOSE_BLOCK));
         let parts = frame
             .direct
             .chunks_mut(TRANSPOSE_BLOCK)
-            .zip(frame.global.chunks_mut(TRANSPOSE_BLOCK));
+            .map(|d| (d, global_parts.as_mut().and_then(Iterator::next)));
         for (block, part) in blocks.iter_mut().zip(parts) {
             block.push(part);
         }
@@ -233,7 +261,7 @@ fn frames_from_pixel_major(
             for (j, value) in d.iter_mut().enumerate() {
                 *value = direct[(first + j) * frames + f];
             }
-            let Some((exitance, exit_factor)) = global else {
+            let (Some(g), Some((exitance, exit_factor))) = (g, global) else {
                 continue;
             };
             for (j, value) in g.iter_mut().enumerate() {
@@ -246,8 +274,8 @@ fn frames_from_pixel_major(
     out
 }
 
-/// One frame's direct and global values over one block of pixels.
-type FramePart<'a> = (&'a mut [f32], &'a mut [[f32; 3]]);
+/// One frame's direct and (with a subsurface operator) global values over one block of pixels.
+type FramePart<'a> = (&'a mut [f32], Option<&'a mut [[f32; 3]]>);
 
 /// Pixels per block of [`frames_from_pixel_major`]: a block's sums of a
 /// 40-frame batch take 256 x 40 x 16 bytes, 160 KB, within a core's L2 cache.
@@ -444,7 +472,7 @@ mod tests {
                     let want = global.map_or([0.0; 3], |(ex, k)| {
                         [0, 1, 2].map(|c| k[i] * ex[(i * 3 + c) * frames + f])
                     });
-                    assert_eq!(frame.global[i].map(f32::to_bits), want.map(f32::to_bits));
+                    assert_eq!(frame.global_at(i).map(f32::to_bits), want.map(f32::to_bits));
                 }
             }
         }

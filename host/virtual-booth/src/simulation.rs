@@ -1088,6 +1088,7 @@ mod tests {
                 .global
                 .iter()
                 .flatten()
+                .flatten()
                 .chain(&direct[0].direct)
                 .fold(0.0f32, |m, &v| m.max(v));
             assert!(white_max > 0.01, "projector {k} lights nothing");
@@ -1095,7 +1096,7 @@ mod tests {
                 let values = |f: &FrameRadiance| -> Vec<f32> {
                     f.direct
                         .iter()
-                        .chain(f.global.iter().flatten())
+                        .chain(f.global.iter().flatten().flatten())
                         .copied()
                         .collect()
                 };

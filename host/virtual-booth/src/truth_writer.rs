@@ -91,7 +91,7 @@ pub fn write_components(
     )?;
     write_exr_rgb_compact(
         &truth::global(dir, k, pattern),
-        &rgb_image(w, h, |i| frame.global[i]),
+        &rgb_image(w, h, |i| frame.global_at(i)),
     )?;
     Ok(())
 }
