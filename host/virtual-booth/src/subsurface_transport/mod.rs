@@ -149,14 +149,10 @@ impl SubsurfaceKernel {
         while rho0 * f64::powi(2.0, count as i32 - 1) < reach && (1usize << count) < max_dim {
             count += 1;
         }
-        let rho = |k: usize| rho0 * f64::powi(2.0, k as i32);
         let levels = (0..count)
             .into_par_iter()
             .map(|j| {
-                let band = Band {
-                    rho_inner: (j > 0).then(|| rho(j - 1)),
-                    rho_outer: (j + 1 < count).then(|| rho(j)),
-                };
+                let band = Band::of_level(j, count, rho0);
                 let scale = 1usize << j;
                 let cell_mm = scale as f64 * pixel_mm;
                 let tables = PackedTables::build(

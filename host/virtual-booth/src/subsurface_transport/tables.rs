@@ -28,6 +28,17 @@ pub(super) struct Band {
 }
 
 impl Band {
+    /// Band `level` of a kernel of `count` levels whose innermost radius is `rho0`: it spans
+    /// `rho_{level-1}..2 rho_level` with `rho_j = 2^j rho0`, the first without an inner edge and
+    /// the last without an outer one.
+    pub(super) fn of_level(level: usize, count: usize, rho0: f64) -> Self {
+        let rho = |j: usize| rho0 * f64::powi(2.0, j as i32);
+        Self {
+            rho_inner: (level > 0).then(|| rho(level - 1)),
+            rho_outer: (level + 1 < count).then(|| rho(level)),
+        }
+    }
+
     pub(super) fn weight(&self, r: f64) -> f64 {
         let outer = self.rho_outer.map_or(1.0, |rho| window_step(r / rho));
         let inner = self.rho_inner.map_or(0.0, |rho| window_step(r / rho));

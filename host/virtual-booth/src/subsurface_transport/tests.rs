@@ -151,13 +151,7 @@ fn bands_partition_the_response() {
     for i in 0..200 {
         let r = i as f64 * 0.1;
         let total: f64 = (0..count)
-            .map(|j| {
-                Band {
-                    rho_inner: (j > 0).then(|| rho0 * f64::powi(2.0, j - 1)),
-                    rho_outer: (j + 1 < count).then(|| rho0 * f64::powi(2.0, j)),
-                }
-                .weight(r)
-            })
+            .map(|j| Band::of_level(j, count, rho0).weight(r))
             .sum();
         assert!((total - 1.0).abs() < 1e-12, "r {r}: {total}");
     }
@@ -471,12 +465,10 @@ fn the_filtered_bands_end_within_the_reach() {
     let pixel_mm = 0.25;
     let rho0 = INNER_BAND_PIXELS * pixel_mm;
     let wide = 4.0;
-    for j in 0..3 {
-        let band = Band {
-            rho_inner: (j > 0).then(|| rho0 * f64::powi(2.0, j - 1)),
-            rho_outer: Some(rho0 * f64::powi(2.0, j)),
-        };
-        let cell_mm = pixel_mm * f64::powi(2.0, j);
+    for j in 0..3usize {
+        // The first three bands of a kernel with more levels (each has an outer edge).
+        let band = Band::of_level(j, 4, rho0);
+        let cell_mm = pixel_mm * f64::powi(2.0, j as i32);
         let spacing = TABLE_SPACING_CELLS * cell_mm;
         let half = ((band.r_max() + wide * cell_mm) / spacing).ceil() as usize;
         let table = BandTable::build(&grid, &band, cell_mm, spacing, half);
