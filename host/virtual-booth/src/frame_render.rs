@@ -455,7 +455,7 @@ mod tests {
 
     /// The blocked transposition gives every frame's values as reading the sums frame by frame
     /// does (the layout before it), bit for bit, over a partial last block, with and without
-    /// the global part.
+    /// the global part (and without one, the frames have none).
     #[test]
     fn blocked_transposition_equals_reading_frame_by_frame() {
         let (n, frames) = (2 * TRANSPOSE_BLOCK + 37, 5);
@@ -467,6 +467,8 @@ mod tests {
             let got = frames_from_pixel_major(&direct, global, n, frames);
             assert_eq!(got.len(), frames);
             for (f, frame) in got.iter().enumerate() {
+                // Without the sums of a subsurface operator a frame holds no global part.
+                assert_eq!(frame.global.as_ref().map(Vec::len), global.map(|_| n));
                 for i in 0..n {
                     assert_eq!(frame.direct[i].to_bits(), direct[i * frames + f].to_bits());
                     let want = global.map_or([0.0; 3], |(ex, k)| {
