@@ -76,23 +76,27 @@ pub fn derive(
             .map(|(&w, &f)| rest(w, f))
             .collect(),
         global: match (&white.global, &frame.global) {
-            (Some(w), Some(f)) => Some(
-                w.iter()
-                    .zip(f)
-                    .map(|(w, f)| [0, 1, 2].map(|c| rest(w[c], f[c])))
-                    .collect(),
-            ),
             // Without a subsurface operator neither has a global part, nor has the complement.
             (None, None) => None,
-            // One of them black (`FrameRadiance::black`).
-            _ => Some(
-                (0..white.direct.len())
-                    .map(|i| {
-                        let (w, f) = (white.global_at(i), frame.global_at(i));
-                        [0, 1, 2].map(|c| rest(w[c], f[c]))
-                    })
-                    .collect(),
-            ),
+            // Either may be black (`FrameRadiance::black`): a missing part is zero.
+            (w, f) => {
+                let missing = if w.is_none() || f.is_none() {
+                    white.direct.len()
+                } else {
+                    0
+                };
+                let zeros = vec![[0.0f32; 3]; missing];
+                let (w, f) = (
+                    w.as_deref().unwrap_or(&zeros),
+                    f.as_deref().unwrap_or(&zeros),
+                );
+                Some(
+                    w.iter()
+                        .zip(f)
+                        .map(|(w, f)| [0, 1, 2].map(|c| rest(w[c], f[c])))
+                        .collect(),
+                )
+            }
         },
     }
 }
