@@ -73,8 +73,57 @@ fn error_lines(err: &anyhow::Error) -> Vec<String> {
     lines
 }
 
+/// Starts the program again, once, with glibc's allocator on transparent huge pages where the
+/// kernel gives them only on request ([`mlsss_core::resources::tunables_for_huge_page_malloc`]
+/// says when, and why). glibc reads `GLIBC_TUNABLES` only at start-up, so a fresh start of the
+/// same executable with the same arguments is the only way in; it keeps the process (its id,
+/// standard streams and exit status). Does nothing where that does not apply, and carries on as
+/// started if the restart fails.
+fn restart_with_huge_page_malloc() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        use std::os::unix::process::CommandExt;
+        /// Set in the restarted process: never restart twice, whatever glibc makes of the
+        /// tunables.
+        const RESTARTED: &str = "MLSSS_RESTARTED_FOR_HUGE_PAGES";
+        if std::env::var_os(RESTARTED).is_some() {
+            return;
+        }
+        let current = match std::env::var_os("GLIBC_TUNABLES") {
+            None => None,
+            Some(value) => match value.into_string() {
+                Ok(text) => Some(text),
+                Err(_) => return,
+            },
+        };
+        let Ok(thp) = std::fs::read_to_string("/sys/kernel/mm/transparent_hugepage/enabled") else {
+            return;
+        };
+        let Some(tunables) =
+            mlsss_core::resources::tunables_for_huge_page_malloc(current.as_deref(), &thp)
+        else {
+            return;
+        };
+        let Ok(executable) = std::env::current_exe() else {
+            return;
+        };
+        let mut args = std::env::args_os();
+        let mut command = std::process::Command::new(executable);
+        if let Some(name) = args.next() {
+            command.arg0(name);
+        }
+        // `exec` returns only when it failed.
+        let _failed = command
+            .args(args)
+            .env("GLIBC_TUNABLES", tunables)
+            .env(RESTARTED, "1")
+            .exec();
+    }
+}
+
 fn main() -> ExitCode {
     use clap::{CommandFactory, FromArgMatches};
+    restart_with_huge_page_malloc();
     mlsss_core::resources::keep_freed_memory_for_reuse();
     let matches = allow_negative_numbers(Cli::command()).get_matches();
     let cli = match Cli::from_arg_matches(&matches) {

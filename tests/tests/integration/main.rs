@@ -4,6 +4,7 @@ mod calibrate_cli;
 mod decode_cli;
 mod demo_cli;
 mod fit_cli;
+mod huge_page_restart;
 mod mc_cli;
 mod mc_validation;
 mod normals_cli;
