@@ -91,7 +91,7 @@ pub const HUGE_PAGE_MALLOC_TUNABLE: &str = "glibc.malloc.hugetlb=1";
 /// without it the pipeline's buffers are faulted in and zeroed 4 KiB at a time. The full-size
 /// `mlsss process --until fit` (2-core VM, three pairs alternated with and without it):
 /// page faults 1.17-1.27 -> 0.25-0.39 million, system time 8.7-12.0 -> 6.7 s, CPU time 47.9-51.5
-/// -> 45.3-48.5 s, wall 28.4-32.5 -> 26.6-28.3 s, peak memory 1.83-1.94 -> 1.85-1.86 GB. Per
+/// -> 45.3-48.5 s, wall 28.4-32.5 -> 26.6-28.3 s, peak memory 1.75-1.85 -> 1.77 GiB. Per
 /// block it is not the same: advising every block of 4 MiB or more from a wrapper around the
 /// system allocator saved no CPU time and, on the layer model's 465 MB, raised the peak to
 /// 2.2 GB (2026-11-29 session notes).
