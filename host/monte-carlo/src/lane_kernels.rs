@@ -182,7 +182,7 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
 /// Each stored vector is `inside.select(new, old)` with `old` loaded from the same place, and
 /// LLVM folds such a store into a masked store (`vmaskmovps` on AVX2) when nothing between
 /// the load and the store may write memory. On AMD Zen 3 a 256-bit `vmaskmovps` store is
-/// microcoded: with the step's 16 of them the AVX2 walk ran 0.57-0.73e5 photons per CPU-s,
+/// microcoded: with the step's 14 of them the AVX2 walk ran 0.57-0.73e5 photons per CPU-s,
 /// with blends and plain stores 0.96-1.27e5 (7-layer skin, `seven_layer` example, one thread
 /// each, side by side, 12 and 14 rounds, tallies bit-identical). An out-of-line call in `ln`
 /// used to hide the pattern (at 0.68-0.84e5). An empty `asm!` that may write memory is such a
