@@ -74,9 +74,10 @@ pub fn keep_freed_memory_for_reuse() {
     }
 }
 
-/// The glibc tunable that makes its allocator ask for transparent huge pages on what it maps: its
-/// arenas' heaps as they grow and its blocks of 2 MiB or more (`madvise(MADV_HUGEPAGE)`).
-pub const HUGE_PAGE_MALLOC_TUNABLE: &str = "glibc.malloc.hugetlb=1";
+/// The glibc tunable that, set to 1, makes its allocator ask for transparent huge pages on what
+/// it maps: its arenas' heaps as they grow and its blocks of 2 MiB or more
+/// (`madvise(MADV_HUGEPAGE)`).
+const HUGE_PAGE_MALLOC_TUNABLE: &str = "glibc.malloc.hugetlb";
 
 /// The `GLIBC_TUNABLES` value to start the program again with so that glibc's allocator backs
 /// its memory with transparent huge pages, or `None` when that would change nothing or is not
@@ -102,14 +103,14 @@ pub fn tunables_for_huge_page_malloc(current: Option<&str>, thp_enabled: &str) -
     let current = current.unwrap_or("");
     let sets_hugetlb = current
         .split(':')
-        .any(|setting| setting.split('=').next() == Some("glibc.malloc.hugetlb"));
+        .any(|setting| setting.split('=').next() == Some(HUGE_PAGE_MALLOC_TUNABLE));
     if sets_hugetlb {
         return None;
     }
     Some(if current.is_empty() {
-        HUGE_PAGE_MALLOC_TUNABLE.to_string()
+        format!("{HUGE_PAGE_MALLOC_TUNABLE}=1")
     } else {
-        format!("{current}:{HUGE_PAGE_MALLOC_TUNABLE}")
+        format!("{current}:{HUGE_PAGE_MALLOC_TUNABLE}=1")
     })
 }
 
