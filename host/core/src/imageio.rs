@@ -77,9 +77,16 @@ enum ExrStorage {
 
 impl ExrStorage {
     fn encoding(self) -> exr::prelude::Encoding {
+        use exr::prelude::{Encoding, LineOrder};
         match self {
-            Self::Raw => exr::prelude::Encoding::UNCOMPRESSED,
-            Self::Compact => exr::prelude::Encoding::FAST_LOSSLESS,
+            Self::Raw => Encoding::UNCOMPRESSED,
+            // Tiles in increasing order, not `FAST_LOSSLESS`'s unspecified one: the `exr` crate
+            // codes tiles in parallel and, with the order unspecified, writes each where it
+            // finishes, so the same image gave different bytes from run to run.
+            Self::Compact => Encoding {
+                line_order: LineOrder::Increasing,
+                ..Encoding::FAST_LOSSLESS
+            },
         }
     }
 }
@@ -600,6 +607,50 @@ mod tests {
     fn compression_of(path: &Path) -> exr::compression::Compression {
         let meta = exr::meta::MetaData::read_from_file(path, false).unwrap();
         meta.headers[0].compression
+    }
+
+    /// Regression test: compact EXRs (a simulated capture's truth) were written with their tiles
+    /// in the order the parallel coder finished them, so the same image gave different bytes.
+    /// The tiles are now in increasing order and repeated writes give the same file.
+    #[test]
+    fn compact_exrs_are_the_same_bytes_every_time() {
+        use exr::prelude::LineOrder;
+        let dir = tempfile::tempdir().unwrap();
+        // 24 x 12 tiles of 64 x 64, runs of zeros and noise, as the truth images have.
+        let rgb = Rgb32FImage::from_fn(1536, 768, |x, y| {
+            let i = (y * 1536 + x) as usize;
+            let v = if (x / 100 + y / 70) % 3 == 0 {
+                0.0
+            } else {
+                awkward_sample(i)
+            };
+            image::Rgb([v, 0.5 * v, v * v])
+        });
+        let gray = GrayF32 {
+            width: 1536,
+            height: 768,
+            data: rgb.pixels().map(|p| p.0[1]).collect(),
+        };
+        type Write<'a> = &'a dyn Fn(&Path) -> Result<(), ImageIoError>;
+        let cases: [(&str, Write); 2] = [
+            ("rgb", &|p| write_exr_rgb_compact(p, &rgb)),
+            ("gray", &|p| write_exr_gray_compact(p, &gray)),
+        ];
+        for (name, write) in cases {
+            let first = dir.path().join(format!("{name}-0.exr"));
+            write(&first).unwrap();
+            let meta = exr::meta::MetaData::read_from_file(&first, false).unwrap();
+            assert_eq!(meta.headers[0].line_order, LineOrder::Increasing, "{name}");
+            let bytes = std::fs::read(&first).unwrap();
+            for k in 1..4 {
+                let again = dir.path().join(format!("{name}-{k}.exr"));
+                write(&again).unwrap();
+                assert!(
+                    std::fs::read(&again).unwrap() == bytes,
+                    "{name}: write {k} differs"
+                );
+            }
+        }
     }
 
     #[test]
