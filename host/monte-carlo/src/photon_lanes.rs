@@ -534,7 +534,9 @@ pub(crate) fn run_batch(
 
 #[cfg(test)]
 mod tests {
-    use super::portable::{LayerVectors, PolarAngle, azimuth, henyey_greenstein, next_bits, spin};
+    use super::portable::{
+        PhaseFunctionVectors, PolarAngle, azimuth, henyey_greenstein, next_bits, spin,
+    };
     use super::*;
 
     /// Every lane vector starts a cache line (the layout [`Lanes`] documents; regression test
@@ -665,7 +667,7 @@ mod tests {
             for lane in 0..LANES {
                 lanes.enter_layer(&geo, lane, 0);
             }
-            let layer = LayerVectors::load(&lanes);
+            let layer = PhaseFunctionVectors::load(&lanes);
             let cells = 1 << 16;
             let (mut mean, mut mean_sq) = (0.0f64, 0.0f64);
             for first in (0..cells).step_by(LANES) {
