@@ -117,8 +117,9 @@ pub(crate) fn sin_cos_quarter(a: F32s) -> (F32s, F32s) {
 /// the next begins (`keep_stores_whole` between them, so that no load moves up). With every
 /// vector loaded up front, the step's values outnumbered AVX2's 16 registers (two per 16-lane
 /// vector): 104 of its instructions moved spills to the stack and back, 59 now (callgrind,
-/// 7-layer skin), and the `seven_layer` example ran about 10 % faster (18 pairs side by side,
-/// tallies bit-identical): the spills' store-to-load round trips sat on the step's chains.
+/// 7-layer skin). Side by side, one thread each, tallies bit-identical: the `seven_layer`
+/// example about 10 % faster (18 pairs, 13 faster), `mlsss mc layers` about 4 % (16 pairs, 9
+/// faster; this VM's noise is of that order).
 #[inline(always)]
 pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     let zero = F32s::splat(0.0);
