@@ -162,7 +162,7 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
     lanes.scatter_bits = scatter_bits.store();
     let (cos_p, sin_p) = azimuth(next_bits(&mut lanes.rng));
     let polar = henyey_greenstein(&PhaseFunctionVectors::load(lanes), units(scatter_bits));
-    // Loaded again rather than kept in registers since the move (see above).
+    // Loaded again, not kept in registers through the move and the random draws above.
     let (ux, uy, uz) = (
         F32s::load(lanes.ux),
         F32s::load(lanes.uy),
@@ -222,11 +222,11 @@ pub(crate) struct PolarAngle {
 /// near 1, the common case at g = 0.9) keeps f32's relative precision in 1 - cos and sin theta.
 /// Every factor is positive; the clamp only catches rounding above 2 at xi = 0.
 #[inline(always)]
-pub(crate) fn henyey_greenstein(layer: &PhaseFunctionVectors, xi: F32s) -> PolarAngle {
+pub(crate) fn henyey_greenstein(phase: &PhaseFunctionVectors, xi: F32s) -> PolarAngle {
     let c = F32s::splat;
-    let d = layer.hg_two_g.mul_add(xi, layer.hg_one_minus_g);
+    let d = phase.hg_two_g.mul_add(xi, phase.hg_one_minus_g);
     let denominator = d * d;
-    let numerator = layer.hg_scale * ((c(1.0) - xi) * layer.hg_g.mul_add(xi, c(1.0)));
+    let numerator = phase.hg_scale * ((c(1.0) - xi) * phase.hg_g.mul_add(xi, c(1.0)));
     PolarAngle {
         numerator: numerator.min(c(2.0) * denominator),
         denominator,
