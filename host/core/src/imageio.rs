@@ -602,6 +602,8 @@ mod tests {
 
     type WriteRgb = fn(&Path, &Rgb32FImage) -> Result<(), ImageIoError>;
     type WriteGray = fn(&Path, &GrayF32) -> Result<(), ImageIoError>;
+    /// A writer of one test image to the path it is given.
+    type Write<'a> = &'a dyn Fn(&Path) -> Result<(), ImageIoError>;
 
     /// The compression recorded in the first header of the EXR at `path`.
     fn compression_of(path: &Path) -> exr::compression::Compression {
@@ -631,7 +633,6 @@ mod tests {
             height: 768,
             data: rgb.pixels().map(|p| p.0[1]).collect(),
         };
-        type Write<'a> = &'a dyn Fn(&Path) -> Result<(), ImageIoError>;
         let cases: [(&str, Write); 2] = [
             ("rgb", &|p| write_exr_rgb_compact(p, &rgb)),
             ("gray", &|p| write_exr_gray_compact(p, &gray)),
@@ -659,7 +660,6 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let rgb = Rgb32FImage::from_fn(9, 5, |x, y| image::Rgb([x as f32, y as f32, 0.5]));
         let gray = GrayF32::new(9, 5);
-        type Write<'a> = &'a dyn Fn(&Path) -> Result<(), ImageIoError>;
         let cases: [(&str, Write, Compression); 4] = [
             (
                 "rgb_raw",

@@ -195,7 +195,8 @@ pub(crate) fn interact(lanes: &mut Lanes) -> StepOutcome {
 /// with blends and plain stores 0.96-1.27e5 (7-layer skin, `seven_layer` example, one thread
 /// each, side by side, 12 and 14 rounds, tallies bit-identical). An out-of-line call in `ln`
 /// used to hide the pattern (at 0.68-0.84e5). An empty `asm!` that may write memory is such a
-/// thing, and emits no instruction.
+/// thing, and emits no instruction. No load moves across it either, which keeps each phase of
+/// `interact` loading its own vectors (fewer spills, see there).
 #[inline(always)]
 fn keep_stores_whole() {
     #[cfg(target_arch = "x86_64")]
