@@ -80,7 +80,7 @@ fn splitmix64(mut z: u64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::photon_lanes::portable::{next_bits, units, units_open};
+    use crate::photon_lanes::portable::{next_bits, next_bits_n, units, units_open};
     use crate::simd::U32s;
 
     /// First output of xoshiro128++ from the state (1, 2, 3, 4), computed by hand from the
@@ -95,6 +95,20 @@ mod tests {
         // Lanes are independent copies of one algorithm: lane 0 has now made two steps and lane 1
         // one, so lane 0's third output is lane 1's third.
         assert_eq!(next_bits(&mut rng).0[0], rng.next_bits_of(1));
+    }
+
+    /// The step's three draws at once are the stream's next three, and leave the same state.
+    #[test]
+    fn draws_at_once_are_the_next_draws_in_order() {
+        let mut at_once = LaneRng::for_batch(11, 5);
+        let mut one_by_one = LaneRng::for_batch(11, 5);
+        for _ in 0..4 {
+            let draws: [U32s; 3] = next_bits_n(&mut at_once);
+            for draw in draws {
+                assert_eq!(draw, next_bits(&mut one_by_one));
+            }
+        }
+        assert_eq!(at_once.s, one_by_one.s);
     }
 
     #[test]

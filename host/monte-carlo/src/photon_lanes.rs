@@ -104,6 +104,8 @@ pub(crate) struct Lanes {
     /// them instead of stepping the lane's stream in scalar code (whose single-lane writes the
     /// next vector step would have to wait for).
     scatter_bits: [u32; LANES],
+    /// The 32 random bits of each lane's last azimuth draw (drawn with the step's other two).
+    azimuth_bits: [u32; LANES],
 }
 
 impl Lanes {
@@ -137,6 +139,7 @@ impl Lanes {
             absorbed: vec![0.0; LANES * layers],
             rng,
             scatter_bits: [0; LANES],
+            azimuth_bits: [0; LANES],
         }
     }
 
