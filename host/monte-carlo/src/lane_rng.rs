@@ -97,7 +97,8 @@ mod tests {
         assert_eq!(next_bits(&mut rng).0[0], rng.next_bits_of(1));
     }
 
-    /// The step's three draws at once are the stream's next three, and leave the same state.
+    /// The step's three draws at once are each lane's next three scalar draws, in order, and
+    /// leave the same state.
     #[test]
     fn draws_at_once_are_the_next_draws_in_order() {
         let mut at_once = LaneRng::for_batch(11, 5);
@@ -105,7 +106,9 @@ mod tests {
         for _ in 0..4 {
             let draws: [U32s; 3] = next_bits_n(&mut at_once);
             for draw in draws {
-                assert_eq!(draw, next_bits(&mut one_by_one));
+                for (lane, &bits) in draw.0.iter().enumerate() {
+                    assert_eq!(bits, one_by_one.next_bits_of(lane));
+                }
             }
         }
         assert_eq!(at_once.s, one_by_one.s);

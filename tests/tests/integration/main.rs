@@ -1,5 +1,6 @@
 mod bad_input;
 mod booth_cli;
+mod build_profile;
 mod calibrate_cli;
 mod decode_cli;
 mod demo_cli;
