@@ -47,11 +47,9 @@ fn linked_packages(metadata: &Value) -> BTreeSet<String> {
         .map(|p| (p["id"].as_str().expect("id"), p))
         .collect();
     let is_proc_macro = |id: &str| {
-        packages[id]["targets"].as_array().is_some_and(|targets| {
-            targets
-                .iter()
-                .any(|t| t["kind"].to_string().contains("proc-macro"))
-        })
+        let targets = packages[id]["targets"].as_array().into_iter().flatten();
+        let mut kinds = targets.flat_map(|t| t["kind"].as_array().into_iter().flatten());
+        kinds.any(|kind| kind == "proc-macro")
     };
     let nodes: HashMap<&str, &Value> = metadata["resolve"]["nodes"]
         .as_array()
