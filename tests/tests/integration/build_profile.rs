@@ -12,6 +12,7 @@ use std::collections::{BTreeSet, HashMap};
 use std::path::Path;
 use std::process::Command;
 
+use mlsss_tests::run_json;
 use serde_json::Value;
 
 /// The packages named under `[profile.dev.package]` with an opt-level below 3.
@@ -92,17 +93,11 @@ fn the_dev_profile_leaves_only_build_time_crates_unoptimised() {
         "the check reads the profile table: {unoptimised:?}"
     );
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let output = Command::new(cargo)
-        .args(["metadata", "--format-version", "1", "--offline"])
-        .current_dir(&root)
-        .output()
-        .expect("run cargo metadata");
-    assert!(
-        output.status.success(),
-        "cargo metadata: {}",
-        String::from_utf8_lossy(&output.stderr)
+    let metadata = run_json(
+        Command::new(cargo)
+            .args(["metadata", "--format-version", "1", "--offline"])
+            .current_dir(&root),
     );
-    let metadata: Value = serde_json::from_slice(&output.stdout).expect("metadata JSON");
     let linked = linked_packages(&metadata);
     // The traversal itself: `image` is linked into our code, `syn` only into macros.
     assert!(linked.contains("image") && linked.contains("png"));
