@@ -10,7 +10,7 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::{Point3, Vector3};
 
 use mlsss_virtual_booth::subsurface_transport::{
-    EntrySample, ResponseGrid, ResponseSet, SubsurfaceKernel, SubsurfaceOperator,
+    EntrySample, INNER_BAND_PIXELS, ResponseGrid, ResponseSet, SubsurfaceKernel, SubsurfaceOperator,
 };
 
 const WIDTH: usize = 460;
@@ -92,20 +92,29 @@ fn flux() -> Vec<f32> {
         .collect()
 }
 
+/// The operator at the full-size booth's innermost band (4 px) and the small booths' (3 px).
 fn gather(c: &mut Criterion) {
     let responses = responses();
-    let kernel = SubsurfaceKernel::new(&responses, PIXEL_MM, PIXEL_MM, WIDTH.max(HEIGHT));
     let entries = entries();
     let flux = flux();
     let mut group = c.benchmark_group("subsurface");
     group.sample_size(10);
-    group.bench_function("operator_new", |b| {
-        b.iter(|| SubsurfaceOperator::new(&kernel, WIDTH, HEIGHT, &entries))
-    });
-    let operator = SubsurfaceOperator::new(&kernel, WIDTH, HEIGHT, &entries);
-    group.bench_function("apply_16_frames", |b| {
-        b.iter(|| operator.apply(&flux, FRAMES))
-    });
+    for (label, inner_band_px) in [("", INNER_BAND_PIXELS), ("_inner_3px", 3.0)] {
+        let kernel = SubsurfaceKernel::new(
+            &responses,
+            PIXEL_MM,
+            PIXEL_MM,
+            WIDTH.max(HEIGHT),
+            inner_band_px,
+        );
+        group.bench_function(format!("operator_new{label}"), |b| {
+            b.iter(|| SubsurfaceOperator::new(&kernel, WIDTH, HEIGHT, &entries))
+        });
+        let operator = SubsurfaceOperator::new(&kernel, WIDTH, HEIGHT, &entries);
+        group.bench_function(format!("apply_16_frames{label}"), |b| {
+            b.iter(|| operator.apply(&flux, FRAMES))
+        });
+    }
     group.finish();
 }
 

@@ -163,7 +163,13 @@ fn uniform_light_with_pixels_wider_than_the_response_keeps_the_total() {
     let mut grid = synthetic_response(0.333, 61, [0.6, 0.4, 0.2]);
     with_sharp_blue_peak(&mut grid);
     let totals = grid.total();
-    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    let kernel = SubsurfaceKernel::new(
+        &response_set(grid),
+        pixel_mm,
+        pixel_mm,
+        w.max(h),
+        INNER_BAND_PIXELS,
+    );
     // Light from a diagonal: the pixel lattice is rotated 45 degrees against the tables.
     let light = Vector3::new(-0.4, -0.4, -0.82).normalize();
     let entries = plane_entries(w, h, pixel_mm, light);
@@ -187,7 +193,13 @@ fn uniform_light_on_a_plane_gives_the_response_total() {
     let (w, h, pixel_mm) = (96, 96, 0.25);
     let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
     let totals = grid.total();
-    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    let kernel = SubsurfaceKernel::new(
+        &response_set(grid),
+        pixel_mm,
+        pixel_mm,
+        w.max(h),
+        INNER_BAND_PIXELS,
+    );
     let entries = plane_entries(w, h, pixel_mm, -Vector3::z());
     let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
     let flux = vec![(pixel_mm * pixel_mm) as f32; w * h];
@@ -205,6 +217,13 @@ fn uniform_light_on_a_plane_gives_the_response_total() {
 
 #[test]
 fn a_lit_line_gives_the_brute_force_profile() {
+    for inner_band_px in [INNER_BAND_PIXELS, MIN_INNER_BAND_PIXELS] {
+        lit_line_against_brute_force(inner_band_px);
+    }
+}
+
+/// [`a_lit_line_gives_the_brute_force_profile`] with the innermost band `inner_band_px` wide.
+fn lit_line_against_brute_force(inner_band_px: f64) {
     // One lit column: the exitance profile across it matches the direct pairwise sum of the
     // (unfiltered) response, including its forward shift.
     let (w, h, pixel_mm) = (128, 64, 0.25);
@@ -212,7 +231,13 @@ fn a_lit_line_gives_the_brute_force_profile() {
     // Light from -x: forward is +x.
     let light = Vector3::new(-0.5, 0.0, -(0.75f64).sqrt());
     let entries = plane_entries(w, h, pixel_mm, light);
-    let kernel = SubsurfaceKernel::new(&response_set(grid.clone()), pixel_mm, pixel_mm, w.max(h));
+    let kernel = SubsurfaceKernel::new(
+        &response_set(grid.clone()),
+        pixel_mm,
+        pixel_mm,
+        w.max(h),
+        inner_band_px,
+    );
     let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
     let lit_x = 50;
     let flux: Vec<f32> = (0..w * h)
@@ -267,7 +292,13 @@ fn a_lit_line_gives_the_brute_force_profile() {
         }
     }
     // Within 1 % of the peak at the line, within 3 % of the peak everywhere (the band
-    // transitions are where cell aggregation errs most).
+    // transitions are where cell aggregation errs most; 4 px: up to 0.9 % and 3.0 %). The 3 px
+    // band aggregates cells half a cell closer: up to 2.4 % at the line and 4.0 % (dx 4).
+    let (near, far) = if inner_band_px >= INNER_BAND_PIXELS {
+        (0.01, 0.03)
+    } else {
+        (0.03, 0.045)
+    };
     for c in 0..3 {
         let peak = results
             .iter()
@@ -275,10 +306,11 @@ fn a_lit_line_gives_the_brute_force_profile() {
             .map(|r| r.3)
             .fold(0.0, f64::max);
         for &(dx, _, got, brute) in results.iter().filter(|r| r.1 == c) {
-            let tolerance = if dx.abs() <= 1 { 0.01 } else { 0.03 } * peak;
+            let tolerance = if dx.abs() <= 1 { near } else { far } * peak;
             assert!(
                 (got - brute).abs() < tolerance,
-                "dx {dx} channel {c}: hierarchical {got}, brute force {brute}, peak {peak}"
+                "inner band {inner_band_px} px, dx {dx} channel {c}: hierarchical {got}, brute force \
+                 {brute}, peak {peak}"
             );
         }
     }
@@ -292,7 +324,13 @@ fn every_instruction_set_gives_the_baseline_bit_for_bit() {
     let (w, h, pixel_mm) = (80, 60, 0.25);
     let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
     let light = Vector3::new(-0.3, 0.2, -0.9).normalize();
-    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    let kernel = SubsurfaceKernel::new(
+        &response_set(grid),
+        pixel_mm,
+        pixel_mm,
+        w.max(h),
+        INNER_BAND_PIXELS,
+    );
     assert!(
         kernel.levels.len() > 2,
         "the test must reach aggregated levels"
@@ -343,7 +381,13 @@ fn every_instruction_set_gives_the_baseline_bit_for_bit() {
 fn the_tile_gather_finds_the_pairs_of_a_plain_search() {
     let (w, h, pixel_mm) = (48, 40, 0.25);
     let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
-    let kernel = SubsurfaceKernel::new(&response_set(grid), pixel_mm, pixel_mm, w.max(h));
+    let kernel = SubsurfaceKernel::new(
+        &response_set(grid),
+        pixel_mm,
+        pixel_mm,
+        w.max(h),
+        INNER_BAND_PIXELS,
+    );
     // A bent sheet lit from a diagonal: forward and side axes vary from cell to cell.
     let light = Vector3::new(-0.3, 0.2, -0.9).normalize();
     let mut entries = plane_entries(w, h, pixel_mm, light);
