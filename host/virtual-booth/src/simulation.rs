@@ -64,8 +64,7 @@ pub struct SimulationOptions {
     pub seed: u64,
     /// Camera sub-samples per pixel along each axis.
     pub supersampling: u32,
-    /// Innermost band of the subsurface transport, pixels
-    /// ([`INNER_BAND_PIXELS`](super::subsurface_transport::INNER_BAND_PIXELS): its cost and
+    /// Innermost band of the subsurface transport, pixels ([`INNER_BAND_PIXELS`]: its cost and
     /// error).
     pub inner_band_px: f64,
     /// Spatial variation of the skin (freckles, vessels, stubble); off = uniform base skin.
