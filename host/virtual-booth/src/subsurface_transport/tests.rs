@@ -60,6 +60,22 @@ fn plane_entries(
         .collect()
 }
 
+/// The kernel of `grid` alone for a view of `max_dim` pixels of `pixel_mm`, everywhere alike.
+fn kernel_on_pixels(
+    grid: ResponseGrid,
+    pixel_mm: f64,
+    max_dim: usize,
+    inner_band_px: f64,
+) -> SubsurfaceKernel {
+    SubsurfaceKernel::new(
+        &response_set(grid),
+        pixel_mm,
+        pixel_mm,
+        max_dim,
+        inner_band_px,
+    )
+}
+
 fn response_set(grid: ResponseGrid) -> ResponseSet {
     ResponseSet {
         angles_deg: vec![0.0],
@@ -163,13 +179,7 @@ fn uniform_light_with_pixels_wider_than_the_response_keeps_the_total() {
     let mut grid = synthetic_response(0.333, 61, [0.6, 0.4, 0.2]);
     with_sharp_blue_peak(&mut grid);
     let totals = grid.total();
-    let kernel = SubsurfaceKernel::new(
-        &response_set(grid),
-        pixel_mm,
-        pixel_mm,
-        w.max(h),
-        INNER_BAND_PIXELS,
-    );
+    let kernel = kernel_on_pixels(grid, pixel_mm, w.max(h), INNER_BAND_PIXELS);
     // Light from a diagonal: the pixel lattice is rotated 45 degrees against the tables.
     let light = Vector3::new(-0.4, -0.4, -0.82).normalize();
     let entries = plane_entries(w, h, pixel_mm, light);
@@ -193,13 +203,7 @@ fn uniform_light_on_a_plane_gives_the_response_total() {
     let (w, h, pixel_mm) = (96, 96, 0.25);
     let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
     let totals = grid.total();
-    let kernel = SubsurfaceKernel::new(
-        &response_set(grid),
-        pixel_mm,
-        pixel_mm,
-        w.max(h),
-        INNER_BAND_PIXELS,
-    );
+    let kernel = kernel_on_pixels(grid, pixel_mm, w.max(h), INNER_BAND_PIXELS);
     let entries = plane_entries(w, h, pixel_mm, -Vector3::z());
     let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
     let flux = vec![(pixel_mm * pixel_mm) as f32; w * h];
@@ -231,13 +235,7 @@ fn lit_line_against_brute_force(inner_band_px: f64) {
     // Light from -x: forward is +x.
     let light = Vector3::new(-0.5, 0.0, -(0.75f64).sqrt());
     let entries = plane_entries(w, h, pixel_mm, light);
-    let kernel = SubsurfaceKernel::new(
-        &response_set(grid.clone()),
-        pixel_mm,
-        pixel_mm,
-        w.max(h),
-        inner_band_px,
-    );
+    let kernel = kernel_on_pixels(grid.clone(), pixel_mm, w.max(h), inner_band_px);
     let op = SubsurfaceOperator::new(&kernel, w, h, &entries);
     let lit_x = 50;
     let flux: Vec<f32> = (0..w * h)
@@ -324,13 +322,7 @@ fn every_instruction_set_gives_the_baseline_bit_for_bit() {
     let (w, h, pixel_mm) = (80, 60, 0.25);
     let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
     let light = Vector3::new(-0.3, 0.2, -0.9).normalize();
-    let kernel = SubsurfaceKernel::new(
-        &response_set(grid),
-        pixel_mm,
-        pixel_mm,
-        w.max(h),
-        INNER_BAND_PIXELS,
-    );
+    let kernel = kernel_on_pixels(grid, pixel_mm, w.max(h), INNER_BAND_PIXELS);
     assert!(
         kernel.levels.len() > 2,
         "the test must reach aggregated levels"
@@ -381,13 +373,7 @@ fn every_instruction_set_gives_the_baseline_bit_for_bit() {
 fn the_tile_gather_finds_the_pairs_of_a_plain_search() {
     let (w, h, pixel_mm) = (48, 40, 0.25);
     let grid = synthetic_response(0.05, 301, [0.6, 0.4, 0.2]);
-    let kernel = SubsurfaceKernel::new(
-        &response_set(grid),
-        pixel_mm,
-        pixel_mm,
-        w.max(h),
-        INNER_BAND_PIXELS,
-    );
+    let kernel = kernel_on_pixels(grid, pixel_mm, w.max(h), INNER_BAND_PIXELS);
     // A bent sheet lit from a diagonal: forward and side axes vary from cell to cell.
     let light = Vector3::new(-0.3, 0.2, -0.9).normalize();
     let mut entries = plane_entries(w, h, pixel_mm, light);
