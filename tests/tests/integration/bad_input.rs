@@ -535,3 +535,27 @@ fn copy_folder(from: &Path, to: &Path) {
         }
     }
 }
+
+/// The subsurface kernel's innermost band is refused below what its bands allow, above 16 px
+/// and when it is not a number, naming the flag and the range.
+#[test]
+fn an_inner_band_outside_its_range_is_refused() {
+    let dir = TestDir::new("inner-band-range");
+    for value in ["2.5", "17", "NaN", "wide"] {
+        fails_with(
+            mlsss()
+                .args([
+                    "simulate",
+                    "--quick",
+                    "--subject",
+                    "plane",
+                    "--inner-band-px",
+                    value,
+                ])
+                .arg("--out")
+                .arg(dir.path().join("out")),
+            &["--inner-band-px", value],
+        );
+    }
+    assert!(!dir.path().join("out").exists(), "nothing is written");
+}

@@ -231,3 +231,43 @@ fn calibration_poses_are_captures_with_the_board_in_view() {
     }
     assert!(Path::new(&root.join("contact_sheet.png")).exists());
 }
+
+/// `--inner-band-px` sets the subsurface kernel's innermost band, which the capture records
+/// beside the other simulation settings; the quick booth's default is 3 px. Wider bands sum more
+/// of the light pixel by pixel: the global light of a uniformly lit plane (a response's total,
+/// whatever the bands) stays the same within the kernel's error.
+#[test]
+fn the_inner_band_width_is_a_recorded_setting() {
+    let narrow_dir = TestDir::new("inner-band-default");
+    let wide_dir = TestDir::new("inner-band-4");
+    let (narrow, wide) = (narrow_dir.path(), wide_dir.path());
+    simulate(narrow, 8, &["--subject", "plane", "--no-maps"]);
+    simulate(
+        wide,
+        8,
+        &["--subject", "plane", "--no-maps", "--inner-band-px", "4"],
+    );
+    let band = |root: &Path| Capture::open(root).unwrap().manifest.source["inner_band_px"].clone();
+    assert_eq!(band(narrow), 3.0, "the quick booth's default");
+    assert_eq!(band(wide), 4.0);
+    let white = |root: &Path| {
+        let cap = Capture::open(root).unwrap();
+        let img = read_exr_rgb(&truth::global(
+            &cap.truth_dir().unwrap(),
+            0,
+            &Pattern::White,
+        ))
+        .unwrap();
+        // The centre pixel, far from the plane's edges.
+        img.get_pixel(img.width() / 2, img.height() / 2).0
+    };
+    let (a, b) = (white(narrow), white(wide));
+    for c in 0..3 {
+        assert!(
+            (a[c] / b[c] - 1.0).abs() < 0.01,
+            "channel {c}: 3 px {} against 4 px {}",
+            a[c],
+            b[c]
+        );
+    }
+}
