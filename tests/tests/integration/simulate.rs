@@ -247,10 +247,9 @@ fn the_inner_band_width_is_a_recorded_setting() {
         8,
         &["--subject", "plane", "--no-maps", "--inner-band-px", "4"],
     );
-    let band = |root: &Path| Capture::open(root).unwrap().manifest.source["inner_band_px"].clone();
-    assert_eq!(band(narrow), 3.0, "the quick booth's default");
-    assert_eq!(band(wide), 4.0);
-    let white = |root: &Path| {
+    // The recorded band and the true global light at the centre pixel (far from the plane's
+    // edges) of the white.
+    let read = |root: &Path| {
         let cap = Capture::open(root).unwrap();
         let img = read_exr_rgb(&truth::global(
             &cap.truth_dir().unwrap(),
@@ -258,10 +257,14 @@ fn the_inner_band_width_is_a_recorded_setting() {
             &Pattern::White,
         ))
         .unwrap();
-        // The centre pixel, far from the plane's edges.
-        img.get_pixel(img.width() / 2, img.height() / 2).0
+        (
+            cap.manifest.source["inner_band_px"].clone(),
+            img.get_pixel(img.width() / 2, img.height() / 2).0,
+        )
     };
-    let (a, b) = (white(narrow), white(wide));
+    let ((narrow_band, a), (wide_band, b)) = (read(narrow), read(wide));
+    assert_eq!(narrow_band, 3.0, "the quick booth's default");
+    assert_eq!(wide_band, 4.0);
     for c in 0..3 {
         assert!(
             (a[c] / b[c] - 1.0).abs() < 0.01,

@@ -37,6 +37,21 @@ pub fn finite(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A finite number in `range` (`--inner-band-px 4` in `3..=16`; refuses `NaN` and what lies
+/// outside).
+pub fn finite_in(s: &str, range: std::ops::RangeInclusive<f64>) -> Result<f64, String> {
+    let value = finite(s)?;
+    if range.contains(&value) {
+        Ok(value)
+    } else {
+        Err(format!(
+            "must be a number in {}..={}, got {s}",
+            range.start(),
+            range.end()
+        ))
+    }
+}
+
 /// [`positive_finite`] for `f32` arguments.
 pub fn positive_finite_f32(s: &str) -> Result<f32, String> {
     let value = positive_finite(s)?;
@@ -70,6 +85,11 @@ mod tests {
             assert!(non_negative_finite(bad).is_err(), "{bad}");
         }
         assert_eq!(finite("-3"), Ok(-3.0));
+        assert_eq!(finite_in("3", 3.0..=16.0), Ok(3.0));
+        assert_eq!(finite_in("16", 3.0..=16.0), Ok(16.0));
+        for bad in ["2.99", "16.5", "NaN", "inf", "x"] {
+            assert!(finite_in(bad, 3.0..=16.0).is_err(), "{bad}");
+        }
         for bad in ["NaN", "-inf", "x"] {
             assert!(finite(bad).is_err(), "{bad}");
         }

@@ -115,16 +115,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Parses `--inner-band-px`: a number of pixels from the narrowest band the kernel allows
-/// (`MIN_INNER_BAND_PIXELS`) to 16 (already three times the quick scan's cost at 8).
-fn inner_band_px(text: &str) -> Result<f64, String> {
-    let min = MIN_INNER_BAND_PIXELS;
-    let px: f64 = text
-        .parse()
-        .map_err(|_| format!("`{text}` is not a number of pixels"))?;
-    if (min..=16.0).contains(&px) {
-        Ok(px)
-    } else {
-        Err(format!("{px} px is outside {min}..=16 px"))
-    }
+/// Widest `--inner-band-px`: the quick scan already costs three times as much at 8 px.
+const MAX_INNER_BAND_PX: f64 = 16.0;
+
+/// Parses `--inner-band-px`: pixels from the narrowest band the kernel allows
+/// ([`MIN_INNER_BAND_PIXELS`]) to [`MAX_INNER_BAND_PX`].
+fn inner_band_px(s: &str) -> Result<f64, String> {
+    super::number_arg::finite_in(s, MIN_INNER_BAND_PIXELS..=MAX_INNER_BAND_PX)
 }
