@@ -356,8 +356,8 @@ fn measured_global(
         .read_frame_pixels(frame.index)
         .map_err(ProfilesStageError::from)?;
     let white = mlsss_layer_model::slit_global::WhiteSeparation {
-        direct: &p.direct_white,
-        global: &p.global_white,
+        direct: p.direct_white(),
+        global: p.global_white(),
         stray: &p.stray,
         black_level: p.black_level,
         blur_px: p.blur_px,

@@ -731,9 +731,8 @@ fn release_slits(inputs: &mut ProfileInputs) {
 /// on). The training projectors' profile geometry is moved out before; any left is dropped.
 fn release_projector_images(inputs: &mut ProfileInputs) {
     for p in &mut inputs.projectors {
+        p.white_split = None;
         for image in [
-            &mut p.direct_white,
-            &mut p.global_white,
             &mut p.separation_direct,
             &mut p.separation_global,
             &mut p.stray,
@@ -777,7 +776,7 @@ impl ProjectorProducts {
             .collect();
         let direct: Vec<&[[f32; 3]]> = training
             .iter()
-            .map(|&k| inputs.projectors[k].direct_white.as_slice())
+            .map(|&k| inputs.projectors[k].direct_white())
             .collect();
         let albedo = direct_albedo(&white_irradiance, &direct);
         let totals: Vec<Vec<[f32; 3]>> = training

@@ -399,13 +399,14 @@ pub struct ProjectorInputs {
     pub black_level: f32,
     /// Decoded projector coordinates per camera pixel.
     pub coords: Vec<Option<(f32, f32)>>,
-    /// Direct and global parts under white (separation stage), stray light removed; with
-    /// [`DirectPart::None`] the direct part is zero and the global part the whole white frame.
-    pub direct_white: Vec<[f32; 3]>,
-    pub global_white: Vec<[f32; 3]>,
-    /// The separation stage's images as read (the split above derives from them).
+    /// The separation stage's images as read.
     pub separation_direct: Vec<[f32; 3]>,
     pub separation_global: Vec<[f32; 3]>,
+    /// The white frame's direct and global parts by a [`DirectPart`] rule other than
+    /// [`DirectPart::Separation`] (derived from the images above); `None` under that rule,
+    /// whose parts are the separation's own images. Read through
+    /// [`ProjectorInputs::direct_white`] and [`ProjectorInputs::global_white`].
+    pub white_split: Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)>,
     /// Light of the other projectors' black level in every frame of this projector.
     pub stray: Vec<[f32; 3]>,
     pub blur_px: f32,
@@ -420,6 +421,21 @@ pub struct ProjectorInputs {
 }
 
 impl ProjectorInputs {
+    /// Direct part under white (separation stage), stray light removed; with
+    /// [`DirectPart::None`] zero.
+    pub fn direct_white(&self) -> &[[f32; 3]] {
+        self.white_split
+            .as_ref()
+            .map_or(&self.separation_direct, |(direct, _)| direct)
+    }
+
+    /// Global part under white; with [`DirectPart::None`] the whole white frame.
+    pub fn global_white(&self) -> &[[f32; 3]] {
+        self.white_split
+            .as_ref()
+            .map_or(&self.separation_global, |(_, global)| global)
+    }
+
     /// The projector as the subsurface library sees it.
     pub fn view(&self) -> ProjectorIllumination<'_> {
         ProjectorIllumination {
@@ -669,8 +685,7 @@ impl ProfileInputs {
                 decoded,
                 separation_direct,
                 separation_global,
-                direct_white,
-                global_white,
+                white_split,
             } = cached;
             let coords = match params.coordinates {
                 SlitCoordinates::Decoded => decoded,
@@ -681,10 +696,9 @@ impl ProfileInputs {
                 centre,
                 falloff,
                 black_level: black[k] as f32,
-                direct_white,
-                global_white,
                 separation_direct,
                 separation_global,
+                white_split,
                 stray,
                 blur_px: if params.blur_edges {
                     stripe_blur(ctx, k)
@@ -719,13 +733,12 @@ impl ProfileInputs {
 
 /// What [`ProfileInputs::load`] reads of one projector from the earlier stages' artefacts and
 /// does not need the surface for: its decoded coordinates and the separation's white images,
-/// split by [`ProfilesParams::direct`].
+/// split by [`ProfilesParams::direct`] when that is not the separation's own split.
 struct CachedImages {
     decoded: Vec<Option<(f32, f32)>>,
     separation_direct: Vec<[f32; 3]>,
     separation_global: Vec<[f32; 3]>,
-    direct_white: Vec<[f32; 3]>,
-    global_white: Vec<[f32; 3]>,
+    white_split: Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)>,
 }
 
 impl CachedImages {
@@ -758,17 +771,20 @@ impl CachedImages {
         );
         let (decoded, separation_direct, separation_global) =
             (decoded?, separation_direct?, separation_global?);
-        let (direct_white, global_white) = params.direct.split(
-            params.direct_fraction_range,
-            &separation_direct,
-            &separation_global,
-        );
+        // The default rule keeps the separation's images as they are: no copies of them (at
+        // full size 34 MB a projector, copied on one core each and faulted in: ~0.25 CPU-s).
+        let white_split = (params.direct != DirectPart::Separation).then(|| {
+            params.direct.split(
+                params.direct_fraction_range,
+                &separation_direct,
+                &separation_global,
+            )
+        });
         Ok(Self {
             decoded,
             separation_direct,
             separation_global,
-            direct_white,
-            global_white,
+            white_split,
         })
     }
 }
@@ -812,8 +828,8 @@ fn stacked_slit_globals(
     kept: Vec<usize>,
 ) -> Result<SlitStack, ProfilesStageError> {
     let white = WhiteSeparation {
-        direct: &p.direct_white,
-        global: &p.global_white,
+        direct: p.direct_white(),
+        global: p.global_white(),
         stray: &p.stray,
         black_level: p.black_level,
         blur_px: p.blur_px,
@@ -1139,7 +1155,7 @@ fn projector_truth_sums(
     let splits: Vec<WhiteSplit> = rules
         .iter()
         .map(|(_, rule)| match rule {
-            None => (p.direct_white.clone(), p.global_white.clone(), 0.0),
+            None => (p.direct_white().to_vec(), p.global_white().to_vec(), 0.0),
             Some(r) => {
                 let (d, g) = r.split(
                     inputs.params.direct_fraction_range,
