@@ -389,6 +389,9 @@ impl ProfilesRecord {
 /// A white frame split into direct and global parts, and the slit-edge blur to use with it.
 type WhiteSplit = (Vec<[f32; 3]>, Vec<[f32; 3]>, f32);
 
+/// A white frame's direct and global parts by a [`DirectPart`] rule.
+type WhiteParts = (Vec<[f32; 3]>, Vec<[f32; 3]>);
+
 /// One projector's inputs to the profiles.
 #[derive(Debug, Clone)]
 pub struct ProjectorInputs {
@@ -406,7 +409,7 @@ pub struct ProjectorInputs {
     /// [`DirectPart::Separation`] (derived from the images above); `None` under that rule,
     /// whose parts are the separation's own images. Read through
     /// [`ProjectorInputs::direct_white`] and [`ProjectorInputs::global_white`].
-    pub white_split: Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)>,
+    pub white_split: Option<WhiteParts>,
     /// Light of the other projectors' black level in every frame of this projector.
     pub stray: Vec<[f32; 3]>,
     pub blur_px: f32,
@@ -738,7 +741,7 @@ struct CachedImages {
     decoded: Vec<Option<(f32, f32)>>,
     separation_direct: Vec<[f32; 3]>,
     separation_global: Vec<[f32; 3]>,
-    white_split: Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)>,
+    white_split: Option<WhiteParts>,
 }
 
 impl CachedImages {
