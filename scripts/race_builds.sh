@@ -15,7 +15,7 @@
 # (default 6 s).
 #
 # Why balanced: on the 2-core build VM the run that comes second in a pair is favoured. Three sets
-# of plain alternated pairs of two builds whose full-size process does the same work (outputs
+# of plain alternated pairs of two builds of the full-size process that differ by two skipped copies (outputs
 # byte-identical) gave the second 17.0 against 18.6 s (5 pairs), 15.8 against 16.5 s (4 pairs,
 # the other order) and 15.5 against 16.1 s (4 pairs, 6 s pauses): up to 10 % from the order
 # alone, as large as the changes being measured. A likely cause: the hypervisor takes back memory
