@@ -14,15 +14,16 @@
 # target/race-builds), deleted after the run but for its `report.json`. GAP=S sets the pause
 # (default 6 s).
 #
-# Why balanced: on the 2-core build VM the run that comes second in a pair is favoured. Three sets
-# of plain alternated pairs of two builds of the full-size process that differ by two skipped copies (outputs
-# byte-identical) gave the second 17.0 against 18.6 s (5 pairs), 15.8 against 16.5 s (4 pairs,
-# the other order) and 15.5 against 16.1 s (4 pairs, 6 s pauses): up to 10 % from the order
-# alone, as large as the changes being measured. A likely cause: the hypervisor takes back memory
-# about a second after the guest frees it (virtio-balloon free page reporting), and a page taken
-# back costs 1-2 s per GiB to fault in again against ~0.1 s for one freed just before, so a run
-# that starts soon after another inherits warm memory. The balanced order cancels an order
-# effect whatever its cause; the pause lets every run start from returned memory.
+# Why balanced: on the 2-core build VM the run that comes second in a pair is favoured. Three
+# sets of plain alternated pairs of two builds of the full-size process that differ by two
+# skipped copies (outputs byte-identical) gave the second 17.0 against 18.6 s (5 pairs), 15.8
+# against 16.5 s (4 pairs, the other order) and 15.5 against 16.1 s (4 pairs, 6 s pauses): up to
+# 10 % from the order alone, as large as the changes being measured. A likely cause: the
+# hypervisor takes back memory about a second after the guest frees it (virtio-balloon free page
+# reporting), and a page taken back costs 1-2 s per GiB to fault in again against ~0.1 s for one
+# freed just before, so a run that starts soon after another inherits warm memory. The balanced
+# order cancels an order effect whatever its cause; the pause lets every run start from returned
+# memory.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 usage="usage: scripts/race_builds.sh BIN_A BIN_B CYCLES -- MLSSS_ARGS..."
