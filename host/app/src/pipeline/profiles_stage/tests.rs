@@ -115,3 +115,31 @@ fn slit_frames_are_read_in_runs_of_one_axis() {
     assert_eq!(same_axis_runs(&frames[..1]), vec![0..1]);
     assert!(same_axis_runs(&[]).is_empty());
 }
+
+/// The white parts read the separation's own images under its rule (no copies kept, a1deb73)
+/// and a stored split under any other.
+#[test]
+fn white_parts_are_the_separation_under_its_rule_and_the_split_otherwise() {
+    let (direct, global) = (vec![[0.2f32, 0.3, 0.1]], vec![[1.0f32, 1.0, 1.0]]);
+    let mut p = ProjectorInputs {
+        k: 0,
+        centre: Vector3::zeros(),
+        falloff: Falloff::default(),
+        black_level: 0.0,
+        coords: vec![None],
+        separation_direct: direct.clone(),
+        separation_global: global.clone(),
+        white_split: None,
+        stray: vec![[0.0; 3]],
+        blur_px: 0.0,
+        noise: None,
+        stack: SlitStack::default(),
+        geometry: GeometryMap::default(),
+    };
+    assert_eq!(p.direct_white(), &direct[..]);
+    assert_eq!(p.global_white(), &global[..]);
+    // No direct part: the whole white frame is global light.
+    p.white_split = Some(DirectPart::None.split((0.25, 0.45), &direct, &global));
+    assert_eq!(p.direct_white(), &[[0.0f32; 3]][..]);
+    assert_eq!(p.global_white(), &[[1.2f32, 1.3, 1.1]][..]);
+}
