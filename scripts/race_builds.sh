@@ -23,7 +23,9 @@
 # reporting), and a page taken back costs 1-2 s per GiB to fault in again against ~0.1 s for one
 # freed just before, so a run that starts soon after another inherits warm memory. The balanced
 # order cancels an order effect whatever its cause; the pause lets every run start from returned
-# memory.
+# memory. How much 6 runs resolve: the same binary raced against itself (3 cycles, full-size
+# process) gave medians 16.26 and 16.51 s wall, 28.6 and 29.1 CPU-s, the runs drifting from 17
+# to 15 s within the race; differences below ~0.5 s are noise here.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 usage="usage: scripts/race_builds.sh BIN_A BIN_B CYCLES -- MLSSS_ARGS..."
@@ -60,6 +62,13 @@ run() {
     awk -v l="$label" -v n="$n" -v w="$wall" -v u="$user" -v s="$sys" -v p="$peak" \
         'BEGIN { printf "%s run %s: %s s wall, %.1f CPU-s, %.2f GiB\n", l, n, w, u + s, p / 1048576 }'
 }
+
+# One untimed run first: the inputs may have left the page cache (a clean-clone test beside
+# the capture evicted it once, and the first timed run took 80.6 s against 14-19 s).
+echo "warm-up run (untimed) ..."
+"$BIN_A" "$@" --out "$OUT/warm-up" > /dev/null 2> "$OUT/warm-up.err" \
+    || { echo "error: $BIN_A failed, see $OUT/warm-up.err" >&2; exit 1; }
+rm -rf "$OUT/warm-up"
 
 n=0
 for _ in $(seq "$CYCLES"); do
