@@ -26,8 +26,8 @@
 # memory. How much 6 runs resolve: the same binary raced against itself (3 cycles, full-size
 # process) gave medians 16.26 and 16.51 s wall, 28.6 and 29.1 CPU-s, the runs drifting from 17
 # to 15 s within the race; differences below ~0.5 s are noise here.
+# Paths (the builds, the capture, RACE_OUT) are taken as given, relative to where it is run.
 set -euo pipefail
-cd "$(dirname "$0")/.."
 usage="usage: scripts/race_builds.sh BIN_A BIN_B CYCLES -- MLSSS_ARGS..."
 [ $# -ge 5 ] && [ "$4" = "--" ] || { echo "$usage" >&2; exit 2; }
 BIN_A=$1
@@ -66,6 +66,7 @@ run() {
 # One untimed run first: the inputs may have left the page cache (a clean-clone test beside
 # the capture evicted it once, and the first timed run took 80.6 s against 14-19 s).
 echo "warm-up run (untimed) ..."
+rm -rf "$OUT/warm-up" # a cached stage would warm nothing
 "$BIN_A" "$@" --out "$OUT/warm-up" > /dev/null 2> "$OUT/warm-up.err" \
     || { echo "error: $BIN_A failed, see $OUT/warm-up.err" >&2; exit 1; }
 rm -rf "$OUT/warm-up"
