@@ -42,6 +42,8 @@ command -v /usr/bin/time >/dev/null || { echo "error: GNU time (/usr/bin/time) i
 OUT=${RACE_OUT:-target/race-builds}
 GAP=${GAP:-6}
 mkdir -p "$OUT"
+# A race that writes no pipeline report (the demo) would otherwise read an earlier race's.
+rm -f "$OUT"/*.report.json "$OUT"/*.err
 RESULTS="$OUT/results.tsv"
 : > "$RESULTS"
 
