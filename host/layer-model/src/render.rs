@@ -507,25 +507,9 @@ impl Bin {
             sigma_px,
             level,
             grid: (gw, gh),
-            image: written_zeros(gw * gh),
+            image: mlsss_core::resources::zeros_written(gw * gh),
         }
     }
-}
-
-/// `n` zeros, written rather than allocated zeroed (`vec!`): splats add into a bin and the blur
-/// reads it before writing, so a page the allocator hands over untouched would be mapped to
-/// the kernel's shared zero page on that read and faulted again on the write, with a copy and
-/// a TLB shoot-down on every core (an inter-processor interrupt, costly on a VM). `mlsss eval`
-/// of a quick demo in a fresh process (6 alternated pairs, 2-core VM): write-protect faults
-/// 11 % of its CPU -> none, system time 0.63-1.32 -> 0.34-0.68 s, CPU 5.79 -> 5.36 s and wall
-/// 3.42 -> 3.19 s on average; its report identical. (Inside the demo the eval reuses memory the
-/// pipeline touched, and the faults did not show.) Should a compiler fold this back into a
-/// zeroed allocation (LLVM can turn an allocation followed by a zero fill into one), perf
-/// would show `do_wp_page` under `blur_bins` again.
-fn written_zeros(n: usize) -> Vec<f32> {
-    let mut zeros = Vec::with_capacity(n);
-    zeros.resize(n, 0.0);
-    zeros
 }
 
 /// Size of the grid of pyramid level `level` for a `w x h` image: coarse sample `j` sits on fine

@@ -22,6 +22,7 @@
 //!   leaving at a pixel, per channel and frame. Layout `flux[pixel * frames + f]`,
 //!   `exitance[(pixel * 3 + c) * frames + f]`.
 
+use mlsss_core::resources::zeros_written;
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
@@ -331,7 +332,7 @@ impl<'k> SubsurfaceOperator<'k> {
 
     /// [`Self::apply`] with the rows compiled for `isa`.
     fn apply_with(&self, flux: &[f32], frames: usize, isa: RowIsa) -> Vec<f32> {
-        let mut out = zeroed_by_writing(self.width * self.height * 3 * frames);
+        let mut out = zeros_written(self.width * self.height * 3 * frames);
         for (level, cells) in self.kernel.levels.iter().zip(&self.levels) {
             if level.scale == 1 {
                 // Pixel cells are the output pixels: summed in place (no second full-size
@@ -339,7 +340,7 @@ impl<'k> SubsurfaceOperator<'k> {
                 level.evaluate_into(cells, flux, None, frames, isa, &mut out);
             } else {
                 let (sum, mf, ms) = self.cell_moments(level.scale, cells, flux, frames);
-                let mut result = zeroed_by_writing(cells.width * cells.height * 3 * frames);
+                let mut result = zeros_written(cells.width * cells.height * 3 * frames);
                 level.evaluate_into(cells, &sum, Some((&mf, &ms)), frames, isa, &mut result);
                 level.interpolate_into(cells, &result, frames, self.width, self.height, &mut out);
             }
@@ -357,11 +358,7 @@ impl<'k> SubsurfaceOperator<'k> {
         frames: usize,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let n = grid.width * grid.height * frames;
-        let (mut sum, mut mf, mut ms) = (
-            zeroed_by_writing(n),
-            zeroed_by_writing(n),
-            zeroed_by_writing(n),
-        );
+        let (mut sum, mut mf, mut ms) = (zeros_written(n), zeros_written(n), zeros_written(n));
         sum.par_chunks_mut(frames)
             .zip(mf.par_chunks_mut(frames))
             .zip(ms.par_chunks_mut(frames))
@@ -394,15 +391,6 @@ impl<'k> SubsurfaceOperator<'k> {
             });
         (sum, mf, ms)
     }
-}
-
-/// A zeroed buffer whose pages were written (in parallel) rather than only mapped: sums added
-/// into a fresh zeroed allocation read the shared zero page first, and the first write then
-/// copies it and flushes the other core's TLB, page by page.
-fn zeroed_by_writing(len: usize) -> Vec<f32> {
-    let mut v = vec![0.0f32; len];
-    v.par_chunks_mut(1 << 16).for_each(|chunk| chunk.fill(0.0));
-    v
 }
 
 /// Adds `sum over pairs of K * flux(source)` (minus the first-moment correction
