@@ -74,6 +74,10 @@ pub struct SimulationOptions {
     /// Meter the subject before a scan and expose each projector's frames to fit it
     /// (`metering`); off = every frame at the booth's nominal exposure, as before metering.
     pub metering: bool,
+    /// Write the capture's `truth/` folder (on by default). The demo's calibration poses go
+    /// without: nothing reads their truth there, and it was 100 MB of EXR files and about 7 % of
+    /// the poses' CPU time in the quick demo.
+    pub truth: bool,
     pub mc: McSettings,
     pub cache: ResponseCache,
 }
@@ -106,6 +110,7 @@ impl SimulationOptions {
             material_maps: true,
             stray_black: true,
             metering: true,
+            truth: true,
             mc: McSettings {
                 // Small booths: 10k photons per response. Measured on the quick head scan
                 // against 20k (truth global images: white, slits, high frequency): the Monte
@@ -309,9 +314,11 @@ fn simulate_scan_holding(
     let plan = FramePlan::scan(&booth.patterns, booth.projectors.len());
     let manifest = scan_manifest(booth, opts, &plan);
     let mut writer = CaptureWriter::create(out, manifest)?;
-    let truth_dir = create_truth_dir(&writer)?;
-    truth_writer::write_geometry(&truth_dir, booth, &scene)?;
-    write_optics(&truth_dir, opts, &materials)?;
+    let truth_dir = create_truth_dir(&writer, opts)?;
+    if let Some(dir) = &truth_dir {
+        truth_writer::write_geometry(dir, booth, &scene)?;
+        write_optics(dir, opts, &materials)?;
+    }
 
     let rendered = render_frames(
         &scene,
@@ -319,7 +326,7 @@ fn simulate_scan_holding(
         &plan,
         opts,
         &writer,
-        &truth_dir,
+        truth_dir.as_deref(),
         progress,
         hold_budget,
         opts.metering.then_some(&booth.timing),
@@ -415,14 +422,20 @@ fn scan_manifest(booth: &Booth, opts: &SimulationOptions, plan: &FramePlan) -> C
     manifest
 }
 
-/// Creates the `truth/` folder of a capture being written.
-fn create_truth_dir(writer: &CaptureWriter) -> Result<PathBuf, VirtualBoothError> {
+/// Creates the `truth/` folder of a capture being written, if `opts` asks for the truth.
+fn create_truth_dir(
+    writer: &CaptureWriter,
+    opts: &SimulationOptions,
+) -> Result<Option<PathBuf>, VirtualBoothError> {
+    if !opts.truth {
+        return Ok(None);
+    }
     let truth_dir = writer.staging_dir().join("truth");
     std::fs::create_dir_all(&truth_dir).map_err(|source| VirtualBoothError::Io {
         path: truth_dir.clone(),
         source,
     })?;
-    Ok(truth_dir)
+    Ok(Some(truth_dir))
 }
 
 /// Scan patterns whose noise-free components go into the truth: the white, the high-frequency
@@ -479,9 +492,11 @@ pub fn simulate_calibration(
         });
         let target = out.join(format!("pose{pose:02}"));
         let writer = CaptureWriter::create(&target, manifest)?;
-        let truth_dir = create_truth_dir(&writer)?;
-        truth_writer::write_geometry(&truth_dir, booth, &scene)?;
-        truth_writer::write_target(&truth_dir, &scene, &board)?;
+        let truth_dir = create_truth_dir(&writer, opts)?;
+        if let Some(dir) = &truth_dir {
+            truth_writer::write_geometry(dir, booth, &scene)?;
+            truth_writer::write_target(dir, &scene, &board)?;
+        }
         let pose_opts = SimulationOptions {
             seed: opts.seed.wrapping_add(1000 * pose as u64),
             ..opts.clone()
@@ -492,7 +507,7 @@ pub fn simulate_calibration(
             &plan,
             &pose_opts,
             &writer,
-            &truth_dir,
+            truth_dir.as_deref(),
             progress,
             HOLD_BUDGET_BYTES,
             None,
@@ -734,8 +749,8 @@ impl<'a> Exposures<'a> {
     }
 }
 
-/// Renders every frame of `plan`, writes it (with noise, at each projector's exposure) and the
-/// truth of the patterns selected by `truth_for`; returns a few frames for the contact sheet and
+/// Renders every frame of `plan`, writes it (with noise, at each projector's exposure) and, with
+/// a `truth_dir`, the truth of the patterns selected by `truth_for`; returns a few frames for the contact sheet and
 /// the exposures. With `metering` (the booth's timing), each projector's exposure is metered from
 /// its noise-free white (`metering`), else taken from the writer's manifest.
 ///
@@ -752,7 +767,7 @@ fn render_frames(
     plan: &FramePlan,
     opts: &SimulationOptions,
     writer: &CaptureWriter,
-    truth_dir: &Path,
+    truth_dir: Option<&Path>,
     progress: &dyn Progress,
     hold_budget: usize,
     metering: Option<&TimingSpec>,
@@ -798,7 +813,9 @@ fn render_frames(
     let mut held_frames: Vec<(usize, FrameSpec, Vec<[f32; 3]>)> = Vec::new();
     for (k, specs) in specs.iter().enumerate() {
         let view = ProjectorTransport::new(scene, k, kernel);
-        truth_writer::write_projector_coords(truth_dir, &view, dims)?;
+        if let Some(dir) = truth_dir {
+            truth_writer::write_projector_coords(dir, &view, dims)?;
+        }
         let hold = k < held;
         // A projector not held has every other white by now: its stray light is known.
         if opts.stray_black && !hold {
@@ -836,7 +853,9 @@ fn render_frames(
         opts.stray_black,
     )?;
     for (k, stray) in strays.iter().enumerate() {
-        truth_writer::write_stray(truth_dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
+        if let Some(dir) = truth_dir {
+            truth_writer::write_stray(dir, k, stray.as_deref().unwrap_or(&no_stray), dims)?;
+        }
     }
     Ok(RenderedFrames {
         sheet: finisher.into_sheet()?,
@@ -907,13 +926,13 @@ fn whites_rendered_alone(
 }
 
 /// Renders one batch of frames of `view`'s projector, writes the truth components of those
-/// selected by `truth_for` and returns each frame's noise-free totals (the component buffers are
+/// selected by `truth_for` (with a `truth_dir`) and returns each frame's noise-free totals (the component buffers are
 /// freed here, before the frames are finished or held).
 fn render_batch(
     scene: &Scene,
     view: &ProjectorTransport,
     batch: &[FrameSpec],
-    truth_dir: &Path,
+    truth_dir: Option<&Path>,
     truth_for: &(impl Fn(&Pattern) -> bool + Sync),
 ) -> Result<Vec<Vec<[f32; 3]>>, VirtualBoothError> {
     let k = view.k;
@@ -924,8 +943,8 @@ fn render_batch(
         .par_iter()
         .zip(rendered.par_iter())
         .map(|(spec, frame)| -> Result<_, VirtualBoothError> {
-            if truth_for(&spec.pattern) {
-                truth_writer::write_components(truth_dir, k, &spec.pattern, frame, dims)?;
+            if let Some(dir) = truth_dir.filter(|_| truth_for(&spec.pattern)) {
+                truth_writer::write_components(dir, k, &spec.pattern, frame, dims)?;
             }
             Ok(frame.totals())
         })
@@ -1063,6 +1082,41 @@ mod tests {
         for i in 0..frames as u32 {
             let (a, b) = (held.read_frame(i).unwrap(), alone.read_frame(i).unwrap());
             assert!(a == b, "frame {i} differs");
+        }
+    }
+
+    /// Without the truth a calibration pose is the same capture, frame for frame, and has no
+    /// `truth/` folder (the demo's poses).
+    #[test]
+    fn poses_without_truth_are_the_same_frames_and_no_truth_folder() {
+        let booth = scaled_booth(&Booth::builtin(true), 8);
+        let opts =
+            SimulationOptions::for_booth(&booth, SubjectKind::Chessboard, SkinPreset::LIGHT, 5);
+        let out = tempfile::tempdir().unwrap();
+        let pose = |name: &str, truth: bool| {
+            let opts = SimulationOptions {
+                truth,
+                ..opts.clone()
+            };
+            let report =
+                simulate_calibration(&booth, &opts, 1, &out.path().join(name), &NoProgress)
+                    .unwrap();
+            report.captures[0].clone()
+        };
+        let (with, without) = (pose("with", true), pose("without", false));
+        assert!(with.join("truth").join("target.json").is_file());
+        assert!(!without.join("truth").exists());
+        let (a, b) = (
+            Capture::open(&with).unwrap(),
+            Capture::open(&without).unwrap(),
+        );
+        let frames = a.manifest.plan.len();
+        assert!(frames > 40);
+        for i in 0..frames as u32 {
+            assert!(
+                a.read_frame(i).unwrap() == b.read_frame(i).unwrap(),
+                "frame {i} differs"
+            );
         }
     }
 
