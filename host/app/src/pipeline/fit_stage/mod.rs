@@ -731,14 +731,7 @@ fn release_slits(inputs: &mut ProfileInputs) {
 /// on). The training projectors' profile geometry is moved out before; any left is dropped.
 fn release_projector_images(inputs: &mut ProfileInputs) {
     for p in &mut inputs.projectors {
-        p.white_split = None;
-        for image in [
-            &mut p.separation_direct,
-            &mut p.separation_global,
-            &mut p.stray,
-        ] {
-            *image = Vec::new();
-        }
+        p.release_white_images();
         p.geometry = GeometryMap::default();
     }
 }

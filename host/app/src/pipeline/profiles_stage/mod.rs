@@ -386,11 +386,11 @@ impl ProfilesRecord {
     }
 }
 
-/// A white frame split into direct and global parts, and the slit-edge blur to use with it.
-type WhiteSplit = (Vec<[f32; 3]>, Vec<[f32; 3]>, f32);
-
 /// A white frame's direct and global parts by a [`DirectPart`] rule.
 type WhiteParts = (Vec<[f32; 3]>, Vec<[f32; 3]>);
+
+/// A white frame's parts and the slit-edge blur to use with them.
+type WhiteSplit = (WhiteParts, f32);
 
 /// One projector's inputs to the profiles.
 #[derive(Debug, Clone)]
@@ -407,9 +407,10 @@ pub struct ProjectorInputs {
     pub separation_global: Vec<[f32; 3]>,
     /// The white frame's direct and global parts by a [`DirectPart`] rule other than
     /// [`DirectPart::Separation`] (derived from the images above); `None` under that rule,
-    /// whose parts are the separation's own images. Read through
+    /// whose parts are the separation's own images. Private so that only
+    /// [`ProfileInputs::load`] sets it, from [`ProfilesParams::direct`]; read through
     /// [`ProjectorInputs::direct_white`] and [`ProjectorInputs::global_white`].
-    pub white_split: Option<WhiteParts>,
+    white_split: Option<WhiteParts>,
     /// Light of the other projectors' black level in every frame of this projector.
     pub stray: Vec<[f32; 3]>,
     pub blur_px: f32,
@@ -437,6 +438,20 @@ impl ProjectorInputs {
         self.white_split
             .as_ref()
             .map_or(&self.separation_global, |(_, global)| global)
+    }
+
+    /// Frees the white frame's parts (the separation's images and any split of them) and the
+    /// stray light; [`ProjectorInputs::direct_white`] and [`ProjectorInputs::global_white`] are
+    /// empty after.
+    pub fn release_white_images(&mut self) {
+        self.white_split = None;
+        for image in [
+            &mut self.separation_direct,
+            &mut self.separation_global,
+            &mut self.stray,
+        ] {
+            *image = Vec::new();
+        }
     }
 
     /// The projector as the subsurface library sees it.
@@ -1158,15 +1173,15 @@ fn projector_truth_sums(
     let splits: Vec<WhiteSplit> = rules
         .iter()
         .map(|(_, rule)| match rule {
-            None => (p.direct_white().to_vec(), p.global_white().to_vec(), 0.0),
-            Some(r) => {
-                let (d, g) = r.split(
+            None => ((p.direct_white().to_vec(), p.global_white().to_vec()), 0.0),
+            Some(r) => (
+                r.split(
                     inputs.params.direct_fraction_range,
                     &p.separation_direct,
                     &p.separation_global,
-                );
-                (d, g, p.blur_px)
-            }
+                ),
+                p.blur_px,
+            ),
         })
         .collect();
     // Only the slits with a truth image are made into images again (two of twenty in a
@@ -1223,7 +1238,7 @@ fn check_slit(
         return Ok(Some(sums));
     };
     let frame = ctx.capture.read_frame_pixels(frame.index)?;
-    for (slot, (direct, global_white, blur_px)) in splits.iter().enumerate() {
+    for (slot, ((direct, global_white), blur_px)) in splits.iter().enumerate() {
         let white = WhiteSeparation {
             direct,
             global: global_white,

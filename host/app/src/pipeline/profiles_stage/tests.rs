@@ -117,7 +117,7 @@ fn slit_frames_are_read_in_runs_of_one_axis() {
 }
 
 /// The white parts read the separation's own images under its rule (no copies kept, a1deb73)
-/// and a stored split under any other.
+/// and a stored split under any other; none after their release.
 #[test]
 fn white_parts_are_the_separation_under_its_rule_and_the_split_otherwise() {
     let (direct, global) = (vec![[0.2f32, 0.3, 0.1]], vec![[1.0f32, 1.0, 1.0]]);
@@ -142,4 +142,7 @@ fn white_parts_are_the_separation_under_its_rule_and_the_split_otherwise() {
     p.white_split = Some(DirectPart::None.split((0.25, 0.45), &direct, &global));
     assert_eq!(p.direct_white(), &[[0.0f32; 3]][..]);
     assert_eq!(p.global_white(), &[[1.2f32, 1.3, 1.1]][..]);
+    // Released, neither part is left, split or not.
+    p.release_white_images();
+    assert!(p.direct_white().is_empty() && p.global_white().is_empty() && p.stray.is_empty());
 }
