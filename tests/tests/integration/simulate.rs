@@ -232,6 +232,39 @@ fn calibration_poses_are_captures_with_the_board_in_view() {
     assert!(Path::new(&root.join("contact_sheet.png")).exists());
 }
 
+/// `--no-truth` writes the capture as a real booth gives it: the same frames, no `truth/`.
+#[test]
+fn no_truth_gives_the_same_frames_without_the_truth_folder() {
+    let dir = TestDir::new("simulate-no-truth");
+    let args = [
+        "--subject",
+        "chessboard",
+        "--calibration",
+        "--poses",
+        "1",
+        "--seed",
+        "7",
+    ];
+    simulate(&dir.path().join("with"), 4, &args);
+    let without_args: Vec<&str> = args.iter().copied().chain(["--no-truth"]).collect();
+    simulate(&dir.path().join("without"), 4, &without_args);
+    let (with, without) = (
+        Capture::open(&dir.path().join("with/pose00")).unwrap(),
+        Capture::open(&dir.path().join("without/pose00")).unwrap(),
+    );
+    assert!(with.truth_dir().is_some());
+    assert!(without.truth_dir().is_none());
+    assert!(!dir.path().join("without/pose00/truth").exists());
+    let frames = with.manifest.plan.len() as u32;
+    assert!(frames > 40);
+    for i in 0..frames {
+        assert!(
+            with.read_frame(i).unwrap() == without.read_frame(i).unwrap(),
+            "frame {i}"
+        );
+    }
+}
+
 /// `--inner-band-px` sets the subsurface kernel's innermost band, which the capture records
 /// beside the other simulation settings; the quick booth's default is 3 px. Wider bands sum more
 /// of the light pixel by pixel: the global light of a uniformly lit plane (a response's total,

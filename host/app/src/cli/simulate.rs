@@ -1,5 +1,5 @@
 //! `mlsss simulate`: render a capture (or chessboard calibration captures) in the virtual booth,
-//! with ground truth under `truth/` and a contact sheet PNG.
+//! with ground truth under `truth/` (unless `--no-truth`) and a contact sheet PNG.
 
 use std::path::PathBuf;
 
@@ -48,6 +48,10 @@ pub struct Args {
     /// Take every frame at the booth's nominal exposure (no metering step before the scan).
     #[arg(long)]
     fixed_exposure: bool,
+    /// Leave out the `truth/` folder, as a real booth's capture comes (processing it then needs
+    /// a calibration file, `--calib FILE`, and reports no errors against the truth).
+    #[arg(long)]
+    no_truth: bool,
     /// Camera sub-samples per pixel along each axis.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
     supersampling: u32,
@@ -83,6 +87,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.material_maps = !args.no_maps;
     opts.stray_black = !args.no_stray_black;
     opts.metering = !args.fixed_exposure;
+    opts.truth = !args.no_truth;
     opts.supersampling = args.supersampling;
     if let Some(px) = args.inner_band_px {
         opts.inner_band_px = px;
