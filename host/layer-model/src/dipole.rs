@@ -22,7 +22,7 @@ use super::boxed_gaussian::{BoxedGaussian, Edge, SHARED_EDGE, mass_between};
 use super::em_free::{self, Component};
 use super::mixture::{NEGLIGIBLE_SIGMAS, by_position, image_reaches};
 use super::mixture::{Profile, relative_information};
-use super::render::SplatLayer;
+use super::render::{ShapeLayer, SplatLayer};
 
 /// Widths (units of `1/s_t'`) of the Gaussians representing the dipole.
 const WIDTHS: [f64; 10] = [0.08, 0.16, 0.32, 0.6, 1.1, 2.0, 3.6, 6.5, 12.0, 22.0];
@@ -874,27 +874,49 @@ impl DipoleTable {
     }
 
     /// The layers of [`DipoleTable::with_extinction`] alone, without allocating (a full-size
-    /// model asks for millions).
+    /// model asks for millions): the shape of [`DipoleTable::shape_row`] scaled by the
+    /// reflectance.
     pub fn splat_layers(
         &self,
         reflectance: f64,
         extinction: f64,
     ) -> Option<impl Iterator<Item = SplatLayer> + '_> {
+        let row = self.shape_row(reflectance, extinction)?;
+        Some(
+            self.shape_layers(row, extinction)
+                .map(move |s| s.scaled(reflectance)),
+        )
+    }
+
+    /// The table row whose shape gives the layers of a pixel-channel with this reflectance and
+    /// extinction; `None` where [`DipoleTable::splat_layers`] gives none.
+    pub fn shape_row(&self, reflectance: f64, extinction: f64) -> Option<usize> {
         if reflectance.is_nan() || reflectance <= 0.0 || extinction.is_nan() || extinction <= 0.0 {
             return None;
         }
-        let components = self.components[self.row_for_reflectance(reflectance)].as_deref()?;
-        Some(
-            components
-                .iter()
-                .enumerate()
-                .map(move |(j, &(w, s))| SplatLayer {
-                    index: j as u16,
-                    weight: (w * reflectance) as f32,
-                    sigma_mm: (s / extinction) as f32,
-                    depth_mm: 0.0,
-                }),
-        )
+        let row = self.row_for_reflectance(reflectance);
+        self.components[row].as_ref().map(|_| row)
+    }
+
+    /// The layers of table row `row` at `extinction` per unit reflectance (weights as the
+    /// table holds them, in `f64`, so a pixel's scaled weight is rounded once).
+    pub fn shape_layers(
+        &self,
+        row: usize,
+        extinction: f64,
+    ) -> impl Iterator<Item = ShapeLayer> + '_ {
+        self.components
+            .get(row)
+            .and_then(|c| c.as_deref())
+            .into_iter()
+            .flatten()
+            .enumerate()
+            .map(move |(j, &(w, s))| ShapeLayer {
+                index: j as u16,
+                weight: w,
+                sigma_mm: (s / extinction) as f32,
+                depth_mm: 0.0,
+            })
     }
 }
 

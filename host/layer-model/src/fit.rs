@@ -21,7 +21,7 @@ use super::em_layered::{self, DepthSpacing, LayeredParams};
 use super::layer_depth::{self, LayerDepthError, SpacingEstimate};
 use super::mixture::{EmError, Profile};
 use super::profiles::{GeometryMap, SlitSweep, pixel_profiles};
-use super::render::{LayerModel, SplatLayer};
+use super::render::{LayerModel, RowSource, SplatLayer};
 use super::surface::Surface;
 
 pub use super::fit_options::{EmVariant, FitOptions};
@@ -425,12 +425,26 @@ pub fn fit_dipole_model(
     // Every lit pixel: its own amplitude with its tile's extinction, built straight into the
     // model (no per-pixel vectors: ~4 million pixel-channels at full size).
     let tile = |i: usize| (i / w / block) * bw + (i % w) / block;
-    Ok(LayerModel::from_fn(w, h, |i, c| {
-        lit(i)
-            .then(|| extinctions[tile(i)][c])
-            .flatten()
-            .and_then(|ext| table.splat_layers(f64::from(amplitudes[i][c]), ext))
-            .into_iter()
-            .flatten()
-    }))
+    // Every pixel of a tile scales the table row's shape at the tile's extinction.
+    let table = &table;
+    Ok(LayerModel::from_shapes(
+        w,
+        h,
+        |i, c| {
+            let reflectance = f64::from(amplitudes[i][c]);
+            lit(i)
+                .then(|| extinctions[tile(i)][c])
+                .flatten()
+                .and_then(|ext| table.shape_row(reflectance, ext))
+                .map_or(RowSource::Empty, |row| RowSource::Shape {
+                    key: (tile(i), c, row),
+                    scale: reflectance,
+                })
+        },
+        |(t, c, row)| {
+            extinctions[t][c]
+                .into_iter()
+                .flat_map(move |ext| table.shape_layers(row, ext))
+        },
+    ))
 }

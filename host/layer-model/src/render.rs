@@ -61,18 +61,197 @@ pub struct SplatLayer {
     pub depth_mm: f32,
 }
 
-/// Per-pixel, per-channel layers (compressed rows: pixels carry only the layers they kept).
-#[derive(Debug, Clone, PartialEq, Default)]
+/// One layer of a shape that rows share (see [`LayerModel::from_shapes`]): a [`SplatLayer`]
+/// whose weight each row scales. The weight is `f64` so that a row's weight,
+/// `(weight * scale) as f32`, is rounded once, as the builders that wrote every row's layers
+/// out rounded it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ShapeLayer {
+    /// Layer identity, as [`SplatLayer::index`].
+    pub index: u16,
+    /// Weight per unit of the row's scale.
+    pub weight: f64,
+    /// Standard deviation in the layer plane (mm).
+    pub sigma_mm: f32,
+    /// Depth of the layer (mm).
+    pub depth_mm: f32,
+}
+
+impl ShapeLayer {
+    /// The layer of a row that scales this shape by `scale`.
+    pub fn scaled(&self, scale: f64) -> SplatLayer {
+        SplatLayer {
+            index: self.index,
+            weight: (self.weight * scale) as f32,
+            sigma_mm: self.sigma_mm,
+            depth_mm: self.depth_mm,
+        }
+    }
+}
+
+/// Where one row (pixel `i`, channel `c`: row `i * 3 + c`) keeps its layers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Row {
+    /// Its own layers: `own[start..start + len]`.
+    Own { start: u32, len: u32 },
+    /// A shared shape, `shapes[start..start + len]`, every weight times `scale`.
+    Scaled { scale: f64, start: u32, len: u16 },
+}
+
+// 16 bytes a row: a full-size model has ~4.3 million.
+const _: () = assert!(std::mem::size_of::<Row>() == 16);
+
+const EMPTY_ROW: Row = Row::Own { start: 0, len: 0 };
+
+impl Row {
+    fn len(&self) -> usize {
+        match *self {
+            Row::Own { len, .. } => len as usize,
+            Row::Scaled { len, .. } => usize::from(len),
+        }
+    }
+
+    /// The row with its start moved by the buffers' bases (own, shapes).
+    fn rebased(self, own: u32, shapes: u32) -> Self {
+        match self {
+            Row::Own { start, len } if len > 0 => Row::Own {
+                start: start + own,
+                len,
+            },
+            Row::Own { .. } => EMPTY_ROW,
+            Row::Scaled { scale, start, len } => Row::Scaled {
+                scale,
+                start: start + shapes,
+                len,
+            },
+        }
+    }
+}
+
+/// The layers of one pixel and channel ([`LayerModel::layers`]): a row's own layers, or a
+/// shared shape with the row's scale. Iterates [`SplatLayer`]s by value.
+#[derive(Debug, Clone, Copy)]
+pub enum RowLayers<'a> {
+    /// Layers stored for this row.
+    Own(&'a [SplatLayer]),
+    /// A shape shared with other rows, its weights times the scale.
+    Scaled(&'a [ShapeLayer], f64),
+}
+
+impl<'a> RowLayers<'a> {
+    /// Number of layers.
+    pub fn len(&self) -> usize {
+        match self {
+            RowLayers::Own(l) => l.len(),
+            RowLayers::Scaled(s, _) => s.len(),
+        }
+    }
+
+    /// No layers.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The layers, by value.
+    pub fn iter(&self) -> RowIter<'a> {
+        RowIter(match *self {
+            RowLayers::Own(l) => RowIterKind::Own(l.iter()),
+            RowLayers::Scaled(s, scale) => RowIterKind::Scaled(s.iter(), scale),
+        })
+    }
+
+    /// The layers in a vector.
+    pub fn to_vec(&self) -> Vec<SplatLayer> {
+        self.iter().collect()
+    }
+}
+
+impl PartialEq for RowLayers<'_> {
+    /// Equal layers, however each row stores them.
+    fn eq(&self, other: &Self) -> bool {
+        self.len() == other.len() && self.iter().eq(other.iter())
+    }
+}
+
+impl<'a> IntoIterator for RowLayers<'a> {
+    type Item = SplatLayer;
+    type IntoIter = RowIter<'a>;
+
+    fn into_iter(self) -> RowIter<'a> {
+        self.iter()
+    }
+}
+
+/// Iterator over a row's layers ([`RowLayers::iter`]).
+#[derive(Debug, Clone)]
+pub struct RowIter<'a>(RowIterKind<'a>);
+
+#[derive(Debug, Clone)]
+enum RowIterKind<'a> {
+    Own(std::slice::Iter<'a, SplatLayer>),
+    Scaled(std::slice::Iter<'a, ShapeLayer>, f64),
+}
+
+impl Iterator for RowIter<'_> {
+    type Item = SplatLayer;
+
+    fn next(&mut self) -> Option<SplatLayer> {
+        match &mut self.0 {
+            RowIterKind::Own(it) => it.next().copied(),
+            RowIterKind::Scaled(it, scale) => it.next().map(|s| s.scaled(*scale)),
+        }
+    }
+
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        match &self.0 {
+            RowIterKind::Own(it) => it.size_hint(),
+            RowIterKind::Scaled(it, _) => it.size_hint(),
+        }
+    }
+}
+
+impl ExactSizeIterator for RowIter<'_> {}
+
+/// What [`LayerModel::from_shapes`] puts in one row.
+#[derive(Debug, Clone, Copy)]
+pub enum RowSource<'a, K> {
+    /// No layers.
+    Empty,
+    /// These layers, copied into the row.
+    Own(RowLayers<'a>),
+    /// The shape named `key`, its weights times `scale`.
+    Shape { key: K, scale: f64 },
+}
+
+/// Per-pixel, per-channel layers. A row either owns its layers or scales a shape it shares with
+/// other rows: the spatial prior gives every pixel of a tile its tile's shape times the pixel's
+/// amplitude, the dipole baseline every pixel its table row's shape. Why shared: written out,
+/// those two models were ~30 and ~14 million 16-byte layers at full size (0.7 GB of fresh
+/// memory in the fit stage, its peak); shared, their shapes are a few per cent of that.
+#[derive(Debug, Clone, Default)]
 pub struct LayerModel {
     pub width: usize,
     pub height: usize,
-    /// `offsets[(i * 3 + c)]..offsets[i * 3 + c + 1]` indexes `layers` for pixel `i`, channel `c`.
-    offsets: Vec<u32>,
-    layers: Vec<SplatLayer>,
+    /// Row `i * 3 + c`: where pixel `i`, channel `c` keeps its layers.
+    rows: Vec<Row>,
+    /// The layers of the rows that own theirs.
+    own: Vec<SplatLayer>,
+    /// The shapes that scaled rows share.
+    shapes: Vec<ShapeLayer>,
+}
+
+impl PartialEq for LayerModel {
+    /// Same size and the same layers in every row, however the rows store them.
+    fn eq(&self, other: &Self) -> bool {
+        self.width == other.width
+            && self.height == other.height
+            && self.rows.len() == other.rows.len()
+            && (0..self.rows.len()).all(|k| self.row(k) == other.row(k))
+    }
 }
 
 /// Widest sigma and deepest layer (mm) of `layers` (0 without layers).
-pub fn extent<'a>(layers: impl IntoIterator<Item = &'a SplatLayer>) -> (f64, f64) {
+pub fn extent(layers: impl IntoIterator<Item = SplatLayer>) -> (f64, f64) {
     layers.into_iter().fold((0.0, 0.0), |(s, d), l| {
         (
             s.max(f64::from(l.sigma_mm)),
@@ -81,64 +260,67 @@ pub fn extent<'a>(layers: impl IntoIterator<Item = &'a SplatLayer>) -> (f64, f64
     })
 }
 
+/// Pixels per run of the parallel builders.
+const RUN: usize = 4096;
+
 impl LayerModel {
-    /// Builds the model from a function giving each pixel's layers per channel. Runs of pixels
-    /// are built in parallel, so the result does not depend on the threads (a full-size model is
-    /// ~10^7 rows: serial, this was seconds of one core). Two passes over `f`: the first counts
-    /// each row's layers, the second writes them straight into the model's one buffer. Why: the
-    /// single pass collected every run's layers and then copied them into the model, holding
-    /// the model twice at its peak (up to ~500 MB more at full size: a homogeneous model gives
-    /// every pixel a dozen layers) and copying it on one thread. `f` must give the same layers
-    /// on both calls (it is a pure function of the pixel everywhere).
+    /// Builds the model from a function giving each pixel's layers per channel, every row owning
+    /// its layers. Runs of pixels are built in parallel, so the result does not depend on the
+    /// threads (a full-size model is ~10^7 rows: serial, this was seconds of one core). Two
+    /// passes over `f`: the first counts each row's layers, the second writes them straight into
+    /// the model's one buffer. Why: the single pass collected every run's layers and then copied
+    /// them into the model, holding the model twice at its peak (up to ~500 MB more at full
+    /// size) and copying it on one thread. `f` must give the same layers on both calls (it is a
+    /// pure function of the pixel everywhere).
     pub fn from_fn<I, F>(width: usize, height: usize, f: F) -> Self
     where
         I: IntoIterator<Item = SplatLayer>,
         F: Fn(usize, usize) -> I + Sync,
     {
-        const RUN: usize = 4096;
         let n = width * height;
         let run_pixels = |r: usize| r * RUN..((r + 1) * RUN).min(n);
-        // Pass 1: per row, its layer count (the row's end within its run).
-        let run_ends: Vec<Vec<u32>> = (0..n.div_ceil(RUN))
+        // Pass 1: per run, its rows' layer counts.
+        let run_counts: Vec<Vec<u32>> = (0..n.div_ceil(RUN))
             .into_par_iter()
             .map(|r| {
-                let mut ends = Vec::with_capacity(run_pixels(r).len() * 3);
-                let mut count = 0u32;
-                for i in run_pixels(r) {
-                    for c in 0..3 {
-                        count += f(i, c).into_iter().count() as u32;
-                        ends.push(count);
-                    }
-                }
-                ends
+                run_pixels(r)
+                    .flat_map(|i| (0..3).map(move |c| (i, c)))
+                    .map(|(i, c)| f(i, c).into_iter().count() as u32)
+                    .collect()
             })
             .collect();
-        let mut offsets = Vec::with_capacity(n * 3 + 1);
-        offsets.push(0u32);
-        for ends in &run_ends {
-            let base = offsets.last().copied().unwrap_or(0);
-            offsets.extend(ends.iter().map(|e| base + e));
+        let mut rows = Vec::with_capacity(n * 3);
+        let mut run_lens = Vec::with_capacity(run_counts.len());
+        let mut total = 0u32;
+        for counts in &run_counts {
+            let run_start = total;
+            for &len in counts {
+                rows.push(if len == 0 {
+                    EMPTY_ROW
+                } else {
+                    Row::Own { start: total, len }
+                });
+                total += len;
+            }
+            run_lens.push((total - run_start) as usize);
         }
-        drop(run_ends);
-        let total = offsets.last().copied().unwrap_or(0) as usize;
+        drop(run_counts);
+        let total = total as usize;
         // Pass 2: each run writes its own slice of the buffer, untouched until then. Why not
         // `vec![EMPTY; total]` first: that one-core fill faulted every page of the buffer in
-        // before the runs overwrote it, 4 % of the full-size `process --until fit` CPU time
-        // (perf: the spatial prior's model, ~440 MB, on the critical path beside the dipole).
+        // before the runs overwrote it, 4 % of the full-size `process --until fit` CPU time.
         const EMPTY: SplatLayer = SplatLayer {
             index: 0,
             weight: 0.0,
             sigma_mm: 0.0,
             depth_mm: 0.0,
         };
-        let mut layers: Vec<SplatLayer> = Vec::with_capacity(total);
-        let mut slices = Vec::with_capacity(n.div_ceil(RUN));
-        let mut rest = &mut layers.spare_capacity_mut()[..total];
-        for r in 0..n.div_ceil(RUN) {
-            let pixels = run_pixels(r);
-            let len = (offsets[pixels.end * 3] - offsets[pixels.start * 3]) as usize;
+        let mut own: Vec<SplatLayer> = Vec::with_capacity(total);
+        let mut slices = Vec::with_capacity(run_lens.len());
+        let mut rest = &mut own.spare_capacity_mut()[..total];
+        for (r, &len) in run_lens.iter().enumerate() {
             let (run, tail) = std::mem::take(&mut rest).split_at_mut(len);
-            slices.push((pixels, run));
+            slices.push((run_pixels(r), run));
             rest = tail;
         }
         slices.into_par_iter().for_each(|(pixels, run)| {
@@ -150,88 +332,138 @@ impl LayerModel {
                 slot.write(produced.next().unwrap_or(EMPTY));
             }
         });
-        // The runs' slices tile the first `total` slots (their lengths sum to
-        // `offsets[n * 3] - offsets[0]` = `total`), and each run wrote every slot of its slice.
+        // The runs' slices tile the first `total` slots (their lengths sum to `total`), and
+        // each run wrote every slot of its slice.
         debug_assert!(rest.is_empty());
         // SAFETY: the capacity is at least `total`, and every one of the first `total` slots
         // was initialised by the loop above.
-        unsafe { layers.set_len(total) };
+        unsafe { own.set_len(total) };
         Self {
             width,
             height,
-            offsets,
-            layers,
+            rows,
+            own,
+            shapes: Vec::new(),
+        }
+    }
+
+    /// Builds the model from a function naming each row's source: nothing, layers to copy, or
+    /// a shape (by `key`) and the row's scale. `shape(key)` gives a shape's layers; each run of
+    /// pixels stores a shape once, however many of its rows scale it (so a shape is stored once
+    /// per run that uses it, never per row). Runs are built in parallel; the result does not
+    /// depend on the threads.
+    pub fn from_shapes<'a, K, S, F, G>(width: usize, height: usize, row: F, shape: G) -> Self
+    where
+        K: std::hash::Hash + Eq + Copy,
+        S: IntoIterator<Item = ShapeLayer>,
+        F: Fn(usize, usize) -> RowSource<'a, K> + Sync,
+        G: Fn(K) -> S + Sync,
+    {
+        let n = width * height;
+        let mut rows: Vec<Row> = Vec::with_capacity(n * 3);
+        // Written by the runs in parallel: one core filling it first faulted its pages in.
+        let run_buffers: Vec<(Vec<SplatLayer>, Vec<ShapeLayer>)> = rows.spare_capacity_mut()
+            [..n * 3]
+            .par_chunks_mut(RUN * 3)
+            .enumerate()
+            .map(|(r, slots)| {
+                let mut built = RunBuilder::new();
+                for (j, slot) in slots.iter_mut().enumerate() {
+                    let k = r * RUN * 3 + j;
+                    slot.write(built.row(row(k / 3, k % 3), &shape));
+                }
+                (built.own, built.shapes)
+            })
+            .collect();
+        // SAFETY: the capacity is `n * 3` and the chunks above wrote every one of those slots.
+        unsafe { rows.set_len(n * 3) };
+        // The runs' rows index their own buffers: moved by the buffers' bases once joined.
+        let mut bases = Vec::with_capacity(run_buffers.len());
+        let (mut own_base, mut shape_base) = (0u32, 0u32);
+        for (own, shapes) in &run_buffers {
+            bases.push((own_base, shape_base));
+            own_base += own.len() as u32;
+            shape_base += shapes.len() as u32;
+        }
+        rows.par_chunks_mut(RUN * 3)
+            .zip(bases)
+            .for_each(|(run, (own, shapes))| {
+                for r in run {
+                    *r = r.rebased(own, shapes);
+                }
+            });
+        let (own, shapes): (Vec<_>, Vec<_>) = run_buffers.into_iter().unzip();
+        Self {
+            width,
+            height,
+            rows,
+            own: own.concat(),
+            shapes: shapes.concat(),
+        }
+    }
+
+    /// Layers of row `k` (pixel `k / 3`, channel `k % 3`).
+    fn row(&self, k: usize) -> RowLayers<'_> {
+        match self.rows[k] {
+            Row::Own { start, len } => {
+                RowLayers::Own(&self.own[start as usize..(start + len) as usize])
+            }
+            Row::Scaled { scale, start, len } => {
+                let start = start as usize;
+                RowLayers::Scaled(&self.shapes[start..start + usize::from(len)], scale)
+            }
         }
     }
 
     /// Layers of pixel `i`, channel `c`.
-    pub fn layers(&self, i: usize, c: usize) -> &[SplatLayer] {
-        let k = i * 3 + c;
-        &self.layers[self.offsets[k] as usize..self.offsets[k + 1] as usize]
+    pub fn layers(&self, i: usize, c: usize) -> RowLayers<'_> {
+        self.row(i * 3 + c)
+    }
+
+    /// Every row's layer count, pixel by pixel and channel by channel.
+    pub fn row_lens(&self) -> impl ExactSizeIterator<Item = usize> + '_ {
+        self.rows.iter().map(Row::len)
+    }
+
+    /// Every layer, row after row.
+    pub fn all_layers(&self) -> impl Iterator<Item = SplatLayer> + '_ {
+        (0..self.rows.len()).flat_map(|k| self.row(k))
     }
 
     /// Gives every empty row (pixel `i`, channel `c`) for which `with(i, c)` has layers those
-    /// layers, in place: the buffer grows by what the filled rows take and the rows are moved
-    /// up from the end. Why not [`LayerModel::from_fn`] into a copy: the regularised model of
-    /// a full-size head is ~440 MB, and the copy held beside it (while the dipole baseline
-    /// builds its own) was the fit stage's peak; the rows filled are a few thousand.
+    /// layers, appended to the rows' own layers. The rows filled are a few thousand.
     pub fn fill_empty<'a>(&mut self, with: impl Fn(usize, usize) -> Option<&'a [SplatLayer]>) {
-        let rows = self.offsets.len().saturating_sub(1);
-        let fill = |offsets: &[u32], k: usize| {
-            (offsets[k] == offsets[k + 1])
+        let fill = |rows: &[Row], k: usize| {
+            (rows[k].len() == 0)
                 .then(|| with(k / 3, k % 3))
                 .flatten()
                 .filter(|l| !l.is_empty())
         };
-        let extra: usize = (0..rows)
-            .filter_map(|k| fill(&self.offsets, k))
+        let extra: usize = (0..self.rows.len())
+            .filter_map(|k| fill(&self.rows, k))
             .map(<[SplatLayer]>::len)
             .sum();
-        if extra == 0 {
-            return;
-        }
-        let old_len = self.layers.len();
-        self.layers.reserve_exact(extra);
-        let blank = SplatLayer {
-            index: 0,
-            weight: 0.0,
-            sigma_mm: 0.0,
-            depth_mm: 0.0,
-        };
-        self.layers.resize(old_len + extra, blank);
-        // From the last row back: `old_end` is row k's end before the move, `write_end` after.
-        // Once they meet, every row before is where it was.
-        let (mut old_end, mut write_end) = (old_len, self.layers.len());
-        for k in (0..rows).rev() {
-            if write_end == old_end {
-                break;
+        // Reserved once: growing by doubling could hold the buffer twice.
+        self.own.reserve_exact(extra);
+        for k in 0..self.rows.len() {
+            if let Some(layers) = fill(&self.rows, k) {
+                self.rows[k] = Row::Own {
+                    start: self.own.len() as u32,
+                    len: layers.len() as u32,
+                };
+                self.own.extend_from_slice(layers);
             }
-            let old_start = self.offsets[k] as usize;
-            let filled = fill(&self.offsets, k);
-            self.offsets[k + 1] = write_end as u32;
-            let write_start = match filled {
-                Some(layers) => {
-                    let start = write_end - layers.len();
-                    self.layers[start..write_end].copy_from_slice(layers);
-                    start
-                }
-                _ => {
-                    let start = write_end - (old_end - old_start);
-                    self.layers.copy_within(old_start..old_end, start);
-                    start
-                }
-            };
-            (old_end, write_end) = (old_start, write_start);
         }
     }
 
-    /// Total number of stored layers.
+    /// Total number of layers of the rows.
     pub fn layer_count(&self) -> usize {
-        self.layers.len()
+        self.row_lens().sum()
     }
 
-    /// Builds the model from its compressed rows (as [`LayerModel::parts`] returns them);
-    /// `None` when the offsets do not describe `width x height x 3` rows of `layers`.
+    /// Builds the model from its rows' layers as a file stores them: offsets
+    /// (`width x height x 3 + 1`) and the layers they index; `None` when the offsets do not
+    /// describe `width x height x 3` rows of `layers`.
     pub fn from_parts(
         width: usize,
         height: usize,
@@ -242,17 +474,19 @@ impl LayerModel {
             && offsets.first() == Some(&0)
             && offsets.last().map(|&l| l as usize) == Some(layers.len())
             && offsets.windows(2).all(|w| w[0] <= w[1]);
-        rows_ok.then_some(Self {
+        rows_ok.then(|| Self {
             width,
             height,
-            offsets,
-            layers,
+            rows: offsets
+                .windows(2)
+                .map(|w| Row::Own {
+                    start: w[0],
+                    len: w[1] - w[0],
+                })
+                .collect(),
+            own: layers,
+            shapes: Vec::new(),
         })
-    }
-
-    /// The compressed rows: offsets (`width x height x 3 + 1`) and the layers they index.
-    pub fn parts(&self) -> (&[u32], &[SplatLayer]) {
-        (&self.offsets, &self.layers)
     }
 
     /// The homogeneous model (paper Fig. 11d): every pixel of `apply_to` gets, per channel and
@@ -267,38 +501,31 @@ impl LayerModel {
         )
     }
 
-    /// The model giving every pixel of `apply_to` the same layers per channel, `layers`.
+    /// The model giving every pixel of `apply_to` the same layers per channel, `layers` (one
+    /// shape per channel that every row shares).
     pub fn uniform(
         width: usize,
         height: usize,
         layers: &[Vec<SplatLayer>; 3],
         apply_to: &[bool],
     ) -> Self {
-        Self::from_fn(width, height, |i, c| {
-            let own: &[SplatLayer] = if apply_to.get(i).copied().unwrap_or(false) {
-                &layers[c]
-            } else {
-                &[]
-            };
-            own.iter().copied()
-        })
+        Self::from_shapes(
+            width,
+            height,
+            |i, c| match apply_to.get(i).copied().unwrap_or(false) && !layers[c].is_empty() {
+                true => RowSource::Shape { key: c, scale: 1.0 },
+                false => RowSource::Empty,
+            },
+            |c| layers[c].iter().map(ShapeLayer::from),
+        )
     }
 
-    /// The model of rows `rows` alone (clamped to the image).
+    /// The model of rows `rows` alone (clamped to the image), every row owning its layers.
     pub fn rows(&self, rows: std::ops::Range<usize>) -> Self {
         let end = rows.end.min(self.height);
         let start = rows.start.min(end);
-        let rows = start * self.width * 3..end * self.width * 3;
-        let (base, top) = (self.offsets[rows.start], self.offsets[rows.end]);
-        Self {
-            width: self.width,
-            height: end - start,
-            offsets: self.offsets[rows.start..=rows.end]
-                .iter()
-                .map(|o| o - base)
-                .collect(),
-            layers: self.layers[base as usize..top as usize].to_vec(),
-        }
+        let first = start * self.width;
+        Self::from_fn(self.width, end - start, |i, c| self.layers(first + i, c))
     }
 
     /// Widest sigma and deepest layer (mm) of pixel `i`, over the channels.
@@ -314,7 +541,6 @@ impl LayerModel {
             .map(|i| (0..3).any(|c| !self.layers(i, c).is_empty()))
             .collect()
     }
-
     /// Per channel and layer index, the mean weight over the pixels of `average_over` and the
     /// weight-averaged sigma and depth: the layers every pixel of [`LayerModel::homogeneous`]
     /// gets.
@@ -375,6 +601,98 @@ impl LayerModel {
                 })
                 .collect()
         })
+    }
+}
+
+impl From<&SplatLayer> for ShapeLayer {
+    fn from(l: &SplatLayer) -> Self {
+        ShapeLayer {
+            index: l.index,
+            weight: f64::from(l.weight),
+            sigma_mm: l.sigma_mm,
+            depth_mm: l.depth_mm,
+        }
+    }
+}
+
+/// One run's part of [`LayerModel::from_shapes`]: the layers its rows own and the shapes they
+/// scale, each shape stored once (`stored`: key to start and length in `shapes`), rows indexing
+/// both from the run's start.
+struct RunBuilder<K> {
+    own: Vec<SplatLayer>,
+    shapes: Vec<ShapeLayer>,
+    stored: std::collections::HashMap<K, (u32, u32)>,
+    /// The last shape asked for: neighbouring pixels mostly share theirs (a tile's).
+    last: Option<(K, (u32, u32))>,
+}
+
+impl<K: std::hash::Hash + Eq + Copy> RunBuilder<K> {
+    fn new() -> Self {
+        Self {
+            own: Vec::new(),
+            shapes: Vec::new(),
+            stored: Default::default(),
+            last: None,
+        }
+    }
+
+    fn row<S: IntoIterator<Item = ShapeLayer>>(
+        &mut self,
+        source: RowSource<'_, K>,
+        shape: impl Fn(K) -> S,
+    ) -> Row {
+        match source {
+            RowSource::Empty => EMPTY_ROW,
+            RowSource::Own(layers) => self.own_row(layers),
+            RowSource::Shape { key, scale } => {
+                let (start, len) = self.stored_shape(key, shape);
+                match u16::try_from(len) {
+                    Ok(0) => EMPTY_ROW,
+                    Ok(len) => Row::Scaled { scale, start, len },
+                    // Longer than a scaled row can say: written out as its own layers.
+                    Err(_) => {
+                        let (s, e) = (start as usize, (start + len) as usize);
+                        let shapes = std::mem::take(&mut self.shapes);
+                        let row = self.own_row(RowLayers::Scaled(&shapes[s..e], scale));
+                        self.shapes = shapes;
+                        row
+                    }
+                }
+            }
+        }
+    }
+
+    fn own_row(&mut self, layers: RowLayers<'_>) -> Row {
+        if layers.is_empty() {
+            return EMPTY_ROW;
+        }
+        let start = self.own.len() as u32;
+        self.own.extend(layers);
+        Row::Own {
+            start,
+            len: layers.len() as u32,
+        }
+    }
+
+    /// Start and length of the shape of `key` in the run's shapes (stored on first use).
+    fn stored_shape<S: IntoIterator<Item = ShapeLayer>>(
+        &mut self,
+        key: K,
+        shape: impl Fn(K) -> S,
+    ) -> (u32, u32) {
+        if let Some((k, at)) = self.last
+            && k == key
+        {
+            return at;
+        }
+        let shapes = &mut self.shapes;
+        let at = *self.stored.entry(key).or_insert_with(|| {
+            let start = shapes.len();
+            shapes.extend(shape(key));
+            (start as u32, (shapes.len() - start) as u32)
+        });
+        self.last = Some((key, at));
+        at
     }
 }
 
@@ -1238,8 +1556,8 @@ mod tests {
         let flux: f64 = out.iter().map(|p| f64::from(p[0]) * 0.04).sum();
         assert!((flux - 0.1 * 0.04).abs() < 1e-6, "{flux}");
         let homog = model.homogeneous(&vec![true; w * h], &vec![true; w * h]);
-        assert!((homog.layers(5, 0)[0].weight - 0.15).abs() < 1e-6);
-        assert!((homog.layers(6, 2)[0].weight - 0.35).abs() < 1e-6);
+        assert!((homog.layers(5, 0).to_vec()[0].weight - 0.15).abs() < 1e-6);
+        assert!((homog.layers(6, 2).to_vec()[0].weight - 0.35).abs() < 1e-6);
     }
 
     /// `mean_layers` equals a map of sums per layer index, added pixel by pixel in order (the
@@ -1500,7 +1818,7 @@ mod tests {
             for c in 0..3 {
                 let k = i * 3 + c;
                 let want: Vec<SplatLayer> = (0..count(k)).map(|j| layer(k * 4 + j)).collect();
-                assert_eq!(model.layers(i, c), want.as_slice(), "pixel {i} channel {c}");
+                assert_eq!(model.layers(i, c).to_vec(), want, "pixel {i} channel {c}");
             }
         }
         // Pixel 4100 (second run), channel 1: two layers counted, one written.
@@ -1521,8 +1839,90 @@ mod tests {
             sigma_mm: 0.0,
             depth_mm: 0.0,
         };
-        assert_eq!(short.layers(4100, 1), &[layer(0), empty]);
+        assert_eq!(short.layers(4100, 1).to_vec(), [layer(0), empty]);
         assert!(short.layers(4100, 0).is_empty() && short.layers(4101, 1).is_empty());
+    }
+
+    /// `from_shapes` against the same rows written out one by one (`from_fn`): rows of every
+    /// source (empty, own layers, a shape by key with the row's scale, shapes of no layers) over
+    /// three runs of pixels, each key's shape stored once per run, each scaled weight rounded
+    /// once from the shape's `f64` weight; a band of rows cut from it holds the same rows.
+    #[test]
+    fn shared_shape_rows_equal_the_rows_written_out() {
+        let shape = |key: u32| -> Vec<ShapeLayer> {
+            (0..key % 5)
+                .map(|j| ShapeLayer {
+                    index: j as u16,
+                    weight: 0.1 + f64::from(key) / 3.0 + f64::from(j),
+                    sigma_mm: 0.5 + j as f32,
+                    depth_mm: 0.01 * key as f32,
+                })
+                .collect()
+        };
+        let (w, h) = (130, 70);
+        let owned: Vec<Vec<SplatLayer>> = (0..w * h * 3)
+            .map(|k| {
+                (0..k % 3)
+                    .map(|j| SplatLayer {
+                        index: 9,
+                        weight: k as f32,
+                        sigma_mm: 2.0,
+                        depth_mm: j as f32,
+                    })
+                    .collect()
+            })
+            .collect();
+        let key_and_scale = |k: usize| (((k / 7) % 13) as u32, 1.0 + k as f64 / 1e3);
+        let model = LayerModel::from_shapes(
+            w,
+            h,
+            |i, c| {
+                let k = i * 3 + c;
+                match k % 4 {
+                    0 => RowSource::Empty,
+                    1 => RowSource::Own(RowLayers::Own(&owned[k])),
+                    _ => {
+                        let (key, scale) = key_and_scale(k);
+                        RowSource::Shape { key, scale }
+                    }
+                }
+            },
+            shape,
+        );
+        let want = LayerModel::from_fn(w, h, |i, c| {
+            let k = i * 3 + c;
+            let (key, scale) = key_and_scale(k);
+            match k % 4 {
+                0 => Vec::new(),
+                1 => owned[k].clone(),
+                _ => shape(key)
+                    .iter()
+                    .map(|s| SplatLayer {
+                        index: s.index,
+                        weight: (s.weight * scale) as f32,
+                        sigma_mm: s.sigma_mm,
+                        depth_mm: s.depth_mm,
+                    })
+                    .collect(),
+            }
+        });
+        assert_eq!(model, want);
+        assert_eq!(model.layer_count(), want.layer_count());
+        assert!(model.all_layers().eq(want.all_layers()));
+        assert!(model.row_lens().eq(want.row_lens()));
+        let all_shapes: usize = (0..13).map(|key| shape(key).len()).sum();
+        assert_eq!(
+            model.shapes.len(),
+            3 * all_shapes,
+            "each run stores every shape once"
+        );
+        let band = model.rows(20..45);
+        assert_eq!((band.width, band.height), (w, 25));
+        for i in 0..w * 25 {
+            for c in 0..3 {
+                assert_eq!(band.layers(i, c), model.layers(20 * w + i, c));
+            }
+        }
     }
 
     /// `fill_empty` against the copy it replaces: `from_fn` giving each empty row the filler's

@@ -308,12 +308,14 @@ fn put_f32s(buf: &mut Vec<u8>, vs: &[f32]) {
 
 /// Writes the layer model section of format 1 (see the module doc).
 fn put_layers_v1(buf: &mut Vec<u8>, model: &LayerModel) {
-    let (offsets, layers) = model.parts();
-    for &o in offsets {
-        put_u32(buf, o);
+    let mut offset = 0u32;
+    put_u32(buf, offset);
+    for len in model.row_lens() {
+        offset += len as u32;
+        put_u32(buf, offset);
     }
-    put_u32(buf, layers.len() as u32);
-    for l in layers {
+    put_u32(buf, offset);
+    for l in model.all_layers() {
         buf.extend_from_slice(&l.index.to_le_bytes());
         put_f32s(buf, &[l.weight, l.sigma_mm, l.depth_mm]);
     }
@@ -366,13 +368,12 @@ fn layer_parts(model: &LayerModel, version: u32) -> Vec<Part<'_>> {
             Ok(buf)
         })];
     }
-    let (offsets, layers) = model.parts();
     let mut parts = vec![
-        Part::deflated(move || layer_counts(offsets)),
-        Part::deflated(move || Ok(palette_ids(layers))),
+        Part::deflated(move || layer_counts(model)),
+        Part::deflated(move || Ok(palette_ids(model))),
     ];
     parts.push(Part {
-        encode: Box::new(move || Ok(weight_planes(layers))),
+        encode: Box::new(move || Ok(weight_planes(model))),
     });
     parts
 }
@@ -383,11 +384,12 @@ fn layer_parts(model: &LayerModel, version: u32) -> Vec<Part<'_>> {
 /// two lowest bytes are noise to deflate (full size: plane 0 30.52 MB deflated to 30.50 MB;
 /// plane 1 of the layers 30.52 to 25.95 MB and of the dipole 13.84 to 13.71 MB, for about a
 /// quarter of the deflate time: the file is 3.7 % larger for it).
-fn weight_planes(layers: &[SplatLayer]) -> Vec<Piece> {
-    let mut planes: [Vec<u8>; 4] = std::array::from_fn(|_| vec![0; layers.len()]);
+fn weight_planes(model: &LayerModel) -> Vec<Piece> {
+    let count = model.layer_count();
+    let mut planes: [Vec<u8>; 4] = std::array::from_fn(|_| vec![0; count]);
     // Written in place, not pushed: no capacity check per byte (tens of millions of layers).
     let [p0, p1, p2, p3] = &mut planes;
-    for ((((l, b0), b1), b2), b3) in layers.iter().zip(p0).zip(p1).zip(p2).zip(p3) {
+    for ((((l, b0), b1), b2), b3) in model.all_layers().zip(p0).zip(p1).zip(p2).zip(p3) {
         [*b0, *b1, *b2, *b3] = l.weight.to_le_bytes();
     }
     planes
@@ -401,10 +403,10 @@ fn weight_planes(layers: &[SplatLayer]) -> Vec<Piece> {
 }
 
 /// Every pixel and channel's layer count, `u16` LE (format 2).
-fn layer_counts(offsets: &[u32]) -> Result<Vec<u8>, ModelFileError> {
-    let mut buf = Vec::with_capacity(offsets.len() * 2);
-    for row in offsets.windows(2) {
-        let count = u16::try_from(row[1] - row[0]).map_err(|_| {
+fn layer_counts(model: &LayerModel) -> Result<Vec<u8>, ModelFileError> {
+    let mut buf = Vec::with_capacity(model.row_lens().len() * 2);
+    for len in model.row_lens() {
+        let count = u16::try_from(len).map_err(|_| {
             ModelFileError::Inconsistent("a pixel has more than 65535 layers".into())
         })?;
         buf.extend_from_slice(&count.to_le_bytes());
@@ -414,11 +416,11 @@ fn layer_counts(offsets: &[u32]) -> Result<Vec<u8>, ModelFileError> {
 
 /// The palette of distinct `(index, sigma, depth)` triples, the layer count, the palette id
 /// width and every layer's palette id (format 2).
-fn palette_ids(layers: &[SplatLayer]) -> Vec<u8> {
+fn palette_ids(model: &LayerModel) -> Vec<u8> {
     let mut palette: Palette = Default::default();
     let mut entries: Vec<PaletteKey> = Vec::new();
-    let ids: Vec<u32> = layers
-        .iter()
+    let ids: Vec<u32> = model
+        .all_layers()
         .map(|l| {
             let key = (l.index, l.sigma_mm.to_bits(), l.depth_mm.to_bits());
             *palette.entry(key).or_insert_with(|| {
@@ -440,7 +442,7 @@ fn palette_ids(layers: &[SplatLayer]) -> Vec<u8> {
         put_u32(&mut buf, sigma);
         put_u32(&mut buf, depth);
     }
-    put_u32(&mut buf, layers.len() as u32);
+    put_u32(&mut buf, ids.len() as u32);
     buf.push(id_bytes);
     match id_bytes {
         1 => put_le(&mut buf, &ids, |id| [id as u8]),

@@ -158,13 +158,13 @@ fn reference_sections(model: &SubsurfaceModel) -> Vec<u8> {
         buf.extend(v.iter().map(|&m| m as u8));
     }
     let section = |buf: &mut Vec<u8>, m: &LayerModel| {
-        let (offsets, layers) = m.parts();
-        for row in offsets.windows(2) {
-            buf.extend_from_slice(&((row[1] - row[0]) as u16).to_le_bytes());
+        for len in m.row_lens() {
+            buf.extend_from_slice(&(len as u16).to_le_bytes());
         }
+        let layers: Vec<SplatLayer> = m.all_layers().collect();
         let mut palette: Vec<(u16, f32, f32)> = Vec::new();
         let mut ids = Vec::new();
-        for l in layers {
+        for l in &layers {
             let key = (l.index, l.sigma_mm, l.depth_mm);
             let id = match palette.iter().position(|p| *p == key) {
                 Some(id) => id,

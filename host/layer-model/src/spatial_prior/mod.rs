@@ -45,7 +45,7 @@ use serde::Serialize;
 
 use crate::mixture::EmError;
 use crate::profiles::{GeometryMap, SlitSweep};
-use crate::render::{LayerModel, SplatLayer};
+use crate::render::{LayerModel, RowSource, ShapeLayer};
 use crate::surface::Surface;
 use amplitude::{AmplitudeStats, Amplitudes};
 use cross_validation::{Choice, choose_neighbourhoods};
@@ -310,28 +310,27 @@ impl Prior<'_> {
         Some((shape, keep))
     }
 
-    /// `model` with the prior's shape and shrunk amplitude wherever both apply.
+    /// `model` with the prior's shape and shrunk amplitude wherever both apply: those rows
+    /// share their tile's shape, scaled by the pixel's amplitude.
     fn apply(&self, model: &LayerModel, surface: &Surface) -> LayerModel {
-        // Iterators, not a vector per row: the rows are made twice (`LayerModel::from_fn`).
-        LayerModel::from_fn(surface.width, surface.height, |i, c| {
-            let (layers, target): (&[SplatLayer], Option<f64>) = match self.of(i, c) {
-                None => (model.layers(i, c), None),
-                Some((shape, keep)) => {
+        LayerModel::from_shapes(
+            surface.width,
+            surface.height,
+            |i, c| match self.of(i, c) {
+                None => RowSource::Own(model.layers(i, c)),
+                Some((_, keep)) => {
                     let (amplitude, mean) =
                         (self.amplitudes.own[i][c], self.amplitudes.stats[c].mean);
                     let target =
                         keep.map_or(amplitude, |k| mean * (1.0 + k * (amplitude / mean - 1.0)));
-                    (shape.as_slice(), Some(target))
+                    RowSource::Shape {
+                        key: (self.tiles.of_pixel(i), c),
+                        scale: target,
+                    }
                 }
-            };
-            layers.iter().map(move |l| match target {
-                None => *l,
-                Some(target) => SplatLayer {
-                    weight: (f64::from(l.weight) * target) as f32,
-                    ..*l
-                },
-            })
-        })
+            },
+            |(t, c)| self.shapes[t][c].iter().flatten().map(ShapeLayer::from),
+        )
     }
 
     /// Mean fraction of each pixel's deviation kept in channel `c` (1 without shrinkage).

@@ -5,20 +5,20 @@ use std::collections::BTreeMap;
 
 use crate::em_layered::{self, Layer, LayeredParams};
 use crate::mixture::{EmError, Profile};
-use crate::render::{RenderOptions, SplatLayer};
+use crate::render::{RenderOptions, RowLayers, SplatLayer};
 
 /// A layer shape: weights sum to 1.
 pub(super) type Shape = Vec<SplatLayer>;
 
 /// The pixel's layers scaled to unit total weight; `None` without weight.
-pub(super) fn normalised(layers: &[SplatLayer]) -> Option<Shape> {
+pub(super) fn normalised(layers: RowLayers<'_>) -> Option<Shape> {
     let total: f32 = layers.iter().map(|l| l.weight).sum();
     (total > 0.0 && total.is_finite()).then(|| {
         layers
             .iter()
             .map(|l| SplatLayer {
                 weight: l.weight / total,
-                ..*l
+                ..l
             })
             .collect()
     })

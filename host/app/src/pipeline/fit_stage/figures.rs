@@ -223,7 +223,7 @@ fn rendered_slit_series(
     // Rendered from the band of rows whose light reaches the scanline: the same curve as from
     // the whole image, for a fraction of the work.
     let mean = model.homogeneous_layers();
-    let mean_extent = extent(mean.iter().flatten());
+    let mean_extent = extent(mean.iter().flatten().copied());
     let band = model.rows_reaching(
         row..row + 1,
         |i| {
@@ -265,8 +265,8 @@ fn rendered_slit_series(
 /// `layers` with every pixel's G and B layers dropped.
 fn red_layers_only(layers: &LayerModel) -> LayerModel {
     LayerModel::from_fn(layers.width, layers.height, |i, c| {
-        let red: &[SplatLayer] = if c == 0 { layers.layers(i, 0) } else { &[] };
-        red.iter().copied()
+        let red = (c == 0).then(|| layers.layers(i, 0));
+        red.into_iter().flatten()
     })
 }
 
@@ -302,7 +302,7 @@ fn pixel_profiles_plot(
             points: profile.samples.iter().map(|s| (s.s, s.y)).collect(),
         });
         let half = profile.period.unwrap_or(10.0) / 2.0;
-        let layers = model_layers.layers(i, 0);
+        let layers = model_layers.layers(i, 0).to_vec();
         profile_series.push(Series {
             label: format!("{pixel} model"),
             colour,
@@ -310,7 +310,7 @@ fn pixel_profiles_plot(
             points: (0..=200)
                 .map(|j| {
                     let s = -half + 2.0 * half * f64::from(j) / 200.0;
-                    (s, model_profile(layers, geo.irradiance, &profile, s))
+                    (s, model_profile(&layers, geo.irradiance, &profile, s))
                 })
                 .collect(),
         });

@@ -46,7 +46,7 @@ use super::profiles_stage::{ProfileInputs, ProfilesRecord, ProfilesStageError, t
 use super::{Stage, StageContext, StageFailure};
 use mlsss_core::capture::{Axis, Pattern, truth};
 use mlsss_core::imageio::{self, ImageIoError};
-use mlsss_core::resources::{cpu_seconds, release_free_memory};
+use mlsss_core::resources::cpu_seconds;
 use mlsss_layer_model::fit::{EmVariant, FitError, FitOptions, fit_dipole_model, fit_model};
 use mlsss_layer_model::layer_depth::SpacingEstimate;
 use mlsss_layer_model::mixture::{EmConfig, Profile};
@@ -415,6 +415,15 @@ impl FitReport {
     }
 }
 
+/// Runs the fit. Memory the stage frees stays with the allocator for its next phase: handing it
+/// back between phases (`malloc_trim`, five calls) kept the peak down while the spatial prior's
+/// and the dipole's models were written out layer by layer (1.81-1.85 GiB at full size), but
+/// every page handed back was faulted in again by the next phase (on the build VM, memory handed
+/// back costs up to 1.3 s per GiB to fault in once the hypervisor has taken it). With the models'
+/// rows sharing their shapes the peak is 1.5 GiB handing back and 1.6-1.7 GiB keeping. Shared
+/// rows and memory kept against 11e24a9 (`scripts/race_builds.sh`, 3 cycles, full-size
+/// `process --until fit`): fit stage 7.14 -> 6.33 s, whole run 26.7 -> 25.7 CPU-s, peak 1.83 ->
+/// 1.68 GiB (medians; largest peak).
 fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStageError> {
     let captured = ctx.capture.manifest.booth.projectors.len();
     check_params(params, captured)?;
@@ -432,7 +441,6 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     let products = ProjectorProducts::new(&inputs, &training);
     let fig10 = fig10_measured(ctx, &inputs, params.holdout, &training)?;
     release_projector_images(&mut inputs);
-    release_free_memory();
     let profiles = TrainingProfiles::new(&inputs, &training, geometries)?;
     let normals_s = t1.elapsed().as_secs_f64();
     let c_em = cpu_seconds();
@@ -457,7 +465,6 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
     drop(profiles);
     release_slits(&mut inputs);
     let inputs = inputs;
-    release_free_memory();
 
     let model = assemble(
         ctx,
@@ -474,8 +481,6 @@ fn run_fit(ctx: &StageContext, params: &FitParams) -> Result<FitReport, FitStage
         _ => None,
     };
     let heldout_s = t_heldout.elapsed().as_secs_f64();
-    // The renders' bins (up to 768 MB) go back before the save and the figures allocate.
-    release_free_memory();
     let c3 = cpu_seconds();
     let path = ctx.dir().join(MODEL_FILE);
     let (save_s, figures_s) = save_and_draw(ctx, &inputs, &record, &model, prepared, &path)?;
@@ -634,8 +639,6 @@ fn fit_layers(
     let t_em = Instant::now();
     let mut fit = fit_model(surface, geometries, sweeps, &opts)?;
     let em_s = t_em.elapsed().as_secs_f64();
-    // The EM's scratch goes back before the prior and the dipole allocate theirs side by side.
-    release_free_memory();
     let cpu_after_em = cpu_seconds();
     let (block, spacing) = (params.block, fit.stats.depth_spacing_mm);
     // The dipole baseline needs only the EM's amplitudes: it runs beside the spatial prior,
@@ -710,7 +713,6 @@ fn save_and_draw(
     let t = Instant::now();
     model.save(path)?;
     let save_s = t.elapsed().as_secs_f64();
-    release_free_memory();
     let t = Instant::now();
     write_figures(ctx, inputs, record, model, &prepared)?;
     Ok((save_s, t.elapsed().as_secs_f64()))

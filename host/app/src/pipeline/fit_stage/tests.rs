@@ -78,10 +78,7 @@ fn unfitted_surface_pixels_get_the_mean_layers_and_only_they() {
     assert_eq!(count, 1);
     for c in 0..3 {
         assert_eq!(filled.layers(0, c), model.layers(0, c));
-        assert_eq!(
-            filled.layers(1, c),
-            model.mean_layers(&fitted)[c].as_slice()
-        );
+        assert_eq!(filled.layers(1, c).to_vec(), model.mean_layers(&fitted)[c]);
         assert!(!filled.layers(1, c).is_empty());
         assert!(filled.layers(2, c).is_empty());
     }
