@@ -212,6 +212,19 @@ impl Iterator for RowIter<'_> {
 
 impl ExactSizeIterator for RowIter<'_> {}
 
+/// How one row stores its layers ([`LayerModel::row_storage`]), for writers that treat a shared
+/// shape once rather than once per row.
+#[derive(Debug, Clone)]
+pub enum RowStorage<'a> {
+    /// The row's own layers.
+    Own(&'a [SplatLayer]),
+    /// Layers `shape` of [`LayerModel::shapes`], every weight times `scale`.
+    Scaled {
+        shape: std::ops::Range<usize>,
+        scale: f64,
+    },
+}
+
 /// What [`LayerModel::from_shapes`] puts in one row.
 #[derive(Debug, Clone, Copy)]
 pub enum RowSource<'a, K> {
@@ -423,6 +436,24 @@ impl LayerModel {
     /// Every row's layer count, pixel by pixel and channel by channel.
     pub fn row_lens(&self) -> impl ExactSizeIterator<Item = usize> + '_ {
         self.rows.iter().map(Row::len)
+    }
+
+    /// How every row stores its layers, pixel by pixel and channel by channel.
+    pub fn row_storage(&self) -> impl ExactSizeIterator<Item = RowStorage<'_>> + '_ {
+        self.rows.iter().map(|row| match *row {
+            Row::Own { start, len } => {
+                RowStorage::Own(&self.own[start as usize..(start + len) as usize])
+            }
+            Row::Scaled { scale, start, len } => RowStorage::Scaled {
+                shape: start as usize..start as usize + usize::from(len),
+                scale,
+            },
+        })
+    }
+
+    /// The shapes that scaled rows share ([`RowStorage::Scaled`] indexes them).
+    pub fn shapes(&self) -> &[ShapeLayer] {
+        &self.shapes
     }
 
     /// Every layer, row after row.

@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use super::{
     FORMAT_VERSION, MAGIC, ModelFileError, ModelHeader, OLDEST_READABLE_VERSION, SubsurfaceModel,
 };
-use crate::render::{LayerModel, SplatLayer};
+use crate::render::{LayerModel, RowStorage, SplatLayer};
 use crate::surface::Surface;
 
 impl SubsurfaceModel {
@@ -389,8 +389,18 @@ fn weight_planes(model: &LayerModel) -> Vec<Piece> {
     let mut planes: [Vec<u8>; 4] = std::array::from_fn(|_| vec![0; count]);
     // Written in place, not pushed: no capacity check per byte (tens of millions of layers).
     let [p0, p1, p2, p3] = &mut planes;
-    for ((((l, b0), b1), b2), b3) in model.all_layers().zip(p0).zip(p1).zip(p2).zip(p3) {
-        [*b0, *b1, *b2, *b3] = l.weight.to_le_bytes();
+    let mut slots = p0.iter_mut().zip(p1).zip(p2).zip(p3);
+    let shapes = model.shapes();
+    for row in model.row_storage() {
+        match row {
+            RowStorage::Own(layers) => put_bytes(layers.iter().map(|l| l.weight), &mut slots),
+            RowStorage::Scaled { shape, scale } => {
+                put_bytes(
+                    shapes[shape].iter().map(|s| s.scaled(scale).weight),
+                    &mut slots,
+                );
+            }
+        }
     }
     planes
         .into_iter()
@@ -400,6 +410,16 @@ fn weight_planes(model: &LayerModel) -> Vec<Piece> {
             deflate: k > 1,
         })
         .collect()
+}
+
+/// Writes each weight's LE bytes into the next slot of the four planes.
+fn put_bytes<'p>(
+    weights: impl Iterator<Item = f32>,
+    slots: &mut impl Iterator<Item = (((&'p mut u8, &'p mut u8), &'p mut u8), &'p mut u8)>,
+) {
+    for (w, (((b0, b1), b2), b3)) in weights.zip(slots) {
+        [*b0, *b1, *b2, *b3] = w.to_le_bytes();
+    }
 }
 
 /// Every pixel and channel's layer count, `u16` LE (format 2).
@@ -419,16 +439,38 @@ fn layer_counts(model: &LayerModel) -> Result<Vec<u8>, ModelFileError> {
 fn palette_ids(model: &LayerModel) -> Vec<u8> {
     let mut palette: Palette = Default::default();
     let mut entries: Vec<PaletteKey> = Vec::new();
-    let ids: Vec<u32> = model
-        .all_layers()
-        .map(|l| {
-            let key = (l.index, l.sigma_mm.to_bits(), l.depth_mm.to_bits());
-            *palette.entry(key).or_insert_with(|| {
-                entries.push(key);
-                (entries.len() - 1) as u32
-            })
+    let mut id_of = |index: u16, sigma_mm: f32, depth_mm: f32| {
+        let key = (index, sigma_mm.to_bits(), depth_mm.to_bits());
+        *palette.entry(key).or_insert_with(|| {
+            entries.push(key);
+            (entries.len() - 1) as u32
         })
-        .collect();
+    };
+    // A shared shape's layers are looked up once, by the first row that scales it, so the
+    // palette lists its entries in the layers' order, as when every layer was looked up.
+    const UNSEEN: u32 = u32::MAX;
+    let shapes = model.shapes();
+    let mut shape_ids = vec![UNSEEN; shapes.len()];
+    let mut ids: Vec<u32> = Vec::with_capacity(model.layer_count());
+    for row in model.row_storage() {
+        match row {
+            RowStorage::Own(layers) => {
+                ids.extend(
+                    layers
+                        .iter()
+                        .map(|l| id_of(l.index, l.sigma_mm, l.depth_mm)),
+                );
+            }
+            RowStorage::Scaled { shape, .. } => {
+                for (id, s) in shape_ids[shape.clone()].iter_mut().zip(&shapes[shape]) {
+                    if *id == UNSEEN {
+                        *id = id_of(s.index, s.sigma_mm, s.depth_mm);
+                    }
+                    ids.push(*id);
+                }
+            }
+        }
+    }
     drop(palette);
     let id_bytes: u8 = match entries.len() {
         0..=0x100 => 1,

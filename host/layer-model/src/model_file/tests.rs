@@ -236,6 +236,57 @@ fn the_saved_file_decompresses_to_the_documented_sections() {
     assert!(sections == reference);
 }
 
+/// A layer model whose rows share shapes (as the spatial prior's and the dipole's) saves the
+/// sections of its layers written out, the same file as its written-out twin's, and loads back
+/// equal to it.
+#[test]
+fn shared_shapes_save_as_their_layers_written_out() {
+    use crate::render::{RowSource, ShapeLayer};
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (40, 30);
+    let shape = |(tile, c): (usize, usize)| {
+        (0..1 + (tile + c) % 3).map(move |k| ShapeLayer {
+            index: k as u16,
+            weight: 0.1 + 0.05 * k as f64 + 1e-3 * tile as f64,
+            sigma_mm: 0.2 + 0.1 * (tile % 5) as f32,
+            depth_mm: 0.05 * k as f32,
+        })
+    };
+    let own = |i: usize, c: usize| -> Vec<SplatLayer> {
+        (0..(i + c) % 3)
+            .map(|k| SplatLayer {
+                index: 7 + k as u16,
+                weight: 1e-3 * (i * 3 + c) as f32,
+                sigma_mm: 0.3,
+                depth_mm: 0.0,
+            })
+            .collect()
+    };
+    let owned: Vec<Vec<SplatLayer>> = (0..w * h * 3).map(|k| own(k / 3, k % 3)).collect();
+    let source = |i: usize, c: usize| match i % 5 {
+        0 => RowSource::Own(crate::render::RowLayers::Own(&owned[i * 3 + c])),
+        1 => RowSource::Empty,
+        _ => RowSource::Shape {
+            key: ((i / w / 6) * 7 + (i % w) / 6, c),
+            scale: 0.5 + 1e-3 * i as f64,
+        },
+    };
+    let mut shared = plane_model_sized(w, h);
+    shared.layers = LayerModel::from_shapes(w, h, source, shape);
+    let mut written_out = plane_model_sized(w, h);
+    written_out.layers = LayerModel::from_fn(w, h, |i, c| shared.layers.layers(i, c).to_vec());
+    let (a, b) = (
+        dir.path().join("shared.mlsss"),
+        dir.path().join("out.mlsss"),
+    );
+    shared.save(&a).unwrap();
+    written_out.save(&b).unwrap();
+    assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap());
+    let loaded = SubsurfaceModel::load(&a).unwrap();
+    assert_eq!(loaded.layers, shared.layers);
+    assert!(shared.layers.row_lens().any(|n| n > 1));
+}
+
 #[test]
 fn a_model_survives_the_file_bit_for_bit_and_bad_files_are_refused() {
     let dir = tempfile::tempdir().unwrap();
