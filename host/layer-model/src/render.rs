@@ -1956,6 +1956,40 @@ mod tests {
         }
     }
 
+    /// A shape longer than a scaled row can index (`u16` layers) is written out as the row's own
+    /// layers, scaled: same layers, nothing dropped.
+    #[test]
+    fn a_shape_too_long_to_share_is_written_out() {
+        let long = usize::from(u16::MAX) + 2;
+        let shape = |_: ()| {
+            (0..long).map(|j| ShapeLayer {
+                index: (j % 7) as u16,
+                weight: 1.0 + j as f64,
+                sigma_mm: 1.0,
+                depth_mm: 0.0,
+            })
+        };
+        let model = LayerModel::from_shapes(
+            2,
+            1,
+            |i, _| match i {
+                0 => RowSource::Shape {
+                    key: (),
+                    scale: 0.5,
+                },
+                _ => RowSource::Empty,
+            },
+            shape,
+        );
+        for c in 0..3 {
+            let row = model.layers(0, c);
+            assert!(matches!(row, RowLayers::Own(_)));
+            assert_eq!(row.len(), long);
+            assert!(row.iter().zip(shape(())).all(|(l, s)| l == s.scaled(0.5)));
+            assert!(model.layers(1, c).is_empty());
+        }
+    }
+
     /// `fill_empty` against the copy it replaces: `from_fn` giving each empty row the filler's
     /// layers. Rows of 0..3 layers from a small LCG (so empty rows sit at the start, the end and
     /// in runs), filled where a pixel is "on the surface".
