@@ -11,8 +11,7 @@ use super::*;
 use crate::fit::{FitOptions, fit_model};
 use crate::mixture::EmConfig;
 use crate::profiles::{AxisGeometry, GeometryMap, PixelGeometry, SlitFrame};
-use crate::render::RenderOptions;
-use crate::render::SplatLayer;
+use crate::render::{RenderOptions, SplatLayer};
 use mlsss_core::capture::{Axis, Pattern};
 
 const SIZE: usize = 30;
