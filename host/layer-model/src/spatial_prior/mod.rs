@@ -297,17 +297,20 @@ struct Prior<'a> {
 }
 
 impl Prior<'_> {
-    /// The prior's shape and the fraction of the amplitude's deviation kept, where both apply.
-    fn of(&self, i: usize, c: usize) -> Option<(&Shape, Option<f64>)> {
+    /// The tile whose shape the prior gives pixel `i` in channel `c`, and the fraction of the
+    /// amplitude's deviation kept, where both apply.
+    fn of(&self, i: usize, c: usize) -> Option<(usize, Option<f64>)> {
         let a = self.amplitudes;
         if a.own[i][c] <= 0.0 {
             return None;
         }
-        let shape = self.shapes[self.tiles.of_pixel(i)][c].as_ref()?;
+        let tile = self.tiles.of_pixel(i);
+        // Only where the tile has a shape in this channel.
+        self.shapes[tile][c].as_ref()?;
         let st = &a.stats[c];
         let keep = (self.shrink_amplitude && st.mean > 0.0)
             .then(|| st.keep(a.per_projector.get(i, c).len()));
-        Some((shape, keep))
+        Some((tile, keep))
     }
 
     /// `model` with the prior's shape and shrunk amplitude wherever both apply: those rows
@@ -318,13 +321,13 @@ impl Prior<'_> {
             surface.height,
             |i, c| match self.of(i, c) {
                 None => RowSource::Own(model.layers(i, c)),
-                Some((_, keep)) => {
+                Some((tile, keep)) => {
                     let (amplitude, mean) =
                         (self.amplitudes.own[i][c], self.amplitudes.stats[c].mean);
                     let target =
                         keep.map_or(amplitude, |k| mean * (1.0 + k * (amplitude / mean - 1.0)));
                     RowSource::Shape {
-                        key: (self.tiles.of_pixel(i), c),
+                        key: (tile, c),
                         scale: target,
                     }
                 }
