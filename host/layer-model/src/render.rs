@@ -415,16 +415,24 @@ impl LayerModel {
         }
     }
 
+    /// How `row` stores its layers.
+    fn storage(&self, row: Row) -> RowStorage<'_> {
+        match row {
+            Row::Own { start, len } => {
+                RowStorage::Own(&self.own[start as usize..(start + len) as usize])
+            }
+            Row::Scaled { scale, start, len } => RowStorage::Scaled {
+                shape: start as usize..start as usize + usize::from(len),
+                scale,
+            },
+        }
+    }
+
     /// Layers of row `k` (pixel `k / 3`, channel `k % 3`).
     fn row(&self, k: usize) -> RowLayers<'_> {
-        match self.rows[k] {
-            Row::Own { start, len } => {
-                RowLayers::Own(&self.own[start as usize..(start + len) as usize])
-            }
-            Row::Scaled { scale, start, len } => {
-                let start = start as usize;
-                RowLayers::Scaled(&self.shapes[start..start + usize::from(len)], scale)
-            }
+        match self.storage(self.rows[k]) {
+            RowStorage::Own(layers) => RowLayers::Own(layers),
+            RowStorage::Scaled { shape, scale } => RowLayers::Scaled(&self.shapes[shape], scale),
         }
     }
 
@@ -440,15 +448,7 @@ impl LayerModel {
 
     /// How every row stores its layers, pixel by pixel and channel by channel.
     pub fn row_storage(&self) -> impl ExactSizeIterator<Item = RowStorage<'_>> + '_ {
-        self.rows.iter().map(|row| match *row {
-            Row::Own { start, len } => {
-                RowStorage::Own(&self.own[start as usize..(start + len) as usize])
-            }
-            Row::Scaled { scale, start, len } => RowStorage::Scaled {
-                shape: start as usize..start as usize + usize::from(len),
-                scale,
-            },
-        })
+        self.rows.iter().map(|&row| self.storage(row))
     }
 
     /// The shapes that scaled rows share ([`RowStorage::Scaled`] indexes them).
