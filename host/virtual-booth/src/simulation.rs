@@ -750,9 +750,10 @@ impl<'a> Exposures<'a> {
 }
 
 /// Renders every frame of `plan`, writes it (with noise, at each projector's exposure) and, with
-/// a `truth_dir`, the truth of the patterns selected by `truth_for`; returns a few frames for the contact sheet and
-/// the exposures. With `metering` (the booth's timing), each projector's exposure is metered from
-/// its noise-free white (`metering`), else taken from the writer's manifest.
+/// a `truth_dir`, the truth of the patterns selected by `truth_for`; returns a few frames for the
+/// contact sheet and the exposures. With `metering` (the booth's timing), each projector's
+/// exposure is metered from its noise-free white (`metering`), else taken from the writer's
+/// manifest.
 ///
 /// Every frame of projector `k` carries the stray light of the other projectors' black level,
 /// i.e. their whites. Projectors are rendered in order, each in batches of frames; each white is
@@ -926,8 +927,8 @@ fn whites_rendered_alone(
 }
 
 /// Renders one batch of frames of `view`'s projector, writes the truth components of those
-/// selected by `truth_for` (with a `truth_dir`) and returns each frame's noise-free totals (the component buffers are
-/// freed here, before the frames are finished or held).
+/// selected by `truth_for` (with a `truth_dir`) and returns each frame's noise-free totals (the
+/// component buffers are freed here, before the frames are finished or held).
 fn render_batch(
     scene: &Scene,
     view: &ProjectorTransport,
