@@ -417,6 +417,7 @@ fn scan_manifest(booth: &Booth, opts: &SimulationOptions, plan: &FramePlan) -> C
         "material_maps": opts.material_maps,
         "stray_black": opts.stray_black,
         "metering": opts.metering,
+        "truth": opts.truth,
         "monte_carlo": opts.mc,
     });
     manifest
@@ -489,6 +490,7 @@ pub fn simulate_calibration(
             "seed": opts.seed,
             "board": board,
             "stray_black": opts.stray_black,
+            "truth": opts.truth,
         });
         let target = out.join(format!("pose{pose:02}"));
         let writer = CaptureWriter::create(&target, manifest)?;
@@ -1087,7 +1089,7 @@ mod tests {
     }
 
     /// Without the truth a calibration pose is the same capture, frame for frame, and has no
-    /// `truth/` folder (the demo's poses).
+    /// `truth/` folder (the demo's poses); the manifest's source says which it is.
     #[test]
     fn poses_without_truth_are_the_same_frames_and_no_truth_folder() {
         let booth = scaled_booth(&Booth::builtin(true), 8);
@@ -1111,6 +1113,8 @@ mod tests {
             Capture::open(&with).unwrap(),
             Capture::open(&without).unwrap(),
         );
+        assert_eq!(a.manifest.source["truth"], true);
+        assert_eq!(b.manifest.source["truth"], false);
         let frames = a.manifest.plan.len();
         assert!(frames > 40);
         for i in 0..frames as u32 {

@@ -232,7 +232,8 @@ fn calibration_poses_are_captures_with_the_board_in_view() {
     assert!(Path::new(&root.join("contact_sheet.png")).exists());
 }
 
-/// `--no-truth` writes the capture as a real booth gives it: the same frames, no `truth/`.
+/// `--no-truth` writes the capture as a real booth gives it: the same frames, no `truth/`; the
+/// manifest's source records the choice.
 #[test]
 fn no_truth_gives_the_same_frames_without_the_truth_folder() {
     let dir = TestDir::new("simulate-no-truth");
@@ -254,6 +255,8 @@ fn no_truth_gives_the_same_frames_without_the_truth_folder() {
     );
     assert!(with.truth_dir().is_some());
     assert!(without.truth_dir().is_none());
+    assert_eq!(with.manifest.source["truth"], true);
+    assert_eq!(without.manifest.source["truth"], false);
     assert!(!dir.path().join("without/pose00/truth").exists());
     let frames = with.manifest.plan.len() as u32;
     assert!(frames > 40);
@@ -284,6 +287,10 @@ fn the_inner_band_width_is_a_recorded_setting() {
     // edges) of the white.
     let read = |root: &Path| {
         let cap = Capture::open(root).unwrap();
+        assert_eq!(
+            cap.manifest.source["truth"], true,
+            "a scan's truth is recorded"
+        );
         let img = read_exr_rgb(&truth::global(
             &cap.truth_dir().unwrap(),
             0,
