@@ -295,7 +295,8 @@ pub fn blur_1d<W: KernelFloat, S: Sample<W>>(
 
 /// In-place separable blur of a row-major `width` x `height` image: rows, then columns, both
 /// with `kernel` under `border`. On the calling thread (callers that already run in parallel,
-/// such as the renderer's bins, keep it so); see [`blur_2d_parallel`].
+/// such as the renderer's bins, keep it so); see [`blur_2d_mapped`] for a field blurred on every
+/// core.
 pub fn blur_2d<W: KernelFloat, S: Sample<W>>(
     image: &mut [S],
     width: usize,
@@ -313,43 +314,162 @@ pub fn blur_2d<W: KernelFloat, S: Sample<W>>(
     }
     let src = image.to_vec();
     for (y, out) in image.chunks_exact_mut(width).enumerate() {
-        blur_column_row(out, y, &src, (width, height), kernel, border);
+        let row = |yy: usize| &src[yy * width..(yy + 1) * width];
+        blur_column_row(out, y, row, height, kernel, border);
     }
     Ok(())
 }
 
-/// [`blur_2d`] with its rows, then its output rows of the column pass, shared across rayon's
-/// threads. Every output is computed exactly as in [`blur_2d`] (the same numbers); for a
-/// full-size image blurred on an otherwise idle pool (the point normals, the normal fusion),
-/// not from inside a parallel loop.
-pub fn blur_2d_parallel<W, S>(
-    image: &mut [S],
+/// The image whose pixel `i` (row-major, `width` x `height`) is `source(i)`, blurred as
+/// [`blur_2d`] blurs it (the same numbers), each output pixel handed to `map(i, blurred)`; the
+/// results in pixel order. The image itself is never held: bands of [`BAND_ROWS`] rows are
+/// blurred on rayon's threads, each from its own rows and the rows its kernel reaches around
+/// them (`source` is asked for those again by the next band). For a full-size field blurred on
+/// an otherwise idle pool (the point normals' moments, the normal fusion's sums), not from
+/// inside a parallel loop. Why: a full-size field and the copy its column pass read from were
+/// fresh memory for the kernel to fault in (the point normals' 113 MB of moments twice over:
+/// ~0.2 CPU-s of page clearing at full size, perf), where a band's buffers are reused.
+pub fn blur_2d_mapped<W, S, T>(
     width: usize,
     height: usize,
     kernel: &GaussianKernel<W>,
     border: Border,
-) -> Result<(), BlurError>
+    source: impl Fn(usize) -> S + Sync,
+    map: impl Fn(usize, S) -> T + Sync,
+) -> Vec<T>
 where
     W: KernelFloat + Sync,
     S: Sample<W> + Send + Sync,
+    T: Send,
+{
+    blur_2d_mapped_in_bands(width, height, kernel, border, source, map, BAND_ROWS)
+}
+
+/// Rows per band of [`blur_2d_mapped`]: a band reads its kernel's radius of rows on either side
+/// again (5 of 64 at the point normals' 1.5 px), and holds about a hundred rows of samples.
+const BAND_ROWS: usize = 64;
+
+/// [`blur_2d_mapped`] in bands of `band_rows` rows (the result does not depend on it; tests take
+/// small bands).
+fn blur_2d_mapped_in_bands<W, S, T>(
+    width: usize,
+    height: usize,
+    kernel: &GaussianKernel<W>,
+    border: Border,
+    source: impl Fn(usize) -> S + Sync,
+    map: impl Fn(usize, S) -> T + Sync,
+    band_rows: usize,
+) -> Vec<T>
+where
+    W: KernelFloat + Sync,
+    S: Sample<W> + Send + Sync,
+    T: Send,
 {
     use rayon::prelude::*;
-    if !needs_blur(image, width, height, kernel)? {
-        return Ok(());
+    let n = width * height;
+    if kernel.is_identity() || n == 0 {
+        // `blur_2d` leaves such an image as it is.
+        return (0..n).into_par_iter().map(|i| map(i, source(i))).collect();
     }
-    let r = kernel.radius();
-    image.par_chunks_exact_mut(width).for_each_init(
-        || vec![S::ZERO; width + 2 * r],
-        |line, row| blur_row(row, line, kernel, border),
-    );
-    // Copied on every core: the copy is fresh memory, and faulting it in on one thread was a
-    // serial stretch of the full-size point normals (113 MB of moments, ~0.2 s with a core idle).
-    let src: Vec<S> = image.par_iter().copied().collect();
-    image
-        .par_chunks_exact_mut(width)
+    let mut out = Vec::with_capacity(n);
+    out.spare_capacity_mut()[..n]
+        .par_chunks_mut(band_rows.max(1) * width)
         .enumerate()
-        .for_each(|(y, out)| blur_column_row(out, y, &src, (width, height), kernel, border));
-    Ok(())
+        .for_each_init(
+            || BandRows::new(width, height),
+            |band, (b, outputs)| {
+                let first = b * band_rows.max(1);
+                let rows = first..first + outputs.len() / width;
+                band.fill(rows.clone(), kernel, border, &source);
+                for (y, row) in rows.zip(outputs.chunks_exact_mut(width)) {
+                    let column = band.column_row(y, kernel, border);
+                    for (x, (o, &v)) in row.iter_mut().zip(column).enumerate() {
+                        o.write(map(y * width + x, v));
+                    }
+                }
+            },
+        );
+    // SAFETY: the chunks cover the first `n` elements of the spare capacity, and every element
+    // of every chunk was written above (a chunk is whole rows: `outputs.len() / width` rows of
+    // `width` pixels each).
+    unsafe { out.set_len(n) };
+    out
+}
+
+/// The rows one band of [`blur_2d_mapped`] reads, row-blurred, and its scratch lines.
+struct BandRows<S> {
+    width: usize,
+    height: usize,
+    /// The rows held, `width` samples each, in the order of `slot`.
+    rows: Vec<S>,
+    /// Per image row: its place in `rows`, if held.
+    slot: Vec<Option<usize>>,
+    /// The row pass's padded line.
+    line: Vec<S>,
+    /// One output row of the column pass.
+    column: Vec<S>,
+}
+
+impl<S: Copy> BandRows<S> {
+    fn new(width: usize, height: usize) -> Self {
+        Self {
+            width,
+            height,
+            rows: Vec::new(),
+            slot: vec![None; height],
+            line: Vec::new(),
+            column: Vec::new(),
+        }
+    }
+
+    /// Holds the rows the column pass of the output rows `band` reads (under `border`), each
+    /// from `source` and blurred along itself, as [`blur_2d`]'s row pass blurs it.
+    fn fill<W: KernelFloat>(
+        &mut self,
+        band: std::ops::Range<usize>,
+        kernel: &GaussianKernel<W>,
+        border: Border,
+        source: &impl Fn(usize) -> S,
+    ) where
+        S: Sample<W>,
+    {
+        let (w, h, r) = (self.width, self.height, kernel.radius());
+        self.slot.fill(None);
+        self.rows.clear();
+        let reach = band.start as isize - r as isize..(band.end + r) as isize;
+        for y in reach.filter_map(|y| border.index(y, h)) {
+            if self.slot[y].is_none() {
+                self.slot[y] = Some(self.rows.len() / w);
+                self.rows.extend((y * w..(y + 1) * w).map(source));
+            }
+        }
+        self.line.resize(w + 2 * r, S::ZERO);
+        for row in self.rows.chunks_exact_mut(w) {
+            blur_row(row, &mut self.line, kernel, border);
+        }
+    }
+
+    /// Output row `y` of the column pass over the rows held (those of `y`'s band).
+    fn column_row<W: KernelFloat>(
+        &mut self,
+        y: usize,
+        kernel: &GaussianKernel<W>,
+        border: Border,
+    ) -> &[S]
+    where
+        S: Sample<W>,
+    {
+        let (w, h) = (self.width, self.height);
+        self.column.resize(w, S::ZERO);
+        let (rows, slot) = (&self.rows, &self.slot);
+        let held = |yy: usize| {
+            // `fill` held every row the band's kernel reaches.
+            let k = slot[yy].unwrap_or_default();
+            &rows[k * w..(k + 1) * w]
+        };
+        blur_column_row(&mut self.column, y, held, h, kernel, border);
+        &self.column
+    }
 }
 
 /// Checks the image's shape; whether blurring it changes anything (not for the identity kernel
@@ -382,14 +502,14 @@ fn blur_row<W: KernelFloat, S: Sample<W>>(
     convolve_padded(row, line, kernel);
 }
 
-/// Output row `y` of the column pass over `src` (`width` x `height`, the row pass's result):
-/// a weighted sum of whole input rows, in kernel order.
+/// Output row `y` of the column pass over the rows `row(yy)` of an image `height` rows tall
+/// (the row pass's result): a weighted sum of whole input rows, in kernel order.
 #[inline]
-fn blur_column_row<W: KernelFloat, S: Sample<W>>(
+fn blur_column_row<'a, W: KernelFloat, S: Sample<W> + 'a>(
     out: &mut [S],
     y: usize,
-    src: &[S],
-    (width, height): (usize, usize),
+    row: impl Fn(usize) -> &'a [S],
+    height: usize,
     kernel: &GaussianKernel<W>,
     border: Border,
 ) {
@@ -399,7 +519,7 @@ fn blur_column_row<W: KernelFloat, S: Sample<W>>(
         let Some(yy) = border.index((y + j) as isize - r as isize, height) else {
             continue;
         };
-        for (o, &v) in out.iter_mut().zip(&src[yy * width..(yy + 1) * width]) {
+        for (o, &v) in out.iter_mut().zip(row(yy)) {
             *o = o.add_weighted(w, v);
         }
     }

@@ -13,7 +13,7 @@
 //! and the points are flat in it (not across a depth step or a crease): there the plane's normal
 //! is the surface's, smoothed over the window.
 
-use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d_parallel};
+use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d_mapped};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rayon::prelude::*;
 
@@ -65,12 +65,7 @@ pub fn fit_point_normals(
     params: &PointNormalParams,
 ) -> PointNormals {
     let (w, h) = (width as usize, height as usize);
-    let mut moments: Vec<Moments> = points.par_iter().map(|p| point_moments(*p)).collect();
-    let kernel = GaussianKernel::new(params.sigma_px, 3.0, Normalisation::Weights);
-    // On every core (shared with the artefact writes the geometry stage runs beside it): the
-    // blur of ten f64 moments per pixel was one of that stage's serial stretches (the same
-    // numbers as on one thread).
-    if blur_2d_parallel(&mut moments, w, h, &kernel, Border::Zero).is_err() {
+    if points.len() != w * h {
         return PointNormals {
             width,
             height,
@@ -78,28 +73,33 @@ pub fn fit_point_normals(
             reliable: vec![false; points.len()],
         };
     }
-    let (normals, reliable): (Vec<[f32; 3]>, Vec<bool>) = moments
-        .par_iter()
-        .zip(points)
-        .map(|(m, p)| {
-            let Some(point) = surface_point(*p) else {
-                return ([0.0; 3], false);
-            };
-            let Some((normal, flatness)) = plane_normal(m) else {
-                return ([0.0; 3], false);
-            };
-            let normal = if normal.dot(&(viewpoint - point)) < 0.0 {
-                -normal
-            } else {
-                normal
-            };
-            let reliable = m[0] >= params.min_support && flatness <= params.max_flatness;
-            (
-                [normal.x as f32, normal.y as f32, normal.z as f32],
-                reliable,
-            )
-        })
-        .unzip();
+    let kernel = GaussianKernel::new(params.sigma_px, 3.0, Normalisation::Weights);
+    // The moments blurred band by band on every core (shared with the artefact writes the
+    // geometry stage runs beside it), never held whole: the same numbers as blurring them on one
+    // thread.
+    let normal_of = |i: usize, m: Moments| {
+        let Some(point) = surface_point(points[i]) else {
+            return ([0.0; 3], false);
+        };
+        let Some((normal, flatness)) = plane_normal(&m) else {
+            return ([0.0; 3], false);
+        };
+        let normal = if normal.dot(&(viewpoint - point)) < 0.0 {
+            -normal
+        } else {
+            normal
+        };
+        let reliable = m[0] >= params.min_support && flatness <= params.max_flatness;
+        (
+            [normal.x as f32, normal.y as f32, normal.z as f32],
+            reliable,
+        )
+    };
+    let moments = |i: usize| point_moments(points[i]);
+    let (normals, reliable): (Vec<[f32; 3]>, Vec<bool>) =
+        blur_2d_mapped(w, h, &kernel, Border::Zero, moments, normal_of)
+            .into_par_iter()
+            .unzip();
     PointNormals {
         width,
         height,

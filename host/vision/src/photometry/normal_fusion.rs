@@ -25,7 +25,7 @@
 //! Conventions: unit normals in one frame (the world's), row-major per camera pixel, zero where
 //! unknown.
 
-use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d_parallel};
+use mlsss_core::gaussian_blur::{Border, GaussianKernel, Normalisation, blur_2d_mapped};
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
@@ -298,24 +298,28 @@ fn normalise(v: [f64; 3]) -> Option<[f32; 3]> {
 /// The Gaussian average of the known unit normals around each pixel (unknown ones carry no
 /// weight), normalised; zero where no normal is within reach.
 fn low_pass(normals: &[[f32; 3]], width: usize, height: usize, sigma: f64) -> Vec<[f32; 3]> {
-    let mut sums: Vec<[f64; 4]> = normals
-        .par_iter()
-        .map(|n| {
-            if is_normal(*n) {
-                [n[0].into(), n[1].into(), n[2].into(), 1.0]
-            } else {
-                [0.0; 4]
-            }
-        })
-        .collect();
-    let kernel = GaussianKernel::new(sigma, 3.0, Normalisation::Weights);
-    // On every core (the same numbers as on one thread): it was the fusion's serial stretch.
-    if blur_2d_parallel(&mut sums, width, height, &kernel, Border::Zero).is_err() {
+    if normals.len() != width * height {
         return vec![[0.0; 3]; normals.len()];
     }
-    sums.par_iter()
-        .map(|s| normalise([s[0], s[1], s[2]]).unwrap_or([0.0; 3]))
-        .collect()
+    let sums = |i: usize| {
+        let n = normals[i];
+        if is_normal(n) {
+            [n[0].into(), n[1].into(), n[2].into(), 1.0]
+        } else {
+            [0.0; 4]
+        }
+    };
+    let kernel = GaussianKernel::new(sigma, 3.0, Normalisation::Weights);
+    // On every core, band by band (the same numbers as on one thread): it was the fusion's
+    // serial stretch, and the whole field of sums fresh memory.
+    blur_2d_mapped(
+        width,
+        height,
+        &kernel,
+        Border::Zero,
+        sums,
+        |_, s: [f64; 4]| normalise([s[0], s[1], s[2]]).unwrap_or([0.0; 3]),
+    )
 }
 
 #[cfg(test)]
