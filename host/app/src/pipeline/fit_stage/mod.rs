@@ -22,8 +22,9 @@
 //! Report fragment: `components_mean`, `depth_spacing_mm`, `depth_estimate`, `pixels_fitted`,
 //! `pixels_skipped`, `pixels_filled`, `fits`, `mean_iterations`, `em`, `components`, `holdout`,
 //! `training_projectors`, `model_file`, `model_bytes`,
-//! `timing_s.{load,fit,fit_normals,fit_em,fit_prior,dipole,heldout,save,figures}` (wall; `fit`
-//! ends with the model, its parts are the normals' shading correction, the EM, then the spatial
+//! `timing_s.{load,fit,fit_normals,fit_em,fit_prior,dipole,heldout,save,figures}` (wall; `load`
+//! takes the profiles' inputs and extracts the training projectors' slit frames; `fit` ends with
+//! the model, its parts are the normals' shading correction, the EM, then the spatial
 //! prior while the dipole baseline is fitted beside it; `heldout` is the held-out renders; the
 //! model is saved while the figures are drawn) and
 //! `timing_cpu_s.{load,fit,fit_normals,fit_em,prior_and_dipole,heldout,save_and_figures}`

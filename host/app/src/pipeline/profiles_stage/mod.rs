@@ -4,12 +4,13 @@
 //!
 //! Why the profiles are not stored: a pixel's profile is its 20 slit-frame values per projector
 //! plus a few geometry numbers; stored for every pixel that is the slit frames themselves again
-//! (1.4 GB of f32 for the full-size booth). [`ProfileInputs::load`] rebuilds them on demand from
-//! the capture and the cached artefacts of decode, geometry, separate and normals (a subtraction
-//! per frame), and the fit stage calls it when this stage came from the cache; when this stage ran
-//! in the same `process` run it hands its inputs over in memory instead
-//! ([`ProfileInputs::take_or_load`]). What this stage stores is small: the parameters the
-//! profiles were built with, a scanline of measured global light for plots, and its checks.
+//! (1.4 GB of f32 for the full-size booth). The fit stage rebuilds them, for its training
+//! projectors only, from the capture and the cached artefacts of decode, geometry, separate and
+//! normals (a subtraction per frame): [`ProfileInputs::take_or_load`], which starts from this
+//! stage's inputs in memory when it ran in the same `process` run ([`ProfileInputs::load`]
+//! otherwise). This stage itself extracts only the slit frames its checks read (those with truth,
+//! the plotted one). What it stores is small: the parameters the profiles were built with, a
+//! scanline of measured global light for plots, and its checks.
 //!
 //! Artefacts in `OUT/profiles/`:
 //! - `profiles.json`: [`ProfilesRecord`] (parameters, scanline row and columns, per projector
@@ -24,8 +25,8 @@
 //! truth) and, with [`ProfilesParams::compare_variants`], `slit_global_rel_rmse_hard_mask`
 //! (unblurred slit edges) and `slit_global_rel_rmse_direct_{separation,none,colourless,auto}` (each
 //! rule of [`DirectPart`]); `phase_s`, `phase_cpu_s`: where the stage's time went (`load`: the
-//! inputs and every projector's slit global light, `report`: the per-projector figures, `truth`,
-//! `write`: the record and the scanline plot).
+//! inputs and the global light of the slit frames the checks read, `report`: the per-projector
+//! figures, `truth`, `write`: the record and the scanline plot).
 
 use std::path::{Path, PathBuf};
 
@@ -417,8 +418,9 @@ pub struct ProjectorInputs {
     /// Camera noise of this projector's frames when the fits weigh profiles by it
     /// ([`ProfileWeights::Information`]).
     pub noise: Option<FrameNoise>,
-    /// Global part of each slit frame (capture order) at the subject's pixels, or after
-    /// [`ProjectorInputs::stack_slits`] fewer; empty when the slits were not asked for.
+    /// Global part of slit frames (capture order): in the profiles stage the frames its checks
+    /// read at the subject's pixels, in the fit's [`ProfileInputs::take_or_load`] every slit
+    /// frame at the subject's pixels with projector coordinates; empty when not asked for.
     pub stack: SlitStack,
     /// Per-pixel profile geometry (`None`: off the subject, undecoded, facing away).
     pub geometry: GeometryMap,
@@ -474,17 +476,6 @@ impl ProjectorInputs {
             Some(noise) => sweep.with_noise(noise),
             None => sweep,
         })
-    }
-
-    /// Keeps the slits' global light at the pixels `keep` accepts only (the fit's: those with
-    /// projector coordinates).
-    pub fn stack_slits(&mut self, keep: impl Fn(usize) -> bool) {
-        self.stack.retain_pixels(keep);
-    }
-
-    /// Slit frames loaded.
-    pub fn slit_count(&self) -> usize {
-        self.stack.patterns().len()
     }
 
     /// Slit frame `j` (capture order) as a camera-sized image: zero at the pixels the stack does
@@ -618,9 +609,13 @@ fn projected_coords(
 }
 
 impl ProfileInputs {
-    /// What the profiles stage of this run handed over, else [`ProfileInputs::load`]: the slits
-    /// of the projectors in `with_slits` stacked ([`ProjectorInputs::stack_slits`]), the others'
-    /// dropped.
+    /// What the profiles stage of this run handed over, else [`ProfileInputs::load`], with
+    /// every slit frame of the projectors in `with_slits` stacked at the subject's pixels that
+    /// have projector coordinates (a profile geometry needs them), the others' slits dropped.
+    /// Why the fit stacks them and not the profiles stage: the profiles stage's own checks read
+    /// a few slit frames a projector, and the fit's slits are those of the training projectors
+    /// only (at full size the held-out projector's 20 frames were a quarter of the extraction's
+    /// ~2.4 CPU-s and 139 MB, stacked for nothing).
     pub fn take_or_load(
         ctx: &StageContext,
         params: &ProfilesParams,
@@ -628,33 +623,27 @@ impl ProfileInputs {
     ) -> Result<Self, ProfilesStageError> {
         let mut inputs = match ctx.take_handed_over::<ProfileInputs>(STAGE.name) {
             Some(inputs) if inputs.params == *params => inputs,
-            _ => Self::load(ctx, params, with_slits)?,
+            _ => Self::load(ctx, params)?,
         };
-        // The other projectors' slits go first (restricting a stack once copied it, and with
-        // the held-out projector's still held that copy was the run's peak at full size).
+        // The profiles stage's few frames go first.
         for p in &mut inputs.projectors {
-            if !with_slits.contains(&p.k) {
-                p.stack = SlitStack::default();
-            }
+            p.stack = SlitStack::default();
         }
+        let mask = &inputs.surface.mask;
         for p in &mut inputs.projectors {
             if with_slits.contains(&p.k) {
-                // Down to the pixels with projector coordinates: a profile geometry needs them.
-                let coords = std::mem::take(&mut p.coords);
-                p.stack_slits(|i| coords[i].is_some());
-                p.coords = coords;
+                let kept = (0..mask.len())
+                    .filter(|&i| mask[i] && p.coords.get(i).is_some_and(Option::is_some))
+                    .collect();
+                p.stack = stacked_slit_globals(ctx, p, slit_frames(ctx, p.k), kept)?;
             }
         }
         Ok(inputs)
     }
 
-    /// Rebuilds the profiles' inputs from the cached artefacts: the surface, every projector's
-    /// geometry, and the global slit frames of the projectors in `with_slits`.
-    pub fn load(
-        ctx: &StageContext,
-        params: &ProfilesParams,
-        with_slits: &[usize],
-    ) -> Result<Self, ProfilesStageError> {
+    /// Rebuilds the profiles' inputs from the cached artefacts: the surface and every
+    /// projector's images and geometry, no slits ([`ProjectorInputs::stack`] empty).
+    pub fn load(ctx: &StageContext, params: &ProfilesParams) -> Result<Self, ProfilesStageError> {
         let calib = ctx.calibration.ok_or(ProfilesStageError::ProjectorCount {
             calibrated: 0,
             captured: ctx.capture.manifest.booth.projectors.len(),
@@ -690,7 +679,6 @@ impl ProfileInputs {
             },
         );
         let (surface, stray, cached) = (surface?, stray?, cached?);
-        let subject: Vec<usize> = (0..surface.len()).filter(|&i| surface.mask[i]).collect();
         let mut projectors = Vec::with_capacity(captured);
         for (k, (stray, cached)) in stray.into_iter().zip(cached).enumerate() {
             let device = &calib.projectors[k].device;
@@ -731,12 +719,6 @@ impl ProfileInputs {
                 coords,
                 geometry: GeometryMap::default(),
             };
-            if with_slits.contains(&k) {
-                // At every subject pixel, which is all the truth check and the plot read.
-                inputs.stack = stacked_slit_globals(ctx, &inputs, subject.clone())?;
-            }
-            // After the slits (which do not read it): the last projector's slit images and its
-            // geometry (125 MB at full size) were held together at the stage's peak, the run's.
             inputs.geometry =
                 pixel_geometry(&surface, &inputs.view(), params.eta, params.view_ray)?;
             projectors.push(inputs);
@@ -833,16 +815,17 @@ fn stray_for_all(
     })
 }
 
-/// The global parts of projector `p`'s slit frames (capture order) at the camera pixels
-/// `kept` (ascending), stacked. The frames of one axis are read together (in parallel, their
-/// sensor codes held: 85 MB at full size) and the stack is written in place pixel by pixel from
-/// them, each pixel's frames together ([`SweepExtraction`]: the slits of an axis share edges,
+/// The global parts of projector `p`'s slit frames `frames` (index and pattern, capture order)
+/// at the camera pixels `kept` (ascending), stacked. The frames of one axis are read together
+/// (in parallel, their sensor codes held: 85 MB at full size) and the stack is written in place
+/// pixel by pixel from them, each pixel's frames together ([`SweepExtraction`]: the slits of an axis share edges,
 /// whose `erf` a pixel computes once). Why: a camera-sized (and then a subject-sized) buffer of
 /// linear values per frame, extracted and gathered into the stack after, was fresh memory for
 /// the kernel to fault in, frame after frame (a fifth of the stage's CPU time with the copies).
 fn stacked_slit_globals(
     ctx: &StageContext,
     p: &ProjectorInputs,
+    frames: Vec<(u32, Pattern)>,
     kept: Vec<usize>,
 ) -> Result<SlitStack, ProfilesStageError> {
     let white = WhiteSeparation {
@@ -856,7 +839,6 @@ fn stacked_slit_globals(
         projector: p.k,
         source,
     };
-    let frames: Vec<(u32, Pattern)> = slit_frames(ctx, p.k);
     let patterns: Vec<Pattern> = frames.iter().map(|&(_, pattern)| pattern).collect();
     let n = p.coords.len();
     let sweep = SweepExtraction::new(n, &patterns, &p.coords, &white).map_err(slit_error)?;
@@ -911,6 +893,30 @@ fn slit_frames(ctx: &StageContext, k: usize) -> Vec<(u32, Pattern)> {
         .for_projector(k as u8)
         .filter(|f| matches!(f.pattern, Pattern::Slit { .. }))
         .map(|f| (f.index, f.pattern))
+        .collect()
+}
+
+/// The slit frames of projector `k` (index and pattern, capture order) this stage reads itself,
+/// at the subject's pixels: those with truth (the truth check's; none without `truth_dir`) and,
+/// for the projector of the scanline plot, its reference slit ([`reference_slit`]).
+fn checked_slit_frames(
+    ctx: &StageContext,
+    k: usize,
+    params: &ProfilesParams,
+    truth_dir: Option<&Path>,
+) -> Vec<(u32, Pattern)> {
+    let frames = slit_frames(ctx, k);
+    let patterns: Vec<Pattern> = frames.iter().map(|&(_, pattern)| pattern).collect();
+    let plotted = (k == params.scanline_projector)
+        .then(|| reference_slit(&patterns))
+        .flatten();
+    frames
+        .into_iter()
+        .enumerate()
+        .filter(|&(j, (_, pattern))| {
+            Some(j) == plotted || truth_dir.is_some_and(|t| truth::global(t, k, &pattern).is_file())
+        })
+        .map(|(_, frame)| frame)
         .collect()
 }
 
@@ -1036,9 +1042,15 @@ fn run_profiles(
     params: &ProfilesParams,
 ) -> Result<ProfilesReport, ProfilesStageError> {
     let mut clock = PhaseClock::start();
-    let captured = ctx.capture.manifest.booth.projectors.len();
-    let all: Vec<usize> = (0..captured).collect();
-    let inputs = ProfileInputs::load(ctx, params, &all)?;
+    let mut inputs = ProfileInputs::load(ctx, params)?;
+    let truth_dir = ctx.truth_dir();
+    let subject: Vec<usize> = (0..inputs.surface.len())
+        .filter(|&i| inputs.surface.mask[i])
+        .collect();
+    for p in &mut inputs.projectors {
+        let frames = checked_slit_frames(ctx, p.k, params, truth_dir.as_deref());
+        p.stack = stacked_slit_globals(ctx, p, frames, subject.clone())?;
+    }
     clock.lap("load");
     let cam = &ctx.capture.manifest.booth.camera;
     let size = (cam.width, cam.height);
@@ -1051,7 +1063,7 @@ fn run_profiles(
         per_projector.push(ProjectorProfilesReport {
             projector: p.k,
             pixels_with_profiles: p.geometry.lit_count(),
-            slit_frames: p.slit_count(),
+            slit_frames: slit_frames(ctx, p.k).len(),
             blur_px: f64::from(p.blur_px),
             black_level: f64::from(p.black_level),
             direct_fraction_median,
@@ -1073,7 +1085,6 @@ fn run_profiles(
         timing: PhaseTimes::default(),
     };
     clock.lap("report");
-    let truth_dir = ctx.truth_dir();
     if let Some(t) = &truth_dir {
         let errors = truth_check(ctx, &inputs, t, size, params.compare_variants)?;
         let variant = |n: usize| errors.get(n + 1).copied().flatten();
