@@ -367,7 +367,8 @@ where
     T: Send,
 {
     use rayon::prelude::*;
-    let n = width * height;
+    // A size beyond memory fails to allocate below, never wraps to a smaller image.
+    let n = width.saturating_mul(height);
     if kernel.is_identity() || n == 0 {
         // `blur_2d` leaves such an image as it is.
         return (0..n).into_par_iter().map(|i| map(i, source(i))).collect();

@@ -1014,7 +1014,8 @@ fn write_preview(
     let (tw, th) = (w.div_ceil(2), h.div_ceil(2));
     let columns = if truth.is_some() { 4 } else { 2 };
     let whites: Vec<f32> = outputs.par_iter().map(preview_white).collect();
-    let row_bytes = (tw * columns) as usize * 3;
+    // At least one byte a row: an empty image draws nothing either way.
+    let row_bytes = ((tw * columns) as usize * 3).max(1);
     let mut canvas = image::RgbImage::new(tw * columns, th * outputs.len() as u32);
     canvas
         .par_chunks_exact_mut(row_bytes)
