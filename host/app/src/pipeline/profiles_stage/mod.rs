@@ -1049,7 +1049,9 @@ fn run_profiles(
         .collect();
     for p in &mut inputs.projectors {
         let frames = checked_slit_frames(ctx, p.k, params, truth_dir.as_deref());
-        p.stack = stacked_slit_globals(ctx, p, frames, subject.clone())?;
+        if !frames.is_empty() {
+            p.stack = stacked_slit_globals(ctx, p, frames, subject.clone())?;
+        }
     }
     clock.lap("load");
     let cam = &ctx.capture.manifest.booth.camera;
