@@ -104,6 +104,15 @@ const _: () = assert!(std::mem::size_of::<Row>() == 16);
 const EMPTY_ROW: Row = Row::Own { start: 0, len: 0 };
 
 impl Row {
+    /// Own layers `own[start..start + len]`; every empty row is the one [`EMPTY_ROW`].
+    fn own(start: u32, len: u32) -> Self {
+        if len == 0 {
+            EMPTY_ROW
+        } else {
+            Row::Own { start, len }
+        }
+    }
+
     fn len(&self) -> usize {
         match *self {
             Row::Own { len, .. } => len as usize,
@@ -114,11 +123,7 @@ impl Row {
     /// The row with its start moved by the buffers' bases (own, shapes).
     fn rebased(self, own: u32, shapes: u32) -> Self {
         match self {
-            Row::Own { start, len } if len > 0 => Row::Own {
-                start: start + own,
-                len,
-            },
-            Row::Own { .. } => EMPTY_ROW,
+            Row::Own { start, len } => Row::own(start + own, len),
             Row::Scaled { scale, start, len } => Row::Scaled {
                 scale,
                 start: start + shapes,
@@ -308,11 +313,7 @@ impl LayerModel {
         for counts in &run_counts {
             let run_start = total;
             for &len in counts {
-                rows.push(if len == 0 {
-                    EMPTY_ROW
-                } else {
-                    Row::Own { start: total, len }
-                });
+                rows.push(Row::own(total, len));
                 total += len;
             }
             run_lens.push((total - run_start) as usize);
@@ -478,10 +479,7 @@ impl LayerModel {
         self.own.reserve_exact(extra);
         for k in 0..self.rows.len() {
             if let Some(layers) = fill(&self.rows, k) {
-                self.rows[k] = Row::Own {
-                    start: self.own.len() as u32,
-                    len: layers.len() as u32,
-                };
+                self.rows[k] = Row::own(self.own.len() as u32, layers.len() as u32);
                 self.own.extend_from_slice(layers);
             }
         }
@@ -510,10 +508,7 @@ impl LayerModel {
             height,
             rows: offsets
                 .windows(2)
-                .map(|w| Row::Own {
-                    start: w[0],
-                    len: w[1] - w[0],
-                })
+                .map(|w| Row::own(w[0], w[1] - w[0]))
                 .collect(),
             own: layers,
             shapes: Vec::new(),
@@ -694,15 +689,9 @@ impl<K: std::hash::Hash + Eq + Copy> RunBuilder<K> {
     }
 
     fn own_row(&mut self, layers: RowLayers<'_>) -> Row {
-        if layers.is_empty() {
-            return EMPTY_ROW;
-        }
         let start = self.own.len() as u32;
         self.own.extend(layers);
-        Row::Own {
-            start,
-            len: layers.len() as u32,
-        }
+        Row::own(start, layers.len() as u32)
     }
 
     /// Start and length of the shape of `key` in the run's shapes (stored on first use).

@@ -26,7 +26,7 @@
 //! takes the profiles' inputs and extracts the training projectors' slit frames; `fit` ends with
 //! the model, its parts are the normals' shading correction, the EM, then the spatial
 //! prior while the dipole baseline is fitted beside it; `heldout` is the held-out renders; the
-//! model is saved while the figures are drawn) and
+//! model is saved, then the figures are drawn) and
 //! `timing_cpu_s.{load,fit,fit_normals,fit_em,prior_and_dipole,heldout,save_and_figures}`
 //! (CPU, all threads),
 //! and with a holdout on a simulated capture (unless `heldout_check` is off)
