@@ -493,34 +493,6 @@ impl SlitStack {
         stack
     }
 
-    /// Keeps only the pixels it holds that `keep` accepts too (the same values), in place: each
-    /// kept row moves down over the dropped ones. Rows are numbered in pixel order (by
-    /// [`SlitStack::new`] and here), so a row never moves up over one not yet moved, and a stack
-    /// that keeps every row is left as it is. Why in place: a restricted copy (hundreds of MB
-    /// per projector at full size) was fresh memory to fault in and sat beside the original.
-    pub fn retain_pixels(&mut self, keep: impl Fn(usize) -> bool) {
-        let n = self.patterns.len() * 3;
-        let mut kept = 0usize;
-        for (i, row) in self.rows.iter_mut().enumerate() {
-            if *row == Self::NO_ROW {
-                continue;
-            }
-            if !keep(i) {
-                *row = Self::NO_ROW;
-                continue;
-            }
-            let old = *row as usize;
-            if old != kept {
-                self.values.copy_within(old * n..(old + 1) * n, kept * n);
-            }
-            // `kept` <= `old` < NO_ROW.
-            *row = kept as u32;
-            kept += 1;
-        }
-        self.values.truncate(kept * n);
-        self.values.shrink_to_fit();
-    }
-
     /// Frame `j` as a camera-sized image, zero at the pixels the stack does not hold (`None`
     /// past the last frame).
     pub fn frame(&self, j: usize) -> Option<Vec<[f32; 3]>> {
@@ -918,8 +890,8 @@ mod tests {
 
     /// The flux sums made once per row give every pixel's flux bit for bit as the dense sweep
     /// sums it slit by slit (the reference), on random stacks: axes interleaved in any order or
-    /// one of them without slits, negative values (clamped), pixels the stack does not hold or
-    /// dropped by `retain_pixels`, and a dense sweep, which keeps summing itself.
+    /// one of them without slits, negative values (clamped), pixels the stack does not hold, and
+    /// a dense sweep, which keeps summing itself.
     #[test]
     fn flux_totals_give_the_slit_by_slit_flux_bit_for_bit() {
         use rand::{Rng, SeedableRng};
@@ -963,12 +935,7 @@ mod tests {
                 })
                 .collect();
             let held: Vec<bool> = (0..n).map(|_| rng.gen_bool(0.7)).collect();
-            let kept: Vec<bool> = (0..n).map(|_| rng.gen_bool(0.8)).collect();
-            let mut stack = SlitStack::new(&frames, n, |i| held[i]).unwrap();
-            let retain = rng.gen_bool(0.5);
-            if retain {
-                stack.retain_pixels(|i| kept[i]);
-            }
+            let stack = SlitStack::new(&frames, n, |i| held[i]).unwrap();
             let dense = SlitSweep::new(&frames, n).unwrap();
             let summed = SlitSweep::from_stack(&stack, n).unwrap().with_flux_totals();
             assert!(summed.totals.is_some());
@@ -977,8 +944,7 @@ mod tests {
                 dense_summed.totals.is_none(),
                 "a dense sweep has no stack to sum"
             );
-            for i in 0..n {
-                let holds = held[i] && (!retain || kept[i]);
+            for (i, &holds) in held.iter().enumerate() {
                 for (c, a) in (0..3).flat_map(|c| (0..2).map(move |a| (c, a))) {
                     let want = dense.flux(i, c, a, &geo);
                     let got = summed.flux(i, c, a, &geo);
@@ -1072,24 +1038,7 @@ mod tests {
             }
         }
         assert!(stack.frame(images.len()).is_none());
-        // Restricted: the pixels both keep, with their values, exactly as stacked from the
-        // images at those pixels alone; keeping every pixel changes nothing.
-        let mut even = stack.clone();
-        even.retain_pixels(|i| i % 2 == 0);
-        for i in 0..n {
-            for (j, image) in images.iter().enumerate() {
-                let want = (keep(i) && i % 2 == 0).then_some(image[i][1]);
-                assert_eq!(even.value(i, j, 1), want, "pixel {i} frame {j}");
-            }
-        }
-        let direct = SlitStack::new(&frames, n, |i| keep(i) && i % 2 == 0).unwrap();
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-        assert_eq!(even.rows, direct.rows);
-        assert_eq!(bits(&even.values), bits(&direct.values));
-        let mut all = stack.clone();
-        all.retain_pixels(|_| true);
-        assert_eq!(all.rows, stack.rows);
-        assert_eq!(bits(&all.values), bits(&stack.values));
         let kept: Vec<usize> = (0..n).filter(|&i| keep(i)).collect();
         let patterns: Vec<Pattern> = frames.iter().map(|f| f.pattern).collect();
         let mut swapped = kept.clone();
