@@ -485,7 +485,7 @@ struct PreparedBox {
     /// `|s - offset| - W/2`: how far the box is from the image's centre (the reach test).
     distance: f64,
     /// The lower edge is the previous box's upper edge (a sweep puts slits edge to edge; the
-    /// criterion of [`walk_boxes`](crate::boxed_gaussian::walk_boxes)): it is computed once.
+    /// criterion of [`box_edges`](crate::boxed_gaussian::box_edges)): it is computed once.
     shares_lower: bool,
 }
 

@@ -20,7 +20,7 @@
 
 use mlsss_core::capture::FrameNoise;
 
-use super::boxed_gaussian::{BoxedGaussian, walk_boxes};
+use super::boxed_gaussian::{BoxedGaussian, Edge, box_edges, edges_into};
 
 /// Errors of the EM fits.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -331,7 +331,7 @@ pub(crate) struct Data<'a> {
     /// Sample weights per profile: `y / total` times the profile's [`relative_information`]
     /// (they sum to that over a profile with signal; empty otherwise).
     pub weights: Vec<Vec<f64>>,
-    /// Per profile, its samples with weight in order of position (for [`walk_boxes`]). Sorted
+    /// Per profile, its samples with weight in order of position (for [`box_edges`](super::boxed_gaussian::box_edges)). Sorted
     /// once here: the samples do not move between E-steps, which sorted them every time.
     pub orders: Vec<Vec<usize>>,
     pub samples: usize,
@@ -556,12 +556,19 @@ fn e_step_in<M: MeanModel>(
 /// The linear-space terms of every sample of one profile: per sample, the joints `w h(s)` (and
 /// the posterior moments when wanted) of every component and slit image in the order
 /// components, then images, and their sum. Each component and image walks the samples in
-/// order of position so that neighbouring slit boxes share their common edge
-/// ([`walk_boxes`]).
+/// order of position so that neighbouring slit boxes share their common edge ([`box_edges`]);
+/// the edges of all the walks are evaluated together ([`edges_into`]), then the boxes visited
+/// in the walks' order.
 #[derive(Debug, Default)]
 struct LinearTerms {
     terms: Vec<Vec<Term>>,
     sums: Vec<f64>,
+    /// The standardised edges of the walks, then their evaluation.
+    edge_z: Vec<f64>,
+    edges: Vec<Edge>,
+    /// Every box of the walks in order: (sample, index into the components, lower and upper
+    /// edge).
+    boxes: Vec<(usize, usize, usize, usize)>,
 }
 
 impl LinearTerms {
@@ -579,27 +586,33 @@ impl LinearTerms {
         self.terms.iter_mut().for_each(Vec::clear);
         self.sums.clear();
         self.sums.resize(n, 0.0);
-        for &(l, w, ref g) in components {
+        self.edge_z.clear();
+        self.boxes.clear();
+        for (c, (_, _, g)) in components.iter().enumerate() {
             for offset in images(prof, wrap) {
-                walk_boxes(
+                box_edges(
                     g,
                     offset,
                     order,
                     |j| prof.samples[j].s,
                     |s| image_reaches(g, offset, s),
-                    with_stats,
-                    |j, lower, upper| {
-                        if with_stats {
-                            if let Some(post) = g.posterior_between(lower, upper) {
-                                let joint = w * post.density;
-                                self.sums[j] += joint;
-                                self.terms[j].push((l, joint, post.mean, post.variance));
-                            }
-                        } else {
-                            self.sums[j] += w * g.density_between(lower, upper);
-                        }
-                    },
+                    &mut self.edge_z,
+                    |j, lower, upper| self.boxes.push((j, c, lower, upper)),
                 );
+            }
+        }
+        edges_into(&self.edge_z, &mut self.edges);
+        for &(j, c, lower, upper) in &self.boxes {
+            let (l, w, ref g) = components[c];
+            let (lower, upper) = (&self.edges[lower], &self.edges[upper]);
+            if with_stats {
+                if let Some(post) = g.posterior_between(lower, upper) {
+                    let joint = w * post.density;
+                    self.sums[j] += joint;
+                    self.terms[j].push((l, joint, post.mean, post.variance));
+                }
+            } else {
+                self.sums[j] += w * g.density_between(lower, upper);
             }
         }
     }
