@@ -306,7 +306,7 @@ const INV_FACTORIALS: [f64; 14] = [
 /// subnormal result is rounded once). Within 4 ulps of `f64::exp` where the result is normal and
 /// of the smallest subnormal below (the test sweeps `[-745.2, 0]`).
 ///
-/// Why not `f64::exp`: [`gaussian_and_scaled_tail_avx512`] evaluates the same operations eight
+/// Why not `f64::exp`: [`gaussian_and_tail_avx512`] evaluates the same operations eight
 /// lanes at a time, and the scalar callers must get its values bit for bit (libm's `exp` is
 /// neither vectorisable nor the same in its last bits).
 #[inline(always)]
@@ -329,17 +329,31 @@ pub fn exp_nonpositive(x: f64) -> f64 {
     if x < EXP_UNDERFLOW { 0.0 } else { value }
 }
 
-/// `exp(-z^2 / 2)` (as [`exp_nonpositive`] of `-0.5 z z`) and [`normal_tail_scaled`]`(|z|)` of
-/// eight lanes with AVX-512: the same operations as the scalar functions, lane by lane, so the
-/// same values bit for bit (the asymptotic rational only when a lane is beyond `sqrt 32`; below
-/// 0.67 the rational is outside its range and the caller discards it).
+/// The standard normal tail `Q(|z|)` as a slit box edge takes it, given `gauss = exp(-z^2/2)`:
+/// `0.5 erfc(|z| / sqrt 2)` below `scaled_from` (no exponential there), `gauss` times
+/// [`normal_tail_scaled`] from it on (`scaled_from >= 0.675`, the rational's range).
+#[inline]
+pub fn normal_tail_given_gaussian(z: f64, gauss: f64, scaled_from: f64) -> f64 {
+    let y = z.abs();
+    if y < scaled_from {
+        0.5 * erfc(y / std::f64::consts::SQRT_2)
+    } else {
+        gauss * normal_tail_scaled(y)
+    }
+}
+
+/// `exp(-z^2 / 2)` (as [`exp_nonpositive`] of `-0.5 z z`) and
+/// [`normal_tail_given_gaussian`]`(z, exp(-z^2 / 2), scaled_from)` of eight lanes with
+/// AVX-512: the same operations as the scalar functions ([`erfc`]'s first two branches below
+/// `scaled_from`, `scaled_from <= 1.25 sqrt 2`), lane by lane, so the same values bit for bit.
+/// Each rational is computed only when some lane needs it.
 ///
 /// # Safety
 /// The CPU must have AVX-512F.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-pub unsafe fn gaussian_and_scaled_tail_avx512(z: &[f64; 8]) -> ([f64; 8], [f64; 8]) {
+pub unsafe fn gaussian_and_tail_avx512(z: &[f64; 8], scaled_from: f64) -> ([f64; 8], [f64; 8]) {
     use std::arch::x86_64::*;
     const SQRT_32: f64 = 5.656854249492380195206754896838792314;
     const INV_SQRT_2PI: f64 = 0.398942280401432677939946059934381868;
@@ -402,13 +416,66 @@ pub unsafe fn gaussian_and_scaled_tail_avx512(z: &[f64; 8]) -> ([f64; 8], [f64; 
         let asymptotic = _mm512_div_pd(_mm512_sub_pd(splat(INV_SQRT_2PI), t), y);
         scaled = _mm512_mask_blend_pd(far, scaled, asymptotic);
     }
-    let (mut g, mut s) = ([0.0; 8], [0.0; 8]);
+    let mut tail = _mm512_mul_pd(gauss, scaled);
+    let near = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(y, splat(scaled_from));
+    if near != 0 {
+        // SAFETY: this function's own target feature.
+        let erfc =
+            unsafe { erfc_below_1_25_avx512(_mm512_div_pd(y, splat(std::f64::consts::SQRT_2))) };
+        tail = _mm512_mask_blend_pd(near, tail, _mm512_mul_pd(splat(0.5), erfc));
+    }
+    let (mut g, mut t) = ([0.0; 8], [0.0; 8]);
     // SAFETY: as the load.
     unsafe {
         _mm512_storeu_pd(g.as_mut_ptr(), gauss);
-        _mm512_storeu_pd(s.as_mut_ptr(), scaled);
+        _mm512_storeu_pd(t.as_mut_ptr(), tail);
     }
-    (g, s)
+    (g, t)
+}
+
+/// [`erfc`] of lanes in `[0, 1.25)` (others: unspecified), with its operations: below 2^-56
+/// `1 - x`, below 0.84375 the `PP/QQ` rational (two forms either side of 0.25), above the
+/// `PA/QA` one about 1.
+///
+/// # Safety
+/// The CPU must have AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn erfc_below_1_25_avx512(x: std::arch::x86_64::__m512d) -> std::arch::x86_64::__m512d {
+    use std::arch::x86_64::*;
+    let splat = _mm512_set1_pd;
+    let one = splat(1.0);
+    // poly and poly1 as the scalar's fold (0 z + c is c exactly).
+    let rational = |num: &[f64], den: &[f64], v: __m512d| {
+        let (mut n, mut d) = (splat(num[num.len() - 1]), splat(den[den.len() - 1]));
+        for &c in num[..num.len() - 1].iter().rev() {
+            n = _mm512_add_pd(_mm512_mul_pd(n, v), splat(c));
+        }
+        for &c in den[..den.len() - 1].iter().rev() {
+            d = _mm512_add_pd(_mm512_mul_pd(d, v), splat(c));
+        }
+        _mm512_div_pd(n, _mm512_add_pd(one, _mm512_mul_pd(v, d)))
+    };
+    let small = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(x, splat(0.84375));
+    let mut out = x;
+    if small != 0 {
+        let r = rational(&PP, &QQ, _mm512_mul_pd(x, x));
+        let xr = _mm512_mul_pd(x, r);
+        let below_quarter = _mm512_sub_pd(one, _mm512_add_pd(x, xr));
+        let above_quarter =
+            _mm512_sub_pd(splat(0.5), _mm512_add_pd(_mm512_sub_pd(x, splat(0.5)), xr));
+        let quarter = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(x, splat(0.25));
+        let tiny = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(x, splat(1.3877787807814457e-17));
+        let value = _mm512_mask_blend_pd(quarter, above_quarter, below_quarter);
+        let value = _mm512_mask_blend_pd(tiny, value, _mm512_sub_pd(one, x));
+        out = _mm512_mask_blend_pd(small, out, value);
+    }
+    if small != 0xff {
+        let r = rational(&PA, &QA, _mm512_sub_pd(x, one));
+        out = _mm512_mask_blend_pd(small, _mm512_sub_pd(splat(1.0 - ERX), r), out);
+    }
+    out
 }
 
 #[cfg(test)]
@@ -505,24 +572,22 @@ mod tests {
             eprintln!("no AVX-512 here: the vector lanes are not exercised");
             return;
         }
+        let from = 1.25 * std::f64::consts::SQRT_2;
         let mut z: f64 = -40.0;
         while z < 40.0 {
-            // Lanes on both sides of sqrt 32, of 0.67 and of the underflow together.
-            let lanes = [z, -z, z + 3.0, z - 3.0, z * 0.1, 5.6568, 38.7, 0.0];
-            // SAFETY: AVX-512F is present (checked above).
-            let (g, s) = unsafe { gaussian_and_scaled_tail_avx512(&lanes) };
-            for (l, &zl) in lanes.iter().enumerate() {
-                assert_eq!(
-                    g[l].to_bits(),
-                    exp_nonpositive(-0.5 * zl * zl).to_bits(),
-                    "{zl}"
-                );
-                if zl.abs() >= 0.675 {
-                    assert_eq!(
-                        s[l].to_bits(),
-                        normal_tail_scaled(zl.abs()).to_bits(),
-                        "{zl}"
-                    );
+            // Lanes on both sides of every branch together (0.25 and 0.84375 in erfc's
+            // argument, the switch to the scaled tail, sqrt 32, the underflow), and alone.
+            let lanes = [z, -z, z + 3.0, z - 3.0, z * 0.1, 5.6568, 38.7, 1e-18 * z];
+            for batch in [lanes, [z; 8], [z * 0.05; 8]] {
+                // SAFETY: AVX-512F is present (checked above).
+                let (g, t) = unsafe { gaussian_and_tail_avx512(&batch, from) };
+                for (l, &zl) in batch.iter().enumerate() {
+                    let gauss = exp_nonpositive(-0.5 * zl * zl);
+                    assert_eq!(g[l].to_bits(), gauss.to_bits(), "{zl}");
+                    if zl.abs() < 38.6 {
+                        let tail = normal_tail_given_gaussian(zl, gauss, from);
+                        assert_eq!(t[l].to_bits(), tail.to_bits(), "{zl}");
+                    }
                 }
             }
             z += 1.0 / 64.0 + 1e-7;

@@ -216,11 +216,10 @@ impl Edge {
         }
     }
 
-    /// [`Edge::new`] at `z` given its `gauss = gaussian(z)` and `scaled =
-    /// normal_tail_scaled(|z|)` (either unused where [`Edge::new`] does not need it): the same
-    /// operations on the same values.
+    /// The edge at `z` given its Gaussian `exp(-z^2/2)` and its tail (as [`tail_with`] takes
+    /// it; both ignored beyond [`UNDERFLOW_Z`], where the edge is zeros as [`Edge::new`]'s).
     #[inline(always)]
-    fn from_parts(z: f64, gauss: f64, scaled: f64) -> Self {
+    fn from_parts(z: f64, gauss: f64, tail: f64) -> Self {
         if z.abs() >= UNDERFLOW_Z {
             return Self {
                 z,
@@ -228,13 +227,6 @@ impl Edge {
                 phi: 0.0,
             };
         }
-        // tail_with's two branches, its rational given.
-        let y = z.abs();
-        let tail = if y < SCALED_TAIL_FROM {
-            0.5 * mlsss_core::special::erfc(y / SQRT_2)
-        } else {
-            gauss * scaled
-        };
         Self {
             z,
             tail,
@@ -339,19 +331,20 @@ pub fn box_edges(
 
 /// The edges at every `z`, into `out` (emptied first): [`Edge::new`]'s values but for the
 /// Gaussian, taken as [`exp_nonpositive`] instead of libm's `exp` (within 4 ulps of it), eight
-/// at a time where the CPU has AVX-512 ([`gaussian_and_scaled_tail_avx512`]: the Gaussian and
-/// Cody's rational of eight edges in vector registers; the tails below `1.25 sqrt 2`,
-/// `0.5 erfc` without an exponential, one by one). Every instruction set gets the same values
-/// bit for bit (the test `batched_edges_are_the_same_on_every_path_and_edge_new_to_the_rounding`).
+/// at a time where the CPU has AVX-512 ([`gaussian_and_tail_avx512`]: the Gaussian, Cody's
+/// rational and, below `1.25 sqrt 2`, `erfc`'s rationals of eight edges in vector registers).
+/// Every instruction set gets the same values bit for bit (the test
+/// `batched_edges_are_the_same_on_every_path_and_edge_new_to_the_rounding`).
 ///
 /// Why: the E-step evaluates ~170 million edges at full size. One at a time, inside the walk,
 /// each was a call of libm's `exp` and a chain of dependent multiplications ending in a
 /// division; walked first and evaluated together, the full-size fit's `fit_em` went from 4.9-5.1
 /// to 3.7-3.8 CPU-s (2.47-2.60 to 1.90-1.93 s wall, 3 alternated runs each) with the same mean
-/// iterations and components per fit.
+/// iterations and components per fit, and to 3.5-3.6 CPU-s with `erfc` in the vector registers
+/// too (2 runs each, the model byte-identical).
 ///
 /// [`exp_nonpositive`]: mlsss_core::special::exp_nonpositive
-/// [`gaussian_and_scaled_tail_avx512`]: mlsss_core::special::gaussian_and_scaled_tail_avx512
+/// [`gaussian_and_tail_avx512`]: mlsss_core::special::gaussian_and_tail_avx512
 pub fn edges_into(z: &[f64], out: &mut Vec<Edge>) {
     out.clear();
     out.reserve(z.len());
@@ -377,17 +370,17 @@ unsafe fn edges_into_avx512(z: &[f64], out: &mut Vec<Edge>) {
     let (chunks, rest) = z.as_chunks::<8>();
     for lanes in chunks {
         // SAFETY: the caller checked AVX-512F.
-        let (gauss, scaled) =
-            unsafe { mlsss_core::special::gaussian_and_scaled_tail_avx512(lanes) };
-        out.extend((0..8).map(|l| Edge::from_parts(lanes[l], gauss[l], scaled[l])));
+        let (gauss, tail) =
+            unsafe { mlsss_core::special::gaussian_and_tail_avx512(lanes, SCALED_TAIL_FROM) };
+        out.extend((0..8).map(|l| Edge::from_parts(lanes[l], gauss[l], tail[l])));
     }
     if !rest.is_empty() {
         let mut lanes = [0.0; 8];
         lanes[..rest.len()].copy_from_slice(rest);
         // SAFETY: as above.
-        let (gauss, scaled) =
-            unsafe { mlsss_core::special::gaussian_and_scaled_tail_avx512(&lanes) };
-        out.extend((0..rest.len()).map(|l| Edge::from_parts(rest[l], gauss[l], scaled[l])));
+        let (gauss, tail) =
+            unsafe { mlsss_core::special::gaussian_and_tail_avx512(&lanes, SCALED_TAIL_FROM) };
+        out.extend((0..rest.len()).map(|l| Edge::from_parts(rest[l], gauss[l], tail[l])));
     }
 }
 
@@ -402,16 +395,17 @@ unsafe fn edges_into_fma(z: &[f64], out: &mut Vec<Edge>) {
 /// [`edges_into`] one edge at a time.
 #[inline(always)]
 fn edges_one_by_one(z: &[f64], out: &mut Vec<Edge>) {
-    use mlsss_core::special::{exp_nonpositive, normal_tail_scaled};
+    use mlsss_core::special::{exp_nonpositive, normal_tail_given_gaussian};
     out.extend(z.iter().map(|&z| {
-        let y = z.abs();
-        // The rational only where the tail uses it (and is in its range).
-        let scaled = if (SCALED_TAIL_FROM..UNDERFLOW_Z).contains(&y) {
-            normal_tail_scaled(y)
-        } else {
-            0.0
-        };
-        Edge::from_parts(z, exp_nonpositive(-0.5 * z * z), scaled)
+        if z.abs() >= UNDERFLOW_Z {
+            return Edge::from_parts(z, 0.0, 0.0);
+        }
+        let gauss = exp_nonpositive(-0.5 * z * z);
+        Edge::from_parts(
+            z,
+            gauss,
+            normal_tail_given_gaussian(z, gauss, SCALED_TAIL_FROM),
+        )
     }));
 }
 
