@@ -331,8 +331,9 @@ pub(crate) struct Data<'a> {
     /// Sample weights per profile: `y / total` times the profile's [`relative_information`]
     /// (they sum to that over a profile with signal; empty otherwise).
     pub weights: Vec<Vec<f64>>,
-    /// Per profile, its samples with weight in order of position (for [`box_edges`](super::boxed_gaussian::box_edges)). Sorted
-    /// once here: the samples do not move between E-steps, which sorted them every time.
+    /// Per profile, its samples with weight in order of position (for
+    /// [`box_edges`](super::boxed_gaussian::box_edges)). Sorted once here: the samples do not
+    /// move between E-steps, which sorted them every time.
     pub orders: Vec<Vec<usize>>,
     pub samples: usize,
 }
