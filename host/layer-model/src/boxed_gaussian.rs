@@ -12,8 +12,6 @@
 
 use std::f64::consts::{LN_2, PI, SQRT_2};
 
-use mlsss_core::special::normal_tail_scaled;
-
 /// `ln(phi(x))`, the log of the standard normal density.
 pub fn ln_phi(x: f64) -> f64 {
     -0.5 * x * x - 0.5 * (2.0 * PI).ln()
@@ -108,19 +106,26 @@ pub fn cdf_diff(a: f64, b: f64) -> f64 {
 /// Below it the tail is `0.5 erfc(|z| / sqrt 2)`, which needs no exponential there.
 ///
 /// [`erfc`]: mlsss_core::special::erfc
+/// [`normal_tail_scaled`]: mlsss_core::special::normal_tail_scaled
 const SCALED_TAIL_FROM: f64 = 1.25 * SQRT_2;
 
 /// The smaller normal tail beyond `z`, `Q(|z|)`, given `gauss = exp(-z^2/2)` when `|z| >=`
 /// [`SCALED_TAIL_FROM`] (ignored below it). Relative error within `2e-15 + 2.5e-16 z^2`
-/// ([`normal_tail_scaled`]; `0.5 erfc` to an ulp below the switch).
+/// ([`normal_tail_scaled`]; `0.5 erfc` to an ulp below the switch). The rule is
+/// [`normal_tail_given_gaussian`]'s (the batched edges' too); `gauss` is called only beyond the
+/// switch.
+///
+/// [`normal_tail_scaled`]: mlsss_core::special::normal_tail_scaled
+/// [`normal_tail_given_gaussian`]: mlsss_core::special::normal_tail_given_gaussian
 #[inline]
 fn tail_with(z: f64, gauss: impl FnOnce() -> f64) -> f64 {
-    let y = z.abs();
-    if y < SCALED_TAIL_FROM {
-        0.5 * mlsss_core::special::erfc(y / SQRT_2)
+    // Below the switch the tail does not read the Gaussian: not computed there.
+    let g = if z.abs() < SCALED_TAIL_FROM {
+        0.0
     } else {
-        gauss() * normal_tail_scaled(y)
-    }
+        gauss()
+    };
+    mlsss_core::special::normal_tail_given_gaussian(z, g, SCALED_TAIL_FROM)
 }
 
 /// `Q(|z|)` ([`tail_with`] computing its own exponential).
