@@ -201,8 +201,6 @@ pub struct GeometryMap {
     slots: Vec<u32>,
     /// The geometry of the lit pixels of each run of [`GeometryMap::CHUNK`] pixels, in order.
     runs: Vec<Vec<PixelGeometry>>,
-    /// Pixels with geometry.
-    lit: usize,
 }
 
 impl GeometryMap {
@@ -236,8 +234,7 @@ impl GeometryMap {
                 values
             })
             .collect();
-        let lit = runs.iter().map(Vec::len).sum();
-        Self { slots, runs, lit }
+        Self { slots, runs }
     }
 
     /// The geometry of pixel `i`; `None` where it has none or lies outside the map.
@@ -261,7 +258,7 @@ impl GeometryMap {
 
     /// Pixels with geometry.
     pub fn lit_count(&self) -> usize {
-        self.lit
+        self.runs.iter().map(Vec::len).sum()
     }
 }
 
