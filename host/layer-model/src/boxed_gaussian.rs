@@ -374,19 +374,25 @@ pub fn edges_into(z: &[f64], out: &mut Vec<Edge>) {
 unsafe fn edges_into_avx512(z: &[f64], out: &mut Vec<Edge>) {
     let (chunks, rest) = z.as_chunks::<8>();
     for lanes in chunks {
-        // SAFETY: the caller checked AVX-512F.
-        let (gauss, tail) =
-            unsafe { mlsss_core::special::gaussian_and_tail_avx512(lanes, SCALED_TAIL_FROM) };
-        out.extend((0..8).map(|l| Edge::from_parts(lanes[l], gauss[l], tail[l])));
+        push_lanes_avx512(lanes, 8, out);
     }
     if !rest.is_empty() {
+        // Only the last edges are copied (padded): copying every chunk cost a `memcpy` call each.
         let mut lanes = [0.0; 8];
         lanes[..rest.len()].copy_from_slice(rest);
-        // SAFETY: as above.
-        let (gauss, tail) =
-            unsafe { mlsss_core::special::gaussian_and_tail_avx512(&lanes, SCALED_TAIL_FROM) };
-        out.extend((0..rest.len()).map(|l| Edge::from_parts(rest[l], gauss[l], tail[l])));
+        push_lanes_avx512(&lanes, rest.len(), out);
     }
+}
+
+/// The edges at the first `count` of `lanes` (the others are padding), onto `out`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn push_lanes_avx512(lanes: &[f64; 8], count: usize, out: &mut Vec<Edge>) {
+    // SAFETY: this function's own target feature.
+    let (gauss, tail) =
+        unsafe { mlsss_core::special::gaussian_and_tail_avx512(lanes, SCALED_TAIL_FROM) };
+    out.extend((0..count).map(|l| Edge::from_parts(lanes[l], gauss[l], tail[l])));
 }
 
 /// [`edges_one_by_one`] with the hardware's fused multiply-add (without it, `mul_add` is a call
