@@ -19,9 +19,11 @@
 # skipped copies (outputs byte-identical) gave the second 17.0 against 18.6 s (5 pairs), 15.8
 # against 16.5 s (4 pairs, the other order) and 15.5 against 16.1 s (4 pairs, 6 s pauses): up to
 # 10 % from the order alone, as large as the changes being measured. A likely cause: the
-# hypervisor takes back memory about a second after the guest frees it (virtio-balloon free page
+# hypervisor takes back memory soon after the guest frees it (virtio-balloon free page
 # reporting), and a page taken back costs 1-2 s per GiB to fault in again against ~0.1 s for one
-# freed just before, so a run that starts soon after another inherits warm memory. The balanced
+# freed just before, so a run that starts soon after another inherits warm memory
+# (scripts/page_reporting_race.sh measures it: the full-size process 10.93 s median with the
+# reporting on, 10.22 s with it deferred). The balanced
 # order cancels an order effect whatever its cause; the pause lets every run start from returned
 # memory. How much 6 runs resolve: the same binary raced against itself (3 cycles, full-size
 # process) gave medians 16.26 and 16.51 s wall, 28.6 and 29.1 CPU-s, the runs drifting from 17

@@ -41,7 +41,7 @@ CPU=$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -n 1)
 VECTORS=$(grep -q -w avx512f /proc/cpuinfo && echo AVX-512 || { grep -q -w avx2 /proc/cpuinfo && echo AVX2 || echo "no AVX2"; })
 echo "== speed bench, $(git rev-parse --short HEAD), $(date -u +%FT%TZ), $(nproc) cores, ${CPU:-unknown CPU} ($VECTORS)" | tee "$SUMMARY"
 # So is the guest's free page reporting, where the kernel has it: with freed memory handed back
-# to the hypervisor at once (`min_free_ms=0`) the full-size process ran 0.7 s slower than with
+# to the hypervisor without waiting (`min_free_ms=0`) the full-size process ran 0.7 s slower than with
 # it deferred (scripts/page_reporting_race.sh).
 REPORTING=/sys/module/page_reporting/parameters
 if [ -r "$REPORTING/min_free_ms" ]; then
