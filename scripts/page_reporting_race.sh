@@ -15,8 +15,8 @@
 #       --calib truth --until fit --holdout 3 --components 4 --block 6
 #
 # Each run gets a fresh `--out` folder under $RACE_OUT (default target/page-reporting-race),
-# deleted after the run. GAP=S sets the pause (default 8 s: longer than the reporting delay,
-# so every "reporting" run starts from memory the host has taken back).
+# deleted after the run. GAP=S sets the pause (default 8 s; mainline kernels report free pages
+# within ~2 s, so a "reporting" run starts from memory the host has taken back).
 #
 # A diagnosis of the benchmark machine, not a setting of mlsss: it needs root and a guest kernel
 # with the `page_reporting` module's `min_free_ms` parameter (the build VM's Firecracker kernel).
@@ -51,8 +51,8 @@ run() {
     sleep "$GAP"
     local before
     before=$(thp_faults)
-    /usr/bin/time -f "%e %U %S %M" -o "$OUT/time" "$BIN" "${ARGS[@]}" --out "$dir" > /dev/null 2> "$OUT/$label-$n.err" \
-        || { echo "error: $BIN failed, see $OUT/$label-$n.err" >&2; exit 1; }
+    /usr/bin/time -f "%e %U %S %M" -o "$OUT/time" "$BIN" "${ARGS[@]}" --out "$dir" \
+        > /dev/null 2> "$OUT/$label-$n.err" || { echo "error: $BIN failed, see $OUT/$label-$n.err" >&2; exit 1; }
     local huge=$(($(thp_faults) - before))
     read -r wall user sys peak < "$OUT/time"
     rm -rf "$dir"

@@ -41,11 +41,13 @@ CPU=$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -n 1)
 VECTORS=$(grep -q -w avx512f /proc/cpuinfo && echo AVX-512 || { grep -q -w avx2 /proc/cpuinfo && echo AVX2 || echo "no AVX2"; })
 echo "== speed bench, $(git rev-parse --short HEAD), $(date -u +%FT%TZ), $(nproc) cores, ${CPU:-unknown CPU} ($VECTORS)" | tee "$SUMMARY"
 # So is the guest's free page reporting, where the kernel has it: with freed memory handed back
-# to the hypervisor without waiting (`min_free_ms=0`) the full-size process ran 0.7 s slower than with
-# it deferred (scripts/page_reporting_race.sh).
+# to the hypervisor without waiting (`min_free_ms=0`) the full-size process ran 0.7 s slower
+# than with it deferred (scripts/page_reporting_race.sh).
 REPORTING=/sys/module/page_reporting/parameters
 if [ -r "$REPORTING/min_free_ms" ]; then
-    echo "   free page reporting: min_free_ms=$(cat "$REPORTING/min_free_ms"), order=$(cat "$REPORTING/page_reporting_order" 2>/dev/null || echo '?')" | tee -a "$SUMMARY"
+    MIN_FREE_MS=$(cat "$REPORTING/min_free_ms")
+    ORDER=$(cat "$REPORTING/page_reporting_order" 2>/dev/null || echo '?')
+    echo "   free page reporting: min_free_ms=$MIN_FREE_MS, order=$ORDER" | tee -a "$SUMMARY"
 fi
 if [ "${SKIP_MCML:-}" != 1 ]; then
     echo "-- Monte Carlo against MCML (per CPU second, one thread each)" | tee -a "$SUMMARY"
