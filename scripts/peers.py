@@ -24,9 +24,11 @@
 Run through `scripts/peers.sh` (builds the binaries, makes the venv). Times are the best of
 --repeats wall times (decode; --kernel-repeats for separation and photometric stereo; the EM's
 come from em_vs_sklearn.py), and beside them the mean CPU seconds (all threads: ours may use
-both cores, numpy's BLAS may too) of the same runs; the load average is printed with them. Decode alternates ours and the peer run by
-run; separation and photometric stereo time all of ours, then all of the peer's.
-Needs numpy, scipy, scikit-learn, opencv-contrib-python-headless, OpenEXR; never a dependency of mlsss.
+both cores, numpy's BLAS may too) of the same runs; the load average is printed with them.
+Decode alternates ours and the peer run by run; separation and photometric stereo time all of
+ours, then all of the peer's.
+Needs numpy, scipy, scikit-learn, opencv-contrib-python-headless, OpenEXR; never a dependency of
+mlsss.
 """
 import argparse
 import glob
