@@ -8,6 +8,7 @@ use rayon::prelude::*;
 use super::bits::PixelBits;
 use super::lit_test::Lighting;
 use super::plane::{FitScratch, Sample, jump_limit, robust_plane_at_centre};
+use super::window_columns::{ColumnBuffer, RowColumns, signed_codes};
 use super::window_fit::WindowSums;
 use super::{AxisDecode, DecodeParams, DecodePhases, PixelStatus};
 use mlsss_core::capture::patterns::gray_decode;
@@ -28,7 +29,7 @@ impl Grid {
     /// every pixel of the window is written and the count advances only for the valid ones
     /// (whether a neighbour is valid is as good as random at a blurred region's edge, and the
     /// mispredicted branch of a `push` per valid pixel made this a tenth of the decode).
-    fn gather_valid(
+    pub(super) fn gather_valid(
         &self,
         i: usize,
         radius: usize,
@@ -81,6 +82,9 @@ impl Grid {
 struct Scratch {
     samples: Vec<Sample>,
     with_self: Vec<Sample>,
+    columns: ColumnBuffer,
+    /// The pixels of a row due for repair (their columns).
+    due_columns: Vec<usize>,
     fit: FitScratch,
 }
 
@@ -150,24 +154,44 @@ fn repair_rounds(
     let mut next = codes.clone();
     let mut changed = vec![false; grid.len()];
     let mut now_changed = vec![false; grid.len()];
+    let mut signed = Vec::new();
     for round in 0..REPAIR_ROUNDS {
         let (previous, changed_before) = (&codes, &changed);
+        signed_codes(previous, &mut signed);
+        let signed = &signed;
         let due = |i: usize| {
             previous[i].1 == PixelStatus::RepairFailed
                 && (round == 0 || grid.any_within(i, radius, changed_before))
         };
+        // Row by row: the windows of a row's pixels share their columns ([`RowColumns`]).
         let any_change = next
-            .par_iter_mut()
-            .zip(now_changed.par_iter_mut())
+            .par_chunks_mut(grid.width)
+            .zip(now_changed.par_chunks_mut(grid.width))
             .enumerate()
-            .map_init(Scratch::default, |scratch, (i, (out, now))| {
-                *out = if due(i) {
-                    repair(grid, i, &bits[i], nbits, previous, size, params, scratch)
-                } else {
-                    previous[i]
-                };
-                *now = *out != previous[i];
-                *now
+            .map_init(Scratch::default, |scratch, (y, (out_row, now_row))| {
+                let row = y * grid.width..(y + 1) * grid.width;
+                out_row.copy_from_slice(&previous[row.clone()]);
+                let Scratch {
+                    samples,
+                    columns,
+                    due_columns,
+                    fit,
+                    ..
+                } = scratch;
+                due_columns.clear();
+                due_columns.extend((0..grid.width).filter(|&x| due(row.start + x)));
+                let windows =
+                    RowColumns::new(grid, y, radius, (previous, signed), columns, due_columns);
+                for &x in due_columns.iter() {
+                    let predicted = neighbour_prediction(&windows, x, params, samples, fit);
+                    out_row[x] = repair(&bits[row.start + x], nbits, size, params, predicted);
+                }
+                let mut row_changed = false;
+                for ((now, out), before) in now_row.iter_mut().zip(&*out_row).zip(&previous[row]) {
+                    *now = out != before;
+                    row_changed |= *now;
+                }
+                row_changed
             })
             .reduce(|| false, |a, b| a | b);
         std::mem::swap(&mut codes, &mut next);
@@ -218,20 +242,16 @@ fn bit_mask(bits: u32) -> u16 {
     }
 }
 
-/// Pass 2 for one pixel: the candidate code closest to the neighbours' plane, if close enough.
-#[allow(clippy::too_many_arguments)]
+/// Pass 2 for one pixel: the candidate code closest to the neighbours' plane value `predicted`,
+/// if close enough.
 fn repair(
-    grid: Grid,
-    i: usize,
     b: &PixelBits,
     nbits: u32,
-    first: &[(i32, PixelStatus)],
     size: u32,
     params: &DecodeParams,
-    scratch: &mut Scratch,
+    predicted: Option<f64>,
 ) -> (i32, PixelStatus) {
-    let radius = repair_radius(params);
-    let Some(predicted) = neighbour_prediction(grid, i, radius, first, params, scratch) else {
+    let Some(predicted) = predicted else {
         return (-1, PixelStatus::RepairFailed);
     };
     let unreliable = !b.reliable & bit_mask(nbits);
@@ -379,6 +399,7 @@ fn check_and_refine(
         samples,
         with_self,
         fit,
+        ..
     } = scratch;
     grid.gather_valid(i, radius, codes, samples);
     let sums = WindowSums::of_samples(grid, i, radius, samples);
@@ -438,22 +459,20 @@ fn check_against_mean(
     (code, refined as f32, status)
 }
 
-/// The neighbours' plane value at pixel `i` (valid neighbours within `radius`), if there are
-/// enough of them. The statistics and, where the robust fit ends at its first plane, its value
-/// come from one pass over the gathered samples ([`WindowSums`]).
+/// The neighbours' plane value at pixel `x` of `windows`' row (valid neighbours within its
+/// radius; the pixel has no code), if there are enough of them. The statistics and, where the
+/// robust fit ends at its first plane, its value come from the window's column sums
+/// ([`RowColumns`]); `samples` are gathered only for the general fit.
 fn neighbour_prediction(
-    grid: Grid,
-    i: usize,
-    radius: usize,
-    codes: &[(i32, PixelStatus)],
+    windows: &RowColumns,
+    x: usize,
     params: &DecodeParams,
-    scratch: &mut Scratch,
+    samples: &mut Vec<Sample>,
+    fit: &mut FitScratch,
 ) -> Option<f64> {
-    let samples = &mut scratch.samples;
-    grid.gather_valid(i, radius, codes, samples);
-    let sums = WindowSums::of_samples(grid, i, radius, samples);
+    let sums = windows.window(x);
     let stats = WindowStats::of_sums(&sums);
-    if stats.is_full_and_smooth(radius) {
+    if stats.is_full_and_smooth(windows.radius()) {
         return Some(stats.sum / stats.count as f64);
     }
     if stats.count < params.min_neighbours as usize {
@@ -464,8 +483,10 @@ fn neighbour_prediction(
     if !sums.surrounded() {
         return None;
     }
-    sums.first_fit_if_final(samples, params, None)
-        .or_else(|| robust_plane_at_centre(samples, params, &mut scratch.fit))
+    windows.first_fit_if_final(x, &sums, params).or_else(|| {
+        windows.gather_valid(x, samples);
+        robust_plane_at_centre(samples, params, fit)
+    })
 }
 
 /// Count, sum and range of the valid codes around a pixel (itself excluded), without allocating.
@@ -687,21 +708,16 @@ mod tests {
         params: &DecodeParams,
     ) -> Vec<(i32, PixelStatus)> {
         let mut codes = first;
-        let mut scratch = Scratch::default();
+        let radius = repair_radius(params);
         for _ in 0..REPAIR_ROUNDS {
             let previous = codes;
             codes = (0..grid.len())
                 .map(|i| match previous[i].1 {
-                    PixelStatus::RepairFailed => repair(
-                        grid,
-                        i,
-                        &bits[i],
-                        nbits,
-                        &previous,
-                        size,
-                        params,
-                        &mut scratch,
-                    ),
+                    PixelStatus::RepairFailed => {
+                        let predicted =
+                            neighbour_prediction_reference(grid, i, radius, &previous, params);
+                        repair(&bits[i], nbits, size, params, predicted)
+                    }
                     _ => previous[i],
                 })
                 .collect();
@@ -766,6 +782,47 @@ mod tests {
         for counts in taken {
             assert!(counts.iter().all(|&c| c > 100), "{taken:?}");
         }
+    }
+
+    /// The same for the repair's windows read through their column sums (pixels without a
+    /// code, the repair's radius), on adversarial codes and on ramps with holes (where the
+    /// 9 x 9 windows are clean enough to end at their first plane): both ways are taken.
+    #[test]
+    fn adversarial_repair_windows_take_both_paths_of_the_column_fit() {
+        let grid = Grid {
+            width: 40,
+            height: 30,
+        };
+        let params = DecodeParams::default();
+        let radius = repair_radius(&params);
+        let mut taken = [0usize; 2];
+        let mut buffer = ColumnBuffer::default();
+        for seed in 0..20 {
+            let ramp: Vec<(i32, PixelStatus)> = ramp_bits(seed, grid, 9, 0.4)
+                .iter()
+                .map(|b| initial_code(b, 9, 512, &params))
+                .collect();
+            for codes in [adversarial_codes(seed, grid), ramp] {
+                let mut signed = Vec::new();
+                signed_codes(&codes, &mut signed);
+                for y in 0..grid.height {
+                    let centres: Vec<usize> = (0..grid.width)
+                        .filter(|&x| !codes[y * grid.width + x].1.is_valid())
+                        .collect();
+                    let windows =
+                        RowColumns::new(grid, y, radius, (&codes, &signed), &mut buffer, &centres);
+                    for &x in &centres {
+                        let sums = windows.window(x);
+                        if sums.count > 0 {
+                            taken[usize::from(
+                                windows.first_fit_if_final(x, &sums, &params).is_some(),
+                            )] += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(taken.iter().all(|&c| c > 100), "{taken:?}");
     }
 
     proptest! {
@@ -891,9 +948,26 @@ mod tests {
                     prop_assert_eq!((a.count, a.sum.to_bits(), a.min, a.max, a.size), (b.count, b.sum.to_bits(), b.min, b.max, b.size));
                     let has = |side: fn(i32, i32) -> bool| samples.iter().any(|s| side(s.dx, s.dy));
                     prop_assert_eq!(sums.surrounded(), has(|dx, _| dx < 0) && has(|dx, _| dx > 0) && has(|_, dy| dy < 0) && has(|_, dy| dy > 0));
-                    let fast = neighbour_prediction(grid, i, radius, &codes, &params, &mut scratch);
-                    let plain = neighbour_prediction_reference(grid, i, radius, &codes, &params);
-                    prop_assert_eq!(fast.map(f64::to_bits), plain.map(f64::to_bits));
+                }
+                // The repair's column sums and prediction, for the pixels without a code: all
+                // of a row's at once (columns shared), and each alone.
+                let mut buffer = ColumnBuffer::default();
+                let mut signed = Vec::new();
+                signed_codes(&codes, &mut signed);
+                for y in 0..height {
+                    let centres: Vec<usize> = (0..width).filter(|&x| !codes[y * width + x].1.is_valid()).collect();
+                    for &x in &centres {
+                        let i = y * width + x;
+                        grid.gather_valid(i, radius, &codes, &mut samples);
+                        let plain_sums = WindowSums::of_samples(grid, i, radius, &samples);
+                        let plain = neighbour_prediction_reference(grid, i, radius, &codes, &params);
+                        for row_centres in [&centres[..], &[x][..]] {
+                            let windows = RowColumns::new(grid, y, radius, (&codes, &signed), &mut buffer, row_centres);
+                            prop_assert_eq!(windows.window(x), plain_sums);
+                            let fast = neighbour_prediction(&windows, x, &params, &mut scratch.samples, &mut scratch.fit);
+                            prop_assert_eq!(fast.map(f64::to_bits), plain.map(f64::to_bits));
+                        }
+                    }
                 }
             }
             let smooth = smooth_window_sums(grid, &codes, window_radius as usize);

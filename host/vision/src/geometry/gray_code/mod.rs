@@ -44,6 +44,7 @@ mod lit_test;
 mod plane;
 #[cfg(test)]
 mod tests;
+mod window_columns;
 mod window_fit;
 
 use rayon::prelude::*;

@@ -14,7 +14,7 @@ pub(super) struct Sample {
 }
 
 /// Largest distance of an inlier from the fitted plane, projector pixels.
-pub(super) const INLIER_PX: f64 = 1.5;
+const INLIER_PX: f64 = 1.5;
 
 /// Reusable buffers of [`robust_plane_at_centre`], so that a pixel's fit allocates nothing.
 #[derive(Debug, Default)]
@@ -76,9 +76,7 @@ fn robust_plane_portable(
     for _ in 0..2 {
         let plane = fit_plane(inliers)?;
         let before = inliers.len();
-        keep_where(inliers, |s| {
-            (plane.eval(s.dx, s.dy) - f64::from(s.code)).abs() <= INLIER_PX
-        });
+        keep_where(inliers, |s| plane.is_inlier(s.dx, s.dy, s.code));
         if inliers.len() == before {
             return Some(plane.a);
         }
@@ -152,8 +150,15 @@ pub(super) struct Plane {
 }
 
 impl Plane {
+    #[inline(always)]
     pub(super) fn eval(&self, dx: i32, dy: i32) -> f64 {
         self.a + self.b * f64::from(dx) + self.c * f64::from(dy)
+    }
+
+    /// Whether the sample `(dx, dy, code)` lies within [`INLIER_PX`] of the plane.
+    #[inline(always)]
+    pub(super) fn is_inlier(&self, dx: i32, dy: i32, code: i32) -> bool {
+        (self.eval(dx, dy) - f64::from(code)).abs() <= INLIER_PX
     }
 }
 

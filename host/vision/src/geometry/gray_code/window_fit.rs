@@ -15,7 +15,7 @@
 
 use super::DecodeParams;
 use super::axis::Grid;
-use super::plane::{INLIER_PX, Sample, jump_limit, plane_from_sums};
+use super::plane::{Plane, Sample, jump_limit, plane_from_sums};
 
 /// The valid codes of the window of `radius` around a pixel, the pixel itself excluded: their
 /// count and range, the sums of their least-squares plane (offsets from the pixel), and which
@@ -31,9 +31,9 @@ pub(super) struct WindowSums {
     pub(super) max: i32,
     /// `[dx, dy, v, dx^2, dy^2, dx dy, dx v, dy v]` summed over the valid neighbours: the sums
     /// of `plane::fit_plane`, exact integers (so the same whatever the order of the samples).
-    sums: [i64; 8],
+    pub(super) sums: [i64; 8],
     /// Some valid neighbour left of, right of, above and below the pixel.
-    sides: [bool; 4],
+    pub(super) sides: [bool; 4],
 }
 
 impl WindowSums {
@@ -110,30 +110,38 @@ impl WindowSums {
         if self.count == 0 {
             return None;
         }
+        let with_centre = match centre {
+            None => *self,
+            Some(code) => self.with_centre(code, params)?,
+        };
+        let plane = with_centre.first_plane_if_narrow(params)?;
+        // Non-short-circuit `&`: no branch per sample.
+        let all_inliers = samples.iter().fold(
+            centre.is_none_or(|code| plane.is_inlier(0, 0, code)),
+            |all, s| all & plane.is_inlier(s.dx, s.dy, s.code),
+        );
+        all_inliers.then_some(plane.a)
+    }
+
+    /// These sums with the centre's `code` added (its offsets are 0, so it adds its code and
+    /// nothing else); `None` when the jump limit around `code` would drop a neighbour.
+    fn with_centre(&self, code: i32, params: &DecodeParams) -> Option<Self> {
         let limit = jump_limit(params);
-        let (mut count, mut sums, mut min, mut max) = (self.count, self.sums, self.min, self.max);
-        if let Some(code) = centre {
-            let kept = |c: i32| f64::from(c.abs_diff(code)) <= limit;
-            if !(kept(min) && kept(max)) {
-                return None;
-            }
-            // The centre adds its code and nothing else (its offsets are 0).
-            count += 1;
-            sums[2] += i64::from(code);
-            (min, max) = (min.min(code), max.max(code));
-        }
-        if f64::from(max.abs_diff(min)) > limit {
+        let kept = |c: i32| f64::from(c.abs_diff(code)) <= limit;
+        if !(kept(self.min) && kept(self.max)) {
             return None;
         }
-        let plane = plane_from_sums(count, sums.map(|s| s as f64));
-        let inlier =
-            |dx: i32, dy: i32, code: i32| (plane.eval(dx, dy) - f64::from(code)).abs() <= INLIER_PX;
-        // Non-short-circuit `&`: no branch per sample.
-        let all_inliers = samples
-            .iter()
-            .fold(centre.is_none_or(|code| inlier(0, 0, code)), |all, s| {
-                all & inlier(s.dx, s.dy, s.code)
-            });
-        all_inliers.then_some(plane.a)
+        let mut sums = *self;
+        sums.count += 1;
+        sums.sums[2] += i64::from(code);
+        (sums.min, sums.max) = (self.min.min(code), self.max.max(code));
+        Some(sums)
+    }
+
+    /// The least-squares plane of these sums when the robust fit would take it as its first
+    /// plane: some samples, spanning no more than the jump limit (no median filter).
+    pub(super) fn first_plane_if_narrow(&self, params: &DecodeParams) -> Option<Plane> {
+        let narrow = f64::from(self.max.abs_diff(self.min)) <= jump_limit(params);
+        (self.count > 0 && narrow).then(|| plane_from_sums(self.count, self.sums.map(|s| s as f64)))
     }
 }
