@@ -11,9 +11,10 @@
 //! exact integers, so the statistics equal [`WindowSums::of_samples`]'s and the prediction is
 //! bit for bit the gathered one (test; the decodes of the 5 real captures and of a full-size
 //! simulated one are byte-identical). Measured (`decode_breakdown`, alternated with the
-//! gathering build): the repair of capture_0 118-123 -> 104-107 ms (best wall of 15, 3 pairs);
+//! gathering build): the repair of capture_0 114-123 -> 96-107 ms (best wall of 15, 3 pairs);
 //! a full-size simulated capture's 4 projectors 0.29-0.30 -> 0.24-0.25 s, its decode 0.70-0.72
-//! -> 0.63-0.64 s (mean of 3, 2 pairs).
+//! -> 0.63-0.64 s (mean of 3, 2 pairs). The consistency check read the same way was no faster
+//! (its gather is not where its time goes) and still gathers ([`WindowSums::of_samples`]).
 
 use super::axis::Grid;
 use super::plane::Sample;
@@ -90,6 +91,7 @@ impl<'a> RowColumns<'a> {
         ] {
             v.resize(width, 0);
         }
+        debug_assert!(centres.windows(2).all(|w| w[0] < w[1]), "centres ascending");
         // The columns of the windows, as runs of adjacent columns.
         let mut run: Option<(usize, usize)> = None;
         for &x in centres {

@@ -1,17 +1,16 @@
-//! The first plane of a window's robust fit from one pass over its gathered samples: the fast
-//! path of the repair's prediction and of the consistency check (steps 3 and 4).
+//! The first plane of a window's robust fit from its sums: the fast path of the repair's
+//! prediction and of the consistency check (steps 3 and 4).
 //!
 //! Why: on the real 8-bit captures (procam capture_0) the repair reads 529 000 windows of
 //! 9 x 9 and the check 208 000 of 5 x 5 that are not complete and smooth. Each went through
 //! passes over its samples for the statistics, for each side, for the range, a copy, and the
 //! sums of each plane fit; 83 % of the repair's fits and 80 % of the check's end at their first
-//! plane (no median filter, every sample an inlier). [`WindowSums::of_samples`] takes the
-//! statistics, sides, range and that plane's exact integer sums in one pass, and
-//! [`WindowSums::first_fit_if_final`] checks in a second that the robust fit would stop there;
-//! any other window goes the general way. Decoding capture_0: 0.476 -> 0.443 CPU-s (mean of
-//! 5, 2 alternated pairs, `kernel_timing decode`). An earlier version that read the window
-//! itself (masked, without gathering) was slower (0.54 CPU-s): a mask per pixel of the window
-//! costs more than gathering the valid ones.
+//! plane (no median filter, every sample an inlier). [`WindowSums`] holds the statistics,
+//! sides, range and that plane's exact integer sums, and [`WindowSums::first_fit_if_final`]
+//! checks that the robust fit would stop there; any other window goes the general way. The
+//! check takes the sums from its gathered samples in one pass ([`WindowSums::of_samples`];
+//! decoding capture_0 0.476 -> 0.443 CPU-s, mean of 5, 2 alternated pairs), the repair from its
+//! row's column sums (`window_columns`, which tests the inliers on the window itself).
 
 use super::DecodeParams;
 use super::axis::Grid;
