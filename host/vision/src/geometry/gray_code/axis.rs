@@ -24,6 +24,21 @@ impl Grid {
         self.width * self.height
     }
 
+    /// The first and last column, and the first and last row, of the window of `radius` around
+    /// column `x`, row `y`, clipped to the image.
+    #[inline(always)]
+    pub(super) fn window_bounds(
+        &self,
+        x: usize,
+        y: usize,
+        radius: usize,
+    ) -> ((usize, usize), (usize, usize)) {
+        (
+            (x.saturating_sub(radius), (x + radius).min(self.width - 1)),
+            (y.saturating_sub(radius), (y + radius).min(self.height - 1)),
+        )
+    }
+
     /// Replaces `samples` with `(dx, dy, code)` of the valid pixels in the window of `radius`
     /// around `i`, excluding `i`, rows top to bottom and each row left to right. Branch-free:
     /// every pixel of the window is written and the count advances only for the valid ones
@@ -37,8 +52,7 @@ impl Grid {
         samples: &mut Vec<Sample>,
     ) {
         let (x, y) = (i % self.width, i / self.width);
-        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(self.width - 1));
-        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(self.height - 1));
+        let ((x0, x1), (y0, y1)) = self.window_bounds(x, y, radius);
         samples.clear();
         samples.resize(
             (x1 - x0 + 1) * (y1 - y0 + 1),
@@ -67,8 +81,7 @@ impl Grid {
     /// True when some pixel within `radius` of `i` (itself included) is set in `mask`.
     fn any_within(&self, i: usize, radius: usize, mask: &[bool]) -> bool {
         let (x, y) = (i % self.width, i / self.width);
-        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(self.width - 1));
-        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(self.height - 1));
+        let ((x0, x1), (y0, y1)) = self.window_bounds(x, y, radius);
         (y0..=y1).any(|row| {
             mask[row * self.width + x0..=row * self.width + x1]
                 .iter()
@@ -517,8 +530,7 @@ impl WindowStats {
     #[cfg(test)]
     fn new(grid: Grid, i: usize, radius: usize, codes: &[(i32, PixelStatus)]) -> Self {
         let (x, y) = (i % grid.width, i / grid.width);
-        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
-        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(grid.height - 1));
+        let ((x0, x1), (y0, y1)) = grid.window_bounds(x, y, radius);
         let (mut count, mut sum, mut min, mut max) = (0usize, 0i64, i32::MAX, i32::MIN);
         for row in y0..=y1 {
             let start = row * grid.width;
@@ -544,8 +556,7 @@ impl WindowStats {
     #[cfg(test)]
     fn of_samples(grid: Grid, i: usize, radius: usize, samples: &[Sample]) -> Self {
         let (x, y) = (i % grid.width, i / grid.width);
-        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
-        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(grid.height - 1));
+        let ((x0, x1), (y0, y1)) = grid.window_bounds(x, y, radius);
         let (mut sum, mut min, mut max) = (0i64, i32::MAX, i32::MIN);
         for sample in samples {
             sum += i64::from(sample.code);

@@ -77,7 +77,6 @@ impl<'a> RowColumns<'a> {
         buffer: &'a mut ColumnBuffer,
         centres: &[usize],
     ) -> Self {
-        let width = grid.width;
         for v in [
             &mut buffer.count,
             &mut buffer.above,
@@ -89,13 +88,13 @@ impl<'a> RowColumns<'a> {
             &mut buffer.min,
             &mut buffer.max,
         ] {
-            v.resize(width, 0);
+            v.resize(grid.width, 0);
         }
         debug_assert!(centres.windows(2).all(|w| w[0] < w[1]), "centres ascending");
         // The columns of the windows, as runs of adjacent columns.
         let mut run: Option<(usize, usize)> = None;
         for &x in centres {
-            let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(width - 1));
+            let ((x0, x1), _) = grid.window_bounds(x, y, radius);
             run = match run {
                 Some((start, end)) if x0 <= end + 1 => Some((start, end.max(x1))),
                 Some(done) => {
@@ -133,13 +132,8 @@ impl<'a> RowColumns<'a> {
     /// the sums were taken for, which must have no code (the repair's pixels: the centre is not
     /// excluded from the columns).
     pub(super) fn window(&self, x: usize) -> WindowSums {
-        let Grid { width, height } = self.grid;
-        debug_assert!(self.signed[self.y * width + x] < 0);
-        let (x0, x1) = (
-            x.saturating_sub(self.radius),
-            (x + self.radius).min(width - 1),
-        );
-        let rows = (self.y + self.radius).min(height - 1) + 1 - self.y.saturating_sub(self.radius);
+        debug_assert!(self.signed[self.y * self.grid.width + x] < 0);
+        let ((x0, x1), (y0, y1)) = self.grid.window_bounds(x, self.y, self.radius);
         let c = self.columns;
         let (mut count, [mut left, mut right, mut above, mut below]) = (0i32, [0i32; 4]);
         let [mut sx, mut sxx, mut sy, mut syy, mut sxy] = [0i64; 5];
@@ -166,7 +160,7 @@ impl<'a> RowColumns<'a> {
         }
         WindowSums {
             count: count as usize,
-            size: (x1 - x0 + 1) * rows - 1,
+            size: (x1 - x0 + 1) * (y1 - y0 + 1) - 1,
             min,
             max,
             sums: [sx, sy, sv, sxx, syy, sxy, sxv, syv],
@@ -184,19 +178,11 @@ impl<'a> RowColumns<'a> {
         params: &DecodeParams,
     ) -> Option<f64> {
         let plane = sums.first_plane_if_narrow(params)?;
-        let Grid { width, height } = self.grid;
-        let (x0, x1) = (
-            x.saturating_sub(self.radius),
-            (x + self.radius).min(width - 1),
-        );
-        let (y0, y1) = (
-            self.y.saturating_sub(self.radius),
-            (self.y + self.radius).min(height - 1),
-        );
+        let ((x0, x1), (y0, y1)) = self.grid.window_bounds(x, self.y, self.radius);
         let mut all_inliers = true;
         for row in y0..=y1 {
             let dy = row as i32 - self.y as i32;
-            let start = row * width;
+            let start = row * self.grid.width;
             for (column, &code) in (x0..).zip(&self.signed[start + x0..=start + x1]) {
                 let dx = column as i32 - x as i32;
                 // Non-short-circuit: no branch per pixel.
@@ -291,7 +277,8 @@ fn sum_columns_portable(
     }
     min.fill(i32::MAX);
     max.fill(i32::MIN);
-    for row in y.saturating_sub(radius)..=(y + radius).min(grid.height - 1) {
+    let (_, (y0, y1)) = grid.window_bounds(x0, y, radius);
+    for row in y0..=y1 {
         let start = row * grid.width;
         let codes = &signed[start + run.start..start + run.end];
         let dy = row as i32 - y as i32;

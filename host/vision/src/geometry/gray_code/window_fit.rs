@@ -40,8 +40,7 @@ impl WindowSums {
     /// window of `radius` around pixel `i`, in one pass over them.
     pub(super) fn of_samples(grid: Grid, i: usize, radius: usize, samples: &[Sample]) -> Self {
         let (x, y) = (i % grid.width, i / grid.width);
-        let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(grid.width - 1));
-        let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(grid.height - 1));
+        let ((x0, x1), (y0, y1)) = grid.window_bounds(x, y, radius);
         let (mut min, mut max) = (i32::MAX, i32::MIN);
         // The offsets' sums in i32 (exact: |dx|, |dy| <= 2 MAX_WINDOW_RADIUS, so a sum of
         // squares over a whole window stays below 2^31), the code sums in i64.
