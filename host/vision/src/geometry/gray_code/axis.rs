@@ -195,14 +195,14 @@ fn repair_rounds(
                 due_columns.extend((0..grid.width).filter(|&x| due(row.start + x)));
                 let windows =
                     RowColumns::new(grid, y, radius, (previous, signed), columns, due_columns);
+                // Only the due pixels can change.
+                now_row.fill(false);
+                let mut row_changed = false;
                 for &x in due_columns.iter() {
                     let predicted = neighbour_prediction(&windows, x, params, samples, fit);
                     out_row[x] = repair(&bits[row.start + x], nbits, size, params, predicted);
-                }
-                let mut row_changed = false;
-                for ((now, out), before) in now_row.iter_mut().zip(&*out_row).zip(&previous[row]) {
-                    *now = out != before;
-                    row_changed |= *now;
+                    now_row[x] = out_row[x] != previous[row.start + x];
+                    row_changed |= now_row[x];
                 }
                 row_changed
             })

@@ -42,6 +42,25 @@ pub(super) struct ColumnBuffer {
     max: Vec<i32>,
 }
 
+impl ColumnBuffer {
+    /// Makes every array `width` columns long (their values are set by [`sum_columns`]).
+    fn fit_width(&mut self, width: usize) {
+        for v in [
+            &mut self.count,
+            &mut self.above,
+            &mut self.below,
+            &mut self.sy,
+            &mut self.syy,
+            &mut self.sv,
+            &mut self.syv,
+            &mut self.min,
+            &mut self.max,
+        ] {
+            v.resize(width, 0);
+        }
+    }
+}
+
 /// The codes of `pairs` as one `i32` each: the code where valid, -1 elsewhere (valid codes are
 /// never negative). Why: the column sums read whole rows of it as plain integers; split out of
 /// the pairs on the fly, the status bytes were gathered one by one.
@@ -77,19 +96,7 @@ impl<'a> RowColumns<'a> {
         buffer: &'a mut ColumnBuffer,
         centres: &[usize],
     ) -> Self {
-        for v in [
-            &mut buffer.count,
-            &mut buffer.above,
-            &mut buffer.below,
-            &mut buffer.sy,
-            &mut buffer.syy,
-            &mut buffer.sv,
-            &mut buffer.syv,
-            &mut buffer.min,
-            &mut buffer.max,
-        ] {
-            v.resize(grid.width, 0);
-        }
+        buffer.fit_width(grid.width);
         debug_assert!(centres.windows(2).all(|w| w[0] < w[1]), "centres ascending");
         // The columns of the windows, as runs of adjacent columns.
         let mut run: Option<(usize, usize)> = None;
