@@ -51,9 +51,9 @@ if [ -r "$REPORTING/min_free_ms" ]; then
 fi
 if [ "${SKIP_MCML:-}" != 1 ]; then
     echo "-- Monte Carlo against MCML (per CPU second, one thread each)" | tee -a "$SUMMARY"
-    # A disagreement (some |z| > 3 among the 9 quantities pooled over the rounds; MCML draws new
-    # random numbers every run, so this happens by chance in about 2 % of sittings) is reported,
-    # not fatal: the timings that follow are still measured.
+    # A disagreement (some |z| > 3 among the 9 quantities pooled over the rounds, against MCML
+    # with a sound random generator: see mcml_race.py) is reported, not fatal: the timings that
+    # follow are still measured.
     # Five rounds (MC_ROUNDS=N to change): with three, one slow or fast round on this shared VM
     # moved the ratio by half a unit (rounds 11.15, 9.39, 10.52 in the fba5129 sitting).
     if ! python3 host/monte-carlo/benches/mcml_race.py "$MCML" --photons 100000 --rounds "${MC_ROUNDS:-5}" \
