@@ -169,12 +169,14 @@ def timed(cmd, cwd=None, env=None) -> tuple[str, float]:
     return out.stdout, cpu
 
 
-def parse_mco(path: Path) -> dict:
+def parse_mco(path: Path, layers: int = len(LAYERS_CM)) -> dict:
+    """The specular and diffuse reflectance, the transmittance and the absorption of each of
+    `layers` layers from an MCML output file."""
     lines = path.read_text().splitlines()
     i = next(k for k, l in enumerate(lines) if l.startswith("RAT"))
     rat = [float(lines[i + j].split()[0]) for j in range(1, 5)]
     k = next(k for k, l in enumerate(lines) if l.startswith("A_l"))
-    absorbed = [float(lines[k + 1 + j].split()[0]) for j in range(len(LAYERS_CM))]
+    absorbed = [float(lines[k + 1 + j].split()[0]) for j in range(layers)]
     return {"specular": rat[0], "diffuse_reflectance": rat[1], "total_transmittance": rat[3],
             "absorbed": absorbed}
 
