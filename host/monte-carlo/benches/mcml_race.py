@@ -19,7 +19,8 @@ other load, against MCML as published.
 Agreement is judged against a second build of MCML whose `RandomNum` draws from xoshiro256+
 (53-bit doubles, seeded from `MCML_SEED`: our round's seed) instead of its own generator, Numerical
 Recipes' `ran3` returned as a float and seeded from a 15-bit clock value. That generator biases MCML
-(2026-12-02, 2 x 2M MCML photons against 2 x 5M of ours and iadpython's adding-doubling): on the
+(2026-12-02, 2 x 2M MCML photons against 2 x 5M of ours and iadpython's adding-doubling;
+`mcml_rng_bias.py` repeats it): on the
 fat layer of this input alone (n 1.44, tau 88.7, albedo 0.998, g 0.8) MCML's diffuse reflectance
 is 0.19 % low, its transmittance 0.86 % and its absorption 0.25 % high against adding-doubling
 (z 4-7), while ours is within 0.05 % (|z| < 1.2) and MCML with xoshiro256+ within 0.06 %; on
