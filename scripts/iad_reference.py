@@ -35,6 +35,9 @@ CASES = [
     ("glass_slides_forward", 0.95, 4.0, 0.9, 1.4, 1.5, 1.5),
     ("slide_above_only_iso", 0.95, 3.0, 0.0, 1.4, 1.5, 1.4),
     ("semi_infinite_skinlike", 0.98, INF, 0.8, 1.4, 1.4, 1.4),
+    # The fat layer of MCML's 7-layer skin input alone (mu_a 0.3/cm, mu_s 150/cm, 0.59 cm): thick
+    # and nearly conservative; MCML's own generator is biased here (benches/mcml_rng_bias.py).
+    ("thick_fat_layer", 150 / 150.3, 150.3 * 0.59, 0.8, 1.44, 1.44, 1.44),
 ]
 
 ORDERS = [12, 16, 20, 24, 28, 32, 40, 48]
