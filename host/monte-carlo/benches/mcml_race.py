@@ -74,16 +74,17 @@ LAYERS_CM = [
 ]
 
 
-def mci_text(photons: int) -> str:
-    """One run of the 7-layer input with the original file's grid (its cost is part of MCML's)."""
-    layers = "\n".join(f"{n} {mua} {mus} {g} {d}" for n, mua, mus, g, d in LAYERS_CM)
+def mci_text(photons: int, layers_cm: list = LAYERS_CM) -> str:
+    """One run of the 7-layer input (or of `layers_cm`: n, mu_a, mu_s, g, d in cm, in air) with the
+    original file's grid (its cost is part of MCML's)."""
+    layers = "\n".join(f"{n} {mua} {mus} {g} {d}" for n, mua, mus, g, d in layers_cm)
     return f"""1.0
 1
 race.mco A
 {photons}
 0.002 0.01
 500 200 30
-{len(LAYERS_CM)}
+{len(layers_cm)}
 1.0
 {layers}
 1.0
@@ -248,7 +249,7 @@ def main() -> None:
     print(f"pooled over {len(tables)} round(s) (the verdict)")
     worst = print_table(pool(tables))
     published = pool([quantities(mcml, ours) for mcml, _, ours, _, _ in rows])
-    print(f"against MCML's own ran3, pooled (for information: ran3 biases MCML, see the docstring)")
+    print("against MCML's own ran3, pooled (for information: ran3 biases MCML, see the docstring)")
     worst_published = print_table(published)
     print(f"\nlargest pooled |z| {worst:.2f}: " + ("agree within 3 standard errors" if worst <= 3
                                                   else "DISAGREE")
@@ -296,6 +297,7 @@ def z_text(m: float, o: float, se: float) -> str:
     if se > 0:
         return f"{z:.2f}"
     return "exact" if z == 0.0 else "DIFF"
+
 
 def print_table(table: list) -> float:
     """Prints (name, MCML, ours, our SE) rows with their z-scores; returns the largest |z|."""

@@ -56,11 +56,6 @@ def adding_doubling() -> tuple[dict, float]:
     return values[1], change
 
 
-def mci_text(photons: int) -> str:
-    n, mua, mus, g, d = FAT_CM
-    return f"1.0\n1\nrace.mco A\n{photons}\n0.002 0.01\n500 200 30\n1\n1.0\n{n} {mua} {mus} {g} {d}\n1.0\n"
-
-
 def layers_toml() -> str:
     n, mua, mus, g, d = FAT_CM
     return (f"n_above = 1.0\nn_below = 1.0\n\n[[layer]]\nname = \"subcutaneous fat\"\n"
@@ -92,7 +87,7 @@ def main() -> None:
         builds = [(mcml_race.build_mcml(args.cpumcml, published), published),
                   (mcml_race.build_mcml(args.cpumcml, xoshiro, xoshiro=True), xoshiro)]
         for _, work in builds:
-            (work / "race.mci").write_text(mci_text(args.mcml_photons))
+            (work / "race.mci").write_text(mcml_race.mci_text(args.mcml_photons, [FAT_CM]))
         layers = Path(tmp) / "fat.toml"
         layers.write_text(layers_toml())
         for r in range(args.runs):
@@ -121,13 +116,13 @@ def main() -> None:
     print(f"adding-doubling (iadpython, 48 points; change from 40: {ad_change:.1e}): "
           + ", ".join(f"{k} {exact[k]:.6f}" for k in keys))
     print(f"{'program':<24} {'quantity':<20} {'value':>10} {'rel':>8} {'z':>6}")
+    # The standard error of our pooled mean; another program's is it scaled to its photons.
+    se_ours = {k: math.sqrt(sum(s[k] ** 2 for s in ours_se)) / len(ours_se) for k in keys}
     for program, values in runs.items():
         photons = args.ours_photons if program == "ours" else args.mcml_photons
         for k in keys:
             mean = sum(v[k] for v in values) / len(values)
-            # The standard error of the pooled mean, from ours scaled to the program's photons.
-            se_ours = math.sqrt(sum(s[k] ** 2 for s in ours_se)) / len(ours_se)
-            se = se_ours * math.sqrt(args.ours_photons / photons)
+            se = se_ours[k] * math.sqrt(args.ours_photons / photons)
             z = (mean - exact[k]) / math.sqrt(se * se + ad_change * ad_change)
             print(f"{program:<24} {k:<20} {mean:>10.6f} {100 * (mean - exact[k]) / exact[k]:>+7.2f}% {z:>+6.2f}")
 
