@@ -64,6 +64,130 @@ pub struct Observation {
     pub y: [Option<f64>; 3],
 }
 
+/// Every pixel's observations, in pixel order, kept in blocks of [`BLOCK_PIXELS`] pixels: each
+/// block one list of observations and where each pixel's part of it ends. Why not a list per
+/// pixel: at full size the ~1.4 million lists were allocated, walked (the channel means, the
+/// outliers, the solves) and freed one by one. With the blocks (and the normals corrected in
+/// place, [`refine_normals`]) the fit stage's `fit_normals` phase went 0.66-0.71 -> 0.50-0.62 s
+/// wall and 1.11-1.18 -> 0.88-1.09 CPU-s (full-size `process --until fit`, 6 runs of each build
+/// in alternated pairs; the model file byte-identical in every pair).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PixelObservations {
+    blocks: Vec<ObservationBlock>,
+}
+
+/// Pixels per block of [`PixelObservations`]: ~350 blocks at full size, each list a few hundred
+/// kB (reused from the heap, never mapped afresh).
+const BLOCK_PIXELS: usize = 4096;
+
+/// The observations of consecutive pixels.
+#[derive(Debug, Clone, Default, PartialEq)]
+struct ObservationBlock {
+    /// Per pixel: the end of its observations in `list` (each starts where the previous ends).
+    ends: Vec<u32>,
+    list: Vec<Observation>,
+}
+
+impl ObservationBlock {
+    /// Appends a pixel with `observations`.
+    fn push_pixel(&mut self, observations: impl IntoIterator<Item = Observation>) {
+        self.list.extend(observations);
+        // At most BLOCK_PIXELS pixels of a few observations each.
+        self.ends.push(self.list.len() as u32);
+    }
+
+    /// The observations of each pixel, in order.
+    fn pixels(&self) -> impl Iterator<Item = &[Observation]> + '_ {
+        let mut start = 0;
+        self.ends.iter().map(move |&end| {
+            let obs = &self.list[start..end as usize];
+            start = end as usize;
+            obs
+        })
+    }
+
+    /// Keeps the observations for which `keep` (which may change them) says true, each pixel's
+    /// in order.
+    fn retain(&mut self, mut keep: impl FnMut(&mut Observation) -> bool) {
+        let (mut start, mut kept) = (0, 0);
+        for end in &mut self.ends {
+            for read in start..*end as usize {
+                let mut o = self.list[read];
+                if keep(&mut o) {
+                    self.list[kept] = o;
+                    kept += 1;
+                }
+            }
+            start = *end as usize;
+            *end = kept as u32;
+        }
+        self.list.truncate(kept);
+    }
+}
+
+impl PixelObservations {
+    /// The observations of pixel after pixel, one list each.
+    pub fn from_lists(lists: Vec<Vec<Observation>>) -> Self {
+        Self {
+            blocks: lists
+                .chunks(BLOCK_PIXELS)
+                .map(|chunk| {
+                    let mut block = ObservationBlock::default();
+                    for obs in chunk {
+                        block.push_pixel(obs.iter().copied());
+                    }
+                    block
+                })
+                .collect(),
+        }
+    }
+
+    /// Number of pixels (with or without observations).
+    pub fn len(&self) -> usize {
+        self.blocks.iter().map(|b| b.ends.len()).sum()
+    }
+
+    /// Whether there is no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The observations of each pixel, in pixel order.
+    pub fn pixels(&self) -> impl Iterator<Item = &[Observation]> + '_ {
+        self.blocks.iter().flat_map(ObservationBlock::pixels)
+    }
+
+    /// The observations of pixel `i` (empty beyond the last pixel).
+    fn pixel(&self, i: usize) -> &[Observation] {
+        let (b, j) = (i / BLOCK_PIXELS, i % BLOCK_PIXELS);
+        let Some(block) = self.blocks.get(b) else {
+            return &[];
+        };
+        let start = match j.checked_sub(1) {
+            Some(before) => block.ends.get(before).copied(),
+            None => Some(0),
+        };
+        match (start, block.ends.get(j)) {
+            (Some(start), Some(&end)) => &block.list[start as usize..end as usize],
+            _ => &[],
+        }
+    }
+
+    /// `solve` of each pixel's observations, in pixel order, on every core. Indexed, so the
+    /// results are written in place: a list collected from the blocks was gathered from
+    /// pieces, and one made first and filled was faulted in on one thread (either way the
+    /// solves took twice as long at full size).
+    fn solve_each<T: Send>(
+        &self,
+        solve: impl Fn(&[Observation]) -> Option<T> + Sync,
+    ) -> Vec<Option<T>> {
+        (0..self.len())
+            .into_par_iter()
+            .map(|i| solve(self.pixel(i)))
+            .collect()
+    }
+}
+
 /// The fitted parameters of one pixel.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PixelShading {
@@ -293,10 +417,10 @@ fn left_out_error(left: &Observation, others: Option<&KappaTerms>, lambda: f64) 
 }
 
 /// Channel means of the observations.
-fn channel_means(pixels: &[Vec<Observation>]) -> [f64; 3] {
+fn channel_means(pixels: &PixelObservations) -> [f64; 3] {
     let mut sum = [0.0; 3];
     let mut count = [0usize; 3];
-    for o in pixels.iter().flatten() {
+    for o in pixels.pixels().flatten() {
         for c in 0..3 {
             if let Some(y) = o.y[c] {
                 sum[c] += y;
@@ -315,10 +439,10 @@ fn channel_means(pixels: &[Vec<Observation>]) -> [f64; 3] {
 
 /// Leave-one-projector-out mean squared error per observation for every `(lambda, kappa)`, over
 /// the pixels with at least two observations (at most [`CV_PIXELS`] of them, evenly spaced).
-fn cross_validate(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> (Vec<(f64, f64, f64)>, usize) {
-    let scorable: Vec<&Vec<Observation>> = pixels.iter().filter(|o| o.len() >= 2).collect();
+fn cross_validate(pixels: &PixelObservations, mu: &[f64; 3]) -> (Vec<(f64, f64, f64)>, usize) {
+    let scorable: Vec<&[Observation]> = pixels.pixels().filter(|o| o.len() >= 2).collect();
     let step = scorable.len().div_ceil(CV_PIXELS).max(1);
-    let chosen: Vec<&Vec<Observation>> = scorable.into_iter().step_by(step).collect();
+    let chosen: Vec<&[Observation]> = scorable.into_iter().step_by(step).collect();
     // Every left-out observation with the sums of the others, in the order they are scored.
     let left_out: Vec<(&Observation, Option<PixelSums>)> = chosen
         .par_iter()
@@ -364,9 +488,9 @@ fn cross_validate(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> (Vec<(f64, f64,
 }
 
 /// Subject-mean-only error: every observation predicted by its channel mean.
-fn subject_mean_error(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> f64 {
+fn subject_mean_error(pixels: &PixelObservations, mu: &[f64; 3]) -> f64 {
     let (mut sum, mut n) = (0.0, 0usize);
-    for o in pixels.iter().filter(|o| o.len() >= 2).flatten() {
+    for o in pixels.pixels().filter(|o| o.len() >= 2).flatten() {
         for (y, m) in o.y.iter().zip(mu) {
             if let Some(y) = y {
                 sum += (y - m).powi(2);
@@ -377,24 +501,25 @@ fn subject_mean_error(pixels: &[Vec<Observation>], mu: &[f64; 3]) -> f64 {
     if n > 0 { sum / n as f64 } else { f64::INFINITY }
 }
 
-/// Drops observations of a channel that are outliers against its mean (pixels in parallel).
-fn without_outliers(pixels: &mut [Vec<Observation>], mu: &[f64; 3]) {
-    pixels.par_iter_mut().for_each(|obs| {
-        for o in obs.iter_mut() {
+/// Drops observations of a channel that are outliers against its mean, then the observations
+/// left without a channel (blocks of pixels in parallel).
+fn without_outliers(pixels: &mut PixelObservations, mu: &[f64; 3]) {
+    pixels.blocks.par_iter_mut().for_each(|block| {
+        block.retain(|o| {
             for (y, m) in o.y.iter_mut().zip(mu) {
                 if y.is_some_and(|y| (y - m).abs() > OUTLIER_LOG) {
                     *y = None;
                 }
             }
-        }
-        obs.retain(|o| o.y.iter().any(Option::is_some));
+            o.y.iter().any(Option::is_some)
+        });
     });
 }
 
 /// Fits every pixel (`None` without observations) with the strengths chosen by
 /// leave-one-projector-out cross-validation. Takes the observations: their outliers are
 /// dropped in place (a copy of the ~1.4 million pixels' lists at full size was made serially).
-pub fn fit_shading(pixels: Vec<Vec<Observation>>) -> (Vec<Option<PixelShading>>, ShadingReport) {
+pub fn fit_shading(pixels: PixelObservations) -> (Vec<Option<PixelShading>>, ShadingReport) {
     let mut clean = pixels;
     let mu0 = channel_means(&clean);
     without_outliers(&mut clean, &mu0);
@@ -409,16 +534,15 @@ pub fn fit_shading(pixels: Vec<Vec<Observation>>) -> (Vec<Option<PixelShading>>,
         .iter()
         .find(|t| t.0 == LAMBDAS[LAMBDAS.len() - 1] && t.1 == 0.0)
         .map_or(f64::INFINITY, |t| t.2);
-    let fits: Vec<Option<PixelShading>> = clean
-        .par_iter()
-        .map(|obs| solve_pixel(obs, None, &mu, lambda, kappa))
-        .collect();
+    let fits = clean.solve_each(|obs| solve_pixel(obs, None, &mu, lambda, kappa));
     let mut angles: Vec<f64> = fits
         .iter()
         .flatten()
         .map(|f| f.delta.norm().atan().to_degrees())
         .collect();
-    angles.sort_by(f64::total_cmp);
+    // `total_cmp` orders every value and equal ones are the same bits: the same list as a
+    // serial sort, so the same mean.
+    angles.par_sort_unstable_by(f64::total_cmp);
     let report = ShadingReport {
         lambda,
         kappa,
@@ -447,7 +571,7 @@ pub fn observations(
     geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     centres: &[Vector3<f64>],
-) -> Result<Vec<Vec<Observation>>, ShadingError> {
+) -> Result<PixelObservations, ShadingError> {
     if geometries.len() != sweeps.len() || centres.len() != sweeps.len() {
         return Err(ShadingError::ProjectorCount {
             geometries: geometries.len(),
@@ -462,28 +586,37 @@ pub fn observations(
             want: surface.len(),
         });
     }
-    Ok((0..surface.len())
+    let surface_pixel = |i: usize| {
+        geometries
+            .iter()
+            .zip(sweeps)
+            .zip(centres)
+            .filter_map(move |((geo, sweep), centre)| {
+                let g = *geo.get(i)?;
+                let u = light_term(&surface.points[i], &surface.normals[i], centre)?;
+                let y: [Option<f64>; 3] =
+                    std::array::from_fn(|c| log_amplitude(sweep.fluxes(i, c, &g)));
+                y.iter()
+                    .any(Option::is_some)
+                    .then_some(Observation { u, y })
+            })
+    };
+    let n = surface.len();
+    let blocks = (0..n.div_ceil(BLOCK_PIXELS))
         .into_par_iter()
-        .map(|i| {
-            if !surface.mask[i] {
-                return Vec::new();
+        .map(|b| {
+            let mut block = ObservationBlock::default();
+            for i in b * BLOCK_PIXELS..((b + 1) * BLOCK_PIXELS).min(n) {
+                if surface.mask[i] {
+                    block.push_pixel(surface_pixel(i));
+                } else {
+                    block.push_pixel([]);
+                }
             }
-            geometries
-                .iter()
-                .zip(sweeps)
-                .zip(centres)
-                .filter_map(|((geo, sweep), centre)| {
-                    let g = *geo.get(i)?;
-                    let u = light_term(&surface.points[i], &surface.normals[i], centre)?;
-                    let y: [Option<f64>; 3] =
-                        std::array::from_fn(|c| log_amplitude(sweep.fluxes(i, c, &g)));
-                    y.iter()
-                        .any(Option::is_some)
-                        .then_some(Observation { u, y })
-                })
-                .collect()
+            block
         })
-        .collect())
+        .collect();
+    Ok(PixelObservations { blocks })
 }
 
 /// `ln(sum F / sum E W)` of a pixel's `(flux, E W)` per axis ([`SlitSweep::fluxes`]: its
@@ -503,18 +636,18 @@ fn log_amplitude(per_axis: impl Iterator<Item = (f64, f64)>) -> Option<f64> {
     (flux > 0.0 && ew > 0.0).then(|| (flux / ew).ln())
 }
 
-/// The surface with every pixel's normal corrected by the shading regression of its training
-/// observations; the report says what the cross-validation chose.
+/// Corrects every pixel's normal of `surface`, in place, by the shading regression of its
+/// training observations; the report says what the cross-validation chose. In place: a
+/// corrected copy (70 MB at full size) was made and the original dropped.
 pub fn refine_normals(
-    surface: &Surface,
+    surface: &mut Surface,
     geometries: &[GeometryMap],
     sweeps: &[SlitSweep],
     centres: &[Vector3<f64>],
-) -> Result<(Surface, ShadingReport), ShadingError> {
+) -> Result<ShadingReport, ShadingError> {
     let pixels = observations(surface, geometries, sweeps, centres)?;
     let (fits, report) = fit_shading(pixels);
-    let mut refined = surface.clone();
-    refined
+    surface
         .normals
         .par_iter_mut()
         .zip(&fits)
@@ -523,7 +656,7 @@ pub fn refine_normals(
                 *n = corrected_normal(n, &f.delta);
             }
         });
-    Ok((refined, report))
+    Ok(report)
 }
 
 #[cfg(test)]
@@ -680,6 +813,54 @@ mod tests {
         assert!(compared > 1500, "{compared}");
     }
 
+    /// The blocks hold what the per-pixel lists held, in order, across block boundaries and
+    /// with pixels without observations: read in order and by index, filtered as the lists are
+    /// by `retain`, solved pixel by pixel in order.
+    #[test]
+    fn blocks_keep_every_pixels_observations_in_order() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let pixels = 2 * BLOCK_PIXELS + 37;
+        let mut lists: Vec<Vec<Observation>> = (0..pixels)
+            .map(|_| {
+                if rng.gen_bool(0.3) {
+                    Vec::new()
+                } else {
+                    random_pixel(&mut rng, 4).0
+                }
+            })
+            .collect();
+        let mut blocks = PixelObservations::from_lists(lists.clone());
+        assert_eq!(blocks.len(), pixels);
+        let read: Vec<Vec<Observation>> = blocks.pixels().map(<[Observation]>::to_vec).collect();
+        assert_eq!(read, lists);
+        for i in (0..pixels)
+            .step_by(97)
+            .chain([BLOCK_PIXELS - 1, BLOCK_PIXELS, pixels - 1])
+        {
+            assert_eq!(blocks.pixel(i), lists[i].as_slice(), "pixel {i}");
+        }
+        assert!(blocks.pixel(pixels).is_empty());
+        // Drop one channel of some observations and the observations left without one.
+        let keep = |o: &mut Observation| {
+            if o.u.x > 0.5 {
+                o.y[0] = None;
+            }
+            o.y.iter().any(Option::is_some) && o.u.y < 1.0
+        };
+        blocks.blocks.iter_mut().for_each(|b| b.retain(keep));
+        for obs in &mut lists {
+            obs.retain_mut(keep);
+        }
+        let read: Vec<Vec<Observation>> = blocks.pixels().map(<[Observation]>::to_vec).collect();
+        assert_eq!(read, lists);
+        let counts = blocks.solve_each(|obs| (!obs.is_empty()).then_some(obs.len()));
+        let want: Vec<Option<usize>> = lists
+            .iter()
+            .map(|obs| (!obs.is_empty()).then_some(obs.len()))
+            .collect();
+        assert_eq!(counts, want);
+    }
+
     /// Four lights at the corners of the booth, as seen from a surface point at the origin with
     /// normal `n`.
     fn lights() -> Vec<Vector3<f64>> {
@@ -751,8 +932,9 @@ mod tests {
                 obs[0].y[i % 3] = None;
             }
         }
-        let mu = channel_means(&pixels);
-        let (table, scored) = cross_validate(&pixels, &mu);
+        let blocks = PixelObservations::from_lists(pixels.clone());
+        let mu = channel_means(&blocks);
+        let (table, scored) = cross_validate(&blocks, &mu);
         let scorable: Vec<&Vec<Observation>> = pixels.iter().filter(|o| o.len() >= 2).collect();
         let step = scorable.len().div_ceil(CV_PIXELS).max(1);
         let chosen: Vec<&Vec<Observation>> = scorable.into_iter().step_by(step).collect();
@@ -899,7 +1081,11 @@ mod tests {
             Vector3::new(-260.0, -200.0, 420.0),
             Vector3::new(260.0, 200.0, 420.0),
         ];
-        let fast = observations(&surface, &geometries, &sweeps, &centres).unwrap();
+        let fast: Vec<Vec<Observation>> = observations(&surface, &geometries, &sweeps, &centres)
+            .unwrap()
+            .pixels()
+            .map(<[Observation]>::to_vec)
+            .collect();
         let plain = observations_from_profiles(&surface, &geometries, &sweeps, &centres);
         type ObservationBits = (u64, u64, [Option<u64>; 3]);
         let bits = |pixels: &[Vec<Observation>]| -> Vec<Vec<ObservationBits>> {
@@ -936,7 +1122,7 @@ mod tests {
     fn a_normal_error_is_recovered_and_predicts_a_new_light() {
         // 6 degree normal errors, small noise: the correction must recover the tilt.
         let (obs, truth, held) = synthetic(3000, 6.0, 0.2, 0.01, 3);
-        let (fits, report) = fit_shading(obs.clone());
+        let (fits, report) = fit_shading(PixelObservations::from_lists(obs.clone()));
         assert!(report.lambda < 1.0, "{report:?}");
         let mut err2 = 0.0;
         let mut size2 = 0.0;
@@ -967,7 +1153,7 @@ mod tests {
     fn pure_noise_is_not_turned_into_a_normal_correction() {
         // Correct normals, noisy amplitudes: the cross-validation must not correct much.
         let (obs, _, _) = synthetic(3000, 0.0, 0.2, 0.1, 5);
-        let (fits, report) = fit_shading(obs);
+        let (fits, report) = fit_shading(PixelObservations::from_lists(obs));
         assert!(report.lambda >= 1.0, "{report:?}");
         let mean_deg = report.mean_correction_deg;
         assert!(mean_deg < 1.5, "mean correction {mean_deg} deg");

@@ -593,9 +593,8 @@ fn refine_surface(
         .iter()
         .map(|&k| inputs.projectors[k].centre)
         .collect();
-    let (refined, report) = refine_normals(&inputs.surface, geometries, &sweeps, &centres)?;
+    let report = refine_normals(&mut inputs.surface, geometries, &sweeps, &centres)?;
     drop(sweeps);
-    inputs.surface = refined;
     // Freed before the corrected geometry is built, so the two are never held together
     // (375 MB each at full size).
     *geometries = Vec::new();
