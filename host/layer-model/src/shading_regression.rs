@@ -64,7 +64,7 @@ pub struct Observation {
     pub y: [Option<f64>; 3],
 }
 
-/// Every pixel's observations, in pixel order, kept in blocks of [`BLOCK_PIXELS`] pixels: each
+/// Every pixel's observations, in pixel order, kept in blocks of 4096 pixels: each
 /// block one list of observations and where each pixel's part of it ends. Why not a list per
 /// pixel: at full size the ~1.4 million lists were allocated, walked (the channel means, the
 /// outliers, the solves) and freed one by one. With the blocks (and the normals corrected in
