@@ -96,14 +96,21 @@ impl ObservationBlock {
         self.ends.push(self.list.len() as u32);
     }
 
+    /// The observations of the block's pixel `j` (empty beyond its last pixel).
+    fn pixel(&self, j: usize) -> &[Observation] {
+        let start = match j.checked_sub(1) {
+            Some(before) => self.ends.get(before).copied(),
+            None => Some(0),
+        };
+        match (start, self.ends.get(j)) {
+            (Some(start), Some(&end)) => &self.list[start as usize..end as usize],
+            _ => &[],
+        }
+    }
+
     /// The observations of each pixel, in order.
     fn pixels(&self) -> impl Iterator<Item = &[Observation]> + '_ {
-        let mut start = 0;
-        self.ends.iter().map(move |&end| {
-            let obs = &self.list[start..end as usize];
-            start = end as usize;
-            obs
-        })
+        (0..self.ends.len()).map(|j| self.pixel(j))
     }
 
     /// Keeps the observations for which `keep` (which may change them) says true, each pixel's
@@ -128,18 +135,25 @@ impl ObservationBlock {
 impl PixelObservations {
     /// The observations of pixel after pixel, one list each.
     pub fn from_lists(lists: Vec<Vec<Observation>>) -> Self {
-        Self {
-            blocks: lists
-                .chunks(BLOCK_PIXELS)
-                .map(|chunk| {
-                    let mut block = ObservationBlock::default();
-                    for obs in chunk {
-                        block.push_pixel(obs.iter().copied());
-                    }
-                    block
-                })
-                .collect(),
-        }
+        Self::from_fn(lists.len(), |i| lists[i].iter().copied())
+    }
+
+    /// The observations `pixel(i)` of pixels `0..n`, the blocks made on every core.
+    fn from_fn<I: IntoIterator<Item = Observation>>(
+        n: usize,
+        pixel: impl Fn(usize) -> I + Sync,
+    ) -> Self {
+        let blocks = (0..n.div_ceil(BLOCK_PIXELS))
+            .into_par_iter()
+            .map(|b| {
+                let mut block = ObservationBlock::default();
+                for i in b * BLOCK_PIXELS..((b + 1) * BLOCK_PIXELS).min(n) {
+                    block.push_pixel(pixel(i));
+                }
+                block
+            })
+            .collect();
+        Self { blocks }
     }
 
     /// Number of pixels (with or without observations).
@@ -159,18 +173,9 @@ impl PixelObservations {
 
     /// The observations of pixel `i` (empty beyond the last pixel).
     fn pixel(&self, i: usize) -> &[Observation] {
-        let (b, j) = (i / BLOCK_PIXELS, i % BLOCK_PIXELS);
-        let Some(block) = self.blocks.get(b) else {
-            return &[];
-        };
-        let start = match j.checked_sub(1) {
-            Some(before) => block.ends.get(before).copied(),
-            None => Some(0),
-        };
-        match (start, block.ends.get(j)) {
-            (Some(start), Some(&end)) => &block.list[start as usize..end as usize],
-            _ => &[],
-        }
+        self.blocks
+            .get(i / BLOCK_PIXELS)
+            .map_or(&[], |block| block.pixel(i % BLOCK_PIXELS))
     }
 
     /// `solve` of each pixel's observations, in pixel order, on every core. Indexed, so the
@@ -601,22 +606,12 @@ pub fn observations(
                     .then_some(Observation { u, y })
             })
     };
-    let n = surface.len();
-    let blocks = (0..n.div_ceil(BLOCK_PIXELS))
-        .into_par_iter()
-        .map(|b| {
-            let mut block = ObservationBlock::default();
-            for i in b * BLOCK_PIXELS..((b + 1) * BLOCK_PIXELS).min(n) {
-                if surface.mask[i] {
-                    block.push_pixel(surface_pixel(i));
-                } else {
-                    block.push_pixel([]);
-                }
-            }
-            block
-        })
-        .collect();
-    Ok(PixelObservations { blocks })
+    Ok(PixelObservations::from_fn(surface.len(), |i| {
+        surface.mask[i]
+            .then(|| surface_pixel(i))
+            .into_iter()
+            .flatten()
+    }))
 }
 
 /// `ln(sum F / sum E W)` of a pixel's `(flux, E W)` per axis ([`SlitSweep::fluxes`]: its
